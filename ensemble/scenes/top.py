@@ -1,0 +1,121 @@
+"""The torqued symmetric top (the flying ring): equations, exact solution, observables.
+
+Body frame, lambda1 = lambda2, air-drag torque -c omega:
+
+    lambda1 w1' = (lambda1 - lambda3) w2 w3 - c w1
+    lambda1 w2' = (lambda3 - lambda1) w3 w1 - c w2
+    lambda3 w3' = -c w3
+
+The state is the three body rates (rad/s) and nothing more. With
+p = (lambda3 - lambda1)/lambda1, r1 = c/lambda1 and r3 = c/lambda3 the
+equations read w1' = -p w3 w2 - r1 w1, w2' = p w3 w1 - r1 w2, w3' = -r3 w3.
+"""
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+NAME = "top"
+STATE_SIZE = 3
+
+# name: (units, long_name, default or None when required)
+PARAMETERS: dict[str, tuple[str, str, float | None]] = {
+    "lambda1": ("kg m2", "principal moment of inertia about the transverse axes e1, e2", None),
+    "lambda3": ("kg m2", "principal moment of inertia about the symmetry axis e3", None),
+    "c": ("kg m2 s-1", "air-drag torque coefficient (torque = -c omega)", None),
+    "spin0": ("rad s-1", "magnitude of the angular velocity at t = 0", None),
+    "tilt0": ("rad", "angle between omega and e3 at t = 0", None),
+    "azimuth0": ("rad", "azimuth of omega about e3 at t = 0, from e1", 0.0),
+}
+
+# Saved variables: name -> (dims, units, long_name). Default: all of them.
+OBSERVABLES: dict[str, tuple[tuple[str, ...], str, str]] = {
+    "omega": (("member", "t", "axis"), "rad s-1", "body-frame angular velocity"),
+    "tilt": (("member", "t"), "rad", "angle between the angular velocity and the symmetry axis e3"),
+}
+
+# Relative slack for lambda3 <= 2 lambda1: a flat body sits exactly on the bound.
+_FLAT_BODY_RTOL = 1e-9
+
+
+def check(values: dict[str, np.ndarray]) -> list[tuple[str, str]]:
+    """Physical constraints on per-member parameters: [(parameter, problem), ...]."""
+    problems = []
+    for name in ("lambda1", "lambda3"):
+        if np.any(values[name] <= 0):
+            problems.append((name, f"must be > 0 (got {values[name].min():g})"))
+    if np.any(values["c"] < 0):
+        problems.append(("c", f"must be >= 0 (got {values['c'].min():g})"))
+    if np.any(values["spin0"] < 0):
+        problems.append(("spin0", f"must be >= 0 (got {values['spin0'].min():g})"))
+    tilt0 = values["tilt0"]
+    if np.any((tilt0 < 0) | (tilt0 > np.pi)):
+        problems.append(("tilt0", "must lie in [0, pi]"))
+    if not problems:
+        ratio = values["lambda3"] / values["lambda1"]
+        if np.any(ratio > 2 * (1 + _FLAT_BODY_RTOL)):
+            problems.append(("lambda3", f"lambda3 > 2 lambda1 (ratio {ratio.max():.6g}): no rigid body has that"))
+    return problems
+
+
+def initial_state(values: dict[str, np.ndarray]) -> np.ndarray:
+    """Body rates at t = 0 from spin0, tilt0, azimuth0; shape (3, members), rad/s."""
+    spin, tilt, azimuth = values["spin0"], values["tilt0"], values["azimuth0"]
+    return np.stack(
+        (spin * np.sin(tilt) * np.cos(azimuth), spin * np.sin(tilt) * np.sin(azimuth), spin * np.cos(tilt))
+    )
+
+
+def rates(values: dict[str, np.ndarray]) -> np.ndarray:
+    """Kernel parameters (p, r1, r3), shape (3, members): no division in the hot loop."""
+    lambda1, lambda3, c = values["lambda1"], values["lambda3"], values["c"]
+    return np.stack(((lambda3 - lambda1) / lambda1, c / lambda1, c / lambda3))
+
+
+@njit(inline="always", fastmath=True, error_model="numpy")
+def rhs(w1, w2, w3, p, r1, r3):
+    """Time derivative of the body rates (rad s-2)."""
+    return -p * w3 * w2 - r1 * w1, p * w3 * w1 - r1 * w2, -r3 * w3
+
+
+def exact(state0: np.ndarray, rate: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """Closed-form body rates at times t (s); returns shape (len(t), 3, members).
+
+    w3 = w30 exp(-r3 t). z = w1 + i w2 obeys z' = (i p w3 - r1) z, so
+    z = z0 exp(-r1 t) exp(i theta), theta = p w30 (1 - exp(-r3 t)) / r3
+    (p w30 t when r3 = 0).
+    """
+    p, r1, r3 = (x[None, :] for x in rate)
+    t = np.asarray(t, dtype=float)[:, None]
+    w10, w20, w30 = (x[None, :] for x in state0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        spun_time = np.where(r3 > 0, -np.expm1(-r3 * t) / r3, t)  # integral of exp(-r3 t)
+    theta = p * w30 * spun_time
+    decay = np.exp(-r1 * t)
+    cos, sin = np.cos(theta), np.sin(theta)
+    w1 = decay * (w10 * cos - w20 * sin)
+    w2 = decay * (w10 * sin + w20 * cos)
+    w3 = w30 * np.exp(-r3 * t)
+    return np.stack((w1, w2, w3), axis=1)
+
+
+def tilt(state: np.ndarray, axis: int) -> np.ndarray:
+    """Angle (rad) between omega and e3; `axis` is the axis of `state` holding (w1, w2, w3)."""
+    w1, w2, w3 = np.moveaxis(state, axis, 0)
+    return np.arctan2(np.hypot(w1, w2), w3)
+
+
+def tilt_theory(values: dict[str, np.ndarray], t: np.ndarray) -> np.ndarray:
+    """The course's tilt law atan(tan(tilt0) exp(-c (1/lambda1 - 1/lambda3) t)), shape (members, len(t))."""
+    rate = values["c"] * (1 / values["lambda1"] - 1 / values["lambda3"])
+    return np.arctan(np.tan(values["tilt0"])[:, None] * np.exp(-rate[:, None] * np.asarray(t)[None, :]))
+
+
+def observe(samples: np.ndarray, names) -> dict[str, np.ndarray]:
+    """Saved variables from kernel samples of shape (t, 3, members), member-major."""
+    out = {}
+    if "omega" in names:
+        out["omega"] = np.ascontiguousarray(samples.transpose(2, 0, 1))
+    if "tilt" in names:
+        out["tilt"] = tilt(samples, axis=1).T
+    return out

@@ -1,0 +1,253 @@
+"""Reading and validating run files, and expanding them into a members table.
+
+A run file is TOML (see README.md). Every problem is a SpecError naming the
+key, so the command line can print one line and exit with status 2.
+
+Randomness: parameter `name` of member i is the i-th draw of a stream seeded by
+(seed, crc32(name)). It depends only on the seed, the parameter and the member
+index, never on chunk size, thread count, or the order of keys in the file.
+"""
+from __future__ import annotations
+
+import difflib
+import itertools
+import math
+import tomllib
+import zlib
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .methods import METHODS, methods_for
+from .scenes import SCENES
+
+
+class SpecError(ValueError):
+    """A problem in a run file, tied to the key where it is."""
+
+    def __init__(self, key: str, problem: str):
+        super().__init__(f"{key}: {problem}")
+        self.key = key
+        self.problem = problem
+
+
+TOP_LEVEL = {
+    "scene": str, "method": str, "dt": float, "t_end": float, "save_dt": float,
+    "members": int, "seed": int, "save": list, "parameters": dict, "sweep": dict,
+}
+REQUIRED = ("scene", "method", "dt", "t_end", "save_dt", "members", "seed")
+DISTRIBUTIONS = ("uniform", "normal", "loguniform")
+_STEP_RTOL = 1e-9  # how close save_dt / dt and t_end / save_dt must be to whole numbers
+
+
+@dataclass(frozen=True)
+class Distribution:
+    kind: str  # one of DISTRIBUTIONS
+    args: tuple[float, float]
+
+    def draw(self, rng: np.random.Generator, n: int) -> np.ndarray:
+        lo, hi = self.args
+        if self.kind == "uniform":
+            return rng.uniform(lo, hi, n)
+        if self.kind == "normal":
+            return rng.normal(lo, hi, n)
+        return np.exp(rng.uniform(math.log(lo), math.log(hi), n))
+
+
+@dataclass(frozen=True)
+class Spec:
+    """A validated run file."""
+
+    path: str
+    text: str
+    scene: str
+    method: str
+    dt: float
+    t_end: float
+    save_dt: float
+    members: int  # replicas per sweep point
+    seed: int
+    save: tuple[str, ...]
+    parameters: dict[str, float | Distribution] = field(repr=False)
+    sweep: dict[str, tuple[float, ...]] = field(repr=False)
+
+    @property
+    def steps_per_save(self) -> int:
+        return round(self.save_dt / self.dt)
+
+    @property
+    def n_save(self) -> int:
+        """Saved samples, including t = 0."""
+        return round(self.t_end / self.save_dt) + 1
+
+    @property
+    def steps(self) -> int:
+        return (self.n_save - 1) * self.steps_per_save
+
+    @property
+    def sweep_points(self) -> int:
+        return math.prod(len(v) for v in self.sweep.values())
+
+    @property
+    def n_members(self) -> int:
+        return self.sweep_points * self.members
+
+    def times(self) -> np.ndarray:
+        """Saved sample times (s)."""
+        return np.arange(self.n_save) * (self.steps_per_save * self.dt)
+
+
+def _type_name(kind) -> str:
+    return {float: "a number", int: "an integer", str: "a string", list: "a list", dict: "a table"}[kind]
+
+
+def _expect(key: str, value, kind):
+    """Check the TOML type of a value; ints count as numbers, bools as nothing else."""
+    ok = isinstance(value, kind) and not isinstance(value, bool)
+    if kind is float:
+        ok = isinstance(value, (int, float)) and not isinstance(value, bool)
+    if not ok:
+        raise SpecError(key, f"must be {_type_name(kind)}, got {type(value).__name__} {value!r}")
+    return float(value) if kind is float else value
+
+
+def _unknown(key: str, name: str, known) -> SpecError:
+    close = difflib.get_close_matches(name, list(known), n=1)
+    hint = f" (did you mean {close[0]!r}?)" if close else ""
+    return SpecError(key, f"unknown key{hint}; known keys: {', '.join(sorted(known))}")
+
+
+def _positive(key: str, value: float) -> float:
+    if not value > 0 or not math.isfinite(value):
+        raise SpecError(key, f"must be > 0 and finite, got {value!r}")
+    return value
+
+
+def _whole_ratio(key: str, num: float, den: float, what: str) -> None:
+    ratio = num / den
+    if round(ratio) < 1 or abs(ratio - round(ratio)) > _STEP_RTOL * ratio:
+        raise SpecError(key, f"must be a whole multiple of {what} ({num!r} / {den!r} = {ratio:.12g})")
+
+
+def _parameter(key: str, value) -> float | Distribution:
+    if isinstance(value, dict):
+        if len(value) != 1 or next(iter(value)) not in DISTRIBUTIONS:
+            raise SpecError(key, f"a distribution is one of {{uniform=[lo,hi]}}, {{normal=[mu,sd]}}, "
+                                 f"{{loguniform=[lo,hi]}}; got {value!r}")
+        kind, args = next(iter(value.items()))
+        if not (isinstance(args, list) and len(args) == 2):
+            raise SpecError(f"{key}.{kind}", f"must be a list of two numbers, got {args!r}")
+        lo, hi = (_expect(f"{key}.{kind}", x, float) for x in args)
+        if kind == "normal" and hi < 0:
+            raise SpecError(f"{key}.normal", f"standard deviation must be >= 0, got {hi!r}")
+        if kind != "normal" and lo > hi:
+            raise SpecError(f"{key}.{kind}", f"lower bound {lo!r} is above upper bound {hi!r}")
+        if kind == "loguniform" and lo <= 0:
+            raise SpecError(f"{key}.loguniform", f"bounds must be > 0, got {lo!r}")
+        return Distribution(kind, (lo, hi))
+    return _expect(key, value, float)
+
+
+def parse(text: str, path: str = "<string>") -> Spec:
+    """Validate run-file text; raises SpecError naming the first bad key."""
+    try:
+        raw = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as e:
+        raise SpecError("TOML syntax", str(e)) from None
+    for key in raw:
+        if key not in TOP_LEVEL:
+            raise _unknown(key, key, TOP_LEVEL)
+    for key in REQUIRED:
+        if key not in raw:
+            raise SpecError(key, "missing (required)")
+    values = {key: _expect(key, raw[key], kind) for key, kind in TOP_LEVEL.items() if key in raw}
+
+    scene = values["scene"]
+    if scene not in SCENES:
+        raise SpecError("scene", f"unknown scene {scene!r}; scenes: {', '.join(SCENES)}")
+    module = SCENES[scene]
+    method = values["method"]
+    if method not in METHODS:
+        raise SpecError("method", f"unknown method {method!r}; methods for {scene}: {', '.join(methods_for(scene))}")
+    if scene not in METHODS[method].scenes:
+        raise SpecError("method", f"{method!r} does not apply to scene {scene!r}; "
+                                  f"use one of: {', '.join(methods_for(scene))}")
+
+    dt = _positive("dt", values["dt"])
+    t_end = _positive("t_end", values["t_end"])
+    save_dt = _positive("save_dt", values["save_dt"])
+    _whole_ratio("save_dt", save_dt, dt, "dt")
+    _whole_ratio("t_end", t_end, save_dt, "save_dt")
+    if values["members"] < 1:
+        raise SpecError("members", f"must be >= 1, got {values['members']}")
+    if values["seed"] < 0:
+        raise SpecError("seed", f"must be >= 0, got {values['seed']}")
+
+    save = tuple(values.get("save", module.OBSERVABLES))
+    for i, name in enumerate(save):
+        if name not in module.OBSERVABLES:
+            raise SpecError(f"save[{i}]", f"unknown variable {name!r}; {scene} saves: {', '.join(module.OBSERVABLES)}")
+    if not save:
+        raise SpecError("save", "must name at least one variable")
+
+    parameters = {}
+    for name, value in values.get("parameters", {}).items():
+        if name not in module.PARAMETERS:
+            raise _unknown(f"parameters.{name}", name, module.PARAMETERS)
+        parameters[name] = _parameter(f"parameters.{name}", value)
+    sweep = {}
+    for name, axis in values.get("sweep", {}).items():
+        key = f"sweep.{name}"
+        if name not in module.PARAMETERS:
+            raise _unknown(key, name, module.PARAMETERS)
+        if name in parameters:
+            raise SpecError(key, "is both a parameter and a sweep axis; give it in one place only")
+        if not isinstance(axis, list) or not axis:
+            raise SpecError(key, f"a sweep axis must be a non-empty list of numbers, got {axis!r}")
+        sweep[name] = tuple(_expect(key, x, float) for x in axis)
+    for name, (_, _, default) in module.PARAMETERS.items():
+        if name not in parameters and name not in sweep:
+            if default is None:
+                raise SpecError(f"parameters.{name}", "missing (required)")
+            parameters[name] = default
+
+    spec = Spec(path=str(path), text=text, scene=scene, method=method, dt=dt, t_end=t_end,
+                save_dt=save_dt, members=values["members"], seed=values["seed"], save=save,
+                parameters=parameters, sweep=sweep)
+    members_table(spec)  # draws and checks every member's values
+    return spec
+
+
+def load(path: str | Path) -> Spec:
+    """Read and validate a run file."""
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except OSError as e:
+        raise SpecError(str(path), e.strerror or str(e)) from None
+    return parse(text, str(path))
+
+
+def members_table(spec: Spec) -> dict[str, np.ndarray]:
+    """Every member's parameter values, each an array over members.
+
+    Members are ordered sweep point major, replica minor; the table also holds
+    `sweep_point`, the index of each member's point on the sweep grid.
+    """
+    n = spec.n_members
+    grid = list(itertools.product(*spec.sweep.values())) or [()]
+    point = np.repeat(np.arange(len(grid)), spec.members)
+    table = {"sweep_point": point}
+    for i, name in enumerate(spec.sweep):
+        table[name] = np.array([g[i] for g in grid], dtype=float)[point]
+    for name, value in spec.parameters.items():
+        if isinstance(value, Distribution):
+            rng = np.random.default_rng([spec.seed, zlib.crc32(name.encode())])
+            table[name] = value.draw(rng, n)
+        else:
+            table[name] = np.full(n, value)
+    for name, problem in SCENES[spec.scene].check(table):
+        where = "sweep" if name in spec.sweep else "parameters"
+        raise SpecError(f"{where}.{name}", problem)
+    return table

@@ -1,0 +1,106 @@
+"""NetCDF output: the dataset contract, streamed to disk by member chunks.
+
+A run writes `OUT.part` first and renames it to OUT only when every member is
+in, so an interrupted run never leaves a file that looks complete.
+"""
+from __future__ import annotations
+
+import datetime
+import os
+from pathlib import Path
+
+import netCDF4
+import numpy as np
+
+from . import __version__
+from .scenes import SCENES
+from .spec import Spec
+
+AXIS_LABELS = np.array([1, 2, 3], dtype=np.int32)
+
+
+def part_path(path: Path) -> Path:
+    """Where a run writes before it is complete."""
+    return path.with_name(path.name + ".part")
+
+
+def global_attributes(spec: Spec) -> dict[str, object]:
+    now = datetime.datetime.now(datetime.timezone.utc).replace(microsecond=0).isoformat()
+    return {
+        "Conventions": "CF-1.8",
+        "title": f"ensemble {spec.scene} run {Path(spec.path).stem} ({spec.method})",
+        "history": f"{now} ensemble {__version__}: ensemble run {spec.path}",
+        "source": f"ensemble {__version__}",
+        "comment": "Each member's parameters are variables over member; `spec` holds the run file.",
+        "scene": spec.scene,
+        "method": spec.method,
+        "dt": spec.dt,
+        "save_dt": spec.save_dt,
+        "t_end": spec.t_end,
+        "seed": spec.seed,
+        "members_per_sweep_point": spec.members,
+        "sweep_axes": " ".join(spec.sweep),
+        "spec": spec.text,
+    }
+
+
+class Writer:
+    """Creates the file with every member's parameters; data arrive by chunks.
+
+    Use as a context manager: on success the file is renamed into place; on an
+    exception the `.part` file stays, holding the chunks that finished.
+    """
+
+    def __init__(self, path: str | Path, spec: Spec, table: dict[str, np.ndarray], chunk: int):
+        self.path = Path(path)
+        self.part = part_path(self.path)
+        self.scene = SCENES[spec.scene]
+        self.spec = spec
+        n = spec.n_members
+        self.nc = nc = netCDF4.Dataset(self.part, "w", format="NETCDF4")
+        nc.setncatts(global_attributes(spec))
+        nc.setncattr("members_written", 0)
+        nc.createDimension("member", n)
+        nc.createDimension("t", spec.n_save)
+        nc.createDimension("axis", 3)
+        self._coordinate("member", np.arange(n, dtype=np.int64), "ensemble member index")
+        self._coordinate("t", spec.times(), "time since the start of the run", units="s")
+        if "omega" in spec.save:
+            self._coordinate("axis", AXIS_LABELS, "body-frame axis (3: symmetry axis)")
+        self._coordinate(
+            "sweep_point", table["sweep_point"].astype(np.int32), "index of the member's point on the sweep grid",
+            dims=("member",),
+        )
+        for name, (units, long_name, _) in self.scene.PARAMETERS.items():
+            var = nc.createVariable(name, "f8", ("member",))
+            var.setncatts({"units": units, "long_name": long_name})
+            var[:] = table[name]
+        for name in spec.save:
+            dims, units, long_name = self.scene.OBSERVABLES[name]
+            sizes = {"member": min(chunk, n), "t": spec.n_save, "axis": 3}
+            var = nc.createVariable(name, "f8", dims, chunksizes=tuple(sizes[d] for d in dims))
+            var.setncatts({"units": units, "long_name": long_name})
+        self.written = 0
+
+    def _coordinate(self, name, values, long_name, units="1", dims=None):
+        var = self.nc.createVariable(name, values.dtype, dims or (name,))
+        var.setncatts({"units": units, "long_name": long_name})
+        var[:] = values
+
+    def write(self, start: int, data: dict[str, np.ndarray]) -> None:
+        """Store the saved variables of members start, start + 1, ... (member-major arrays)."""
+        for name, values in data.items():
+            self.nc.variables[name][start:start + len(values)] = values
+            count = len(values)
+        self.written += count
+        self.nc.setncattr("members_written", self.written)
+        self.nc.sync()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, kind, value, traceback):
+        self.nc.close()
+        if kind is None:
+            os.replace(self.part, self.path)
+        return False
