@@ -63,7 +63,7 @@ class Writer:
         nc.createDimension("member", n)
         nc.createDimension("t", spec.n_save)
         nc.createDimension("axis", 3)
-        self._coordinate("member", np.arange(n, dtype=np.int64), "ensemble member index")
+        self._coordinate("member", np.arange(n, dtype=np.int32), "ensemble member index")
         self._coordinate("t", spec.times(), "time since the start of the run", units="s")
         if "omega" in spec.save:
             self._coordinate("axis", AXIS_LABELS, "body-frame axis (3: symmetry axis)")

@@ -1,0 +1,92 @@
+"""Benchmark: the top's Numba kernels against NumPy vectorized over members.
+
+    python analysis/bench_top.py [--members 65536] [--steps 1000] [--repeats 7]
+
+Both run in this process, side by side; the script prints medians and their
+ratio (these machines are shared: quote ratios, not single times). It also
+times a small run file through the command line twice, so the second run
+shows the warm-cache start-up cost.
+"""
+from __future__ import annotations
+
+import argparse
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from ensemble import kernels
+from ensemble.methods import METHODS
+from ensemble.scenes import top
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def numpy_rk(tableau, state, rate, h, steps):
+    """Explicit Runge-Kutta over members with NumPy, from the same tableau and right-hand side."""
+    def f(y):
+        return np.stack(top.rhs.py_func(y[0], y[1], y[2], rate[0], rate[1], rate[2]))
+    for _ in range(steps):
+        k = []
+        for s in range(tableau.stages):
+            y = state.copy()
+            for r, a in enumerate(tableau.a[s][:s]):
+                if a:
+                    y += h * a * k[r]
+            k.append(f(y))
+        state = state + h * sum(b * ks for b, ks in zip(tableau.b, k))
+    return state
+
+
+def median_rate(fn, members, steps, repeats):
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - start)
+    return members * steps / statistics.median(times)
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--members", type=int, default=65536)
+    parser.add_argument("--steps", type=int, default=1000)
+    parser.add_argument("--numpy-steps", type=int, default=20)
+    parser.add_argument("--repeats", type=int, default=7)
+    args = parser.parse_args()
+
+    rng = np.random.default_rng(2026)
+    n = args.members
+    table = {"lambda1": np.full(n, 1e-3), "lambda3": rng.uniform(1.2e-3, 2e-3, n), "c": rng.uniform(0, 2e-4, n),
+             "spin0": rng.uniform(30, 60, n), "tilt0": rng.uniform(0.02, 0.2, n), "azimuth0": rng.uniform(0, 6, n)}
+    state, rate = top.initial_state(table), top.rates(table)
+    h = 1e-3
+    print(f"top, {n} members, Numba {args.steps} steps, NumPy {args.numpy_steps} steps, "
+          f"median of {args.repeats}")
+    print(f"{'method':<8} {'numba member-steps/s':>21} {'numpy member-steps/s':>21} {'ratio':>7}")
+    for name in ("euler", "rk4"):
+        samples = np.empty((2, 3, n))
+        kernel = kernels.kernel_for("top", name)
+        kernel(state, rate, h, 1, samples)  # compile or load
+        fast = median_rate(lambda: kernel(state, rate, h, args.steps, samples), n, args.steps, args.repeats)
+        slow = median_rate(lambda: numpy_rk(METHODS[name].tableau, state, rate, h, args.numpy_steps),
+                           n, args.numpy_steps, args.repeats)
+        print(f"{name:<8} {fast:>21.3g} {slow:>21.3g} {fast / slow:>7.1f}")
+
+    with tempfile.TemporaryDirectory() as tmp:
+        walls = []
+        for _ in range(3):
+            start = time.perf_counter()
+            subprocess.run([sys.executable, "-m", "ensemble", "run", str(ROOT / "runs" / "aerobie.toml"),
+                            "-o", f"{tmp}/a.nc", "--force", "--quiet"], check=True, capture_output=True)
+            walls.append(time.perf_counter() - start)
+    print("ensemble run runs/aerobie.toml, whole process wall time (s): "
+          + ", ".join(f"{w:.2f}" for w in walls) + " (first may compile; later ones load the cache)")
+
+
+if __name__ == "__main__":
+    main()

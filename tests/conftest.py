@@ -1,0 +1,42 @@
+"""Shared helpers: run-file text from Python values."""
+from __future__ import annotations
+
+import pytest
+
+
+def _toml_value(value) -> str:
+    if isinstance(value, str):
+        return f'"{value}"'
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, (list, tuple)):
+        return "[" + ", ".join(_toml_value(v) for v in value) + "]"
+    if isinstance(value, dict):
+        return "{ " + ", ".join(f"{k} = {_toml_value(v)}" for k, v in value.items()) + " }"
+    return repr(value)
+
+
+def top_runfile(parameters=None, sweep=None, **top_level) -> str:
+    """Text of a small top run file; keyword arguments override or (with None) remove keys."""
+    head = dict(scene="top", method="rk4", dt=1e-3, t_end=0.5, save_dt=0.1, members=4, seed=7)
+    head.update(top_level)
+    params = dict(lambda1=1.0e-3, lambda3=2.0e-3, c=1e-4, spin0=60.0,
+                  tilt0={"uniform": [0.02, 0.2]}, azimuth0={"uniform": [0.0, 6.283185307179586]})
+    params.update(parameters or {})
+    lines = [f"{k} = {_toml_value(v)}" for k, v in head.items() if v is not None]
+    lines.append("[parameters]")
+    lines += [f"{k} = {_toml_value(v)}" for k, v in params.items() if v is not None]
+    if sweep:
+        lines.append("[sweep]")
+        lines += [f"{k} = {_toml_value(v)}" for k, v in sweep.items()]
+    return "\n".join(lines) + "\n"
+
+
+@pytest.fixture
+def write_runfile(tmp_path):
+    """Write run-file text into the test's folder and return its path."""
+    def write(text: str, name: str = "run.toml"):
+        path = tmp_path / name
+        path.write_text(text)
+        return path
+    return write

@@ -1,0 +1,132 @@
+"""The command line end to end, the NetCDF file it writes, and interrupted runs."""
+import json
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import netCDF4
+import numpy as np
+import pytest
+import xarray as xr
+
+from ensemble import cli, kernels, runner
+from ensemble.scenes import top
+from ensemble.spec import load, members_table, parse
+from tests.conftest import top_runfile
+
+SWEEP_RUN = top_runfile(members=5, t_end=1.0, save_dt=0.1, parameters={"c": None}, sweep={"c": [1e-4, 2e-4]})
+
+
+def ensemble(*args, cwd):
+    return subprocess.run([sys.executable, "-m", "ensemble", *args], cwd=cwd, capture_output=True, text=True)
+
+
+@pytest.fixture(scope="module")
+def cli_run(tmp_path_factory):
+    """One real run through the command line, into its default output path."""
+    folder = tmp_path_factory.mktemp("cli")
+    (folder / "runs").mkdir()
+    (folder / "runs" / "sweep.toml").write_text(SWEEP_RUN)
+    done = ensemble("run", "runs/sweep.toml", cwd=folder)
+    return folder, done
+
+
+def test_run_writes_the_default_output_and_a_summary(cli_run):
+    folder, done = cli_run
+    assert done.returncode == 0, done.stderr
+    out = folder / "results" / "sweep.nc"
+    assert out.exists() and not (folder / "results" / "sweep.nc.part").exists()
+    summary = done.stdout.strip().splitlines()[-1]
+    assert "10 members x 1000 steps" in summary and "member-steps/s" in summary
+
+
+def test_dataset_follows_the_contract(cli_run):
+    folder, _ = cli_run
+    ds = xr.open_dataset(folder / "results" / "sweep.nc")
+    assert ds.omega.dims == ("member", "t", "axis") and ds.tilt.dims == ("member", "t")
+    assert ds.sizes == {"member": 10, "t": 11, "axis": 3}
+    assert ds.t.attrs["units"] == "s" and ds.omega.attrs["units"] == "rad s-1" and ds.tilt.attrs["units"] == "rad"
+    for name in ("lambda1", "lambda3", "c", "spin0", "tilt0", "azimuth0", "sweep_point"):
+        assert ds[name].dims == ("member",) and "units" in ds[name].attrs and "long_name" in ds[name].attrs
+    np.testing.assert_allclose(ds.t, np.arange(11) * 0.1, rtol=1e-12)
+    attrs = ds.attrs
+    assert attrs["Conventions"] == "CF-1.8" and attrs["scene"] == "top" and attrs["method"] == "rk4"
+    assert attrs["spec"] == SWEEP_RUN and attrs["seed"] == 7 and attrs["dt"] == 1e-3
+    assert attrs["source"].startswith("ensemble ") and attrs["members_written"] == 10
+    assert sorted(set(ds.c.values)) == [1e-4, 2e-4]
+
+
+def test_file_round_trips_the_kernel_output(cli_run, tmp_path):
+    """What the file holds equals an independent in-process integration of the same members."""
+    folder, _ = cli_run
+    ds = xr.open_dataset(folder / "results" / "sweep.nc")
+    table = members_table(parse(SWEEP_RUN))
+    for name in ("lambda1", "lambda3", "c", "spin0", "tilt0", "azimuth0"):
+        np.testing.assert_array_equal(ds[name].values, table[name])
+    samples = kernels.integrate(top, "rk4", top.initial_state(table), top.rates(table), 1e-3, 100, 11)
+    np.testing.assert_array_equal(ds.omega.values, samples.transpose(2, 0, 1))
+    np.testing.assert_allclose(ds.tilt.values, top.tilt(ds.omega.values, axis=2), rtol=1e-15)
+    copy = tmp_path / "copy.nc"
+    ds.to_netcdf(copy)
+    xr.testing.assert_identical(xr.open_dataset(copy), ds)
+
+
+def test_output_passes_the_cf_compliance_checker(cli_run):
+    folder, _ = cli_run
+    executable = shutil.which("compliance-checker", path=str(Path(sys.executable).parent)) or "compliance-checker"
+    checker = subprocess.run([executable, "--test=cf:1.8", "-f", "json", "-o", "-",
+                              str(folder / "results" / "sweep.nc")], capture_output=True, text=True)
+    report = json.loads(checker.stdout)["cf:1.8"]
+    assert report["high_count"] == 0, report["high_priorities"]
+
+
+def test_existing_output_needs_force(cli_run):
+    folder, _ = cli_run
+    out = folder / "results" / "sweep.nc"
+    before = out.stat().st_mtime_ns
+    refused = ensemble("run", "runs/sweep.toml", cwd=folder)
+    assert refused.returncode == 2 and "--force" in refused.stderr and out.stat().st_mtime_ns == before
+    forced = ensemble("run", "runs/sweep.toml", "--force", "--quiet", "-o", "results/sweep.nc", cwd=folder)
+    assert forced.returncode == 0 and out.stat().st_mtime_ns > before
+
+
+def test_version_help_and_methods(tmp_path):
+    version = ensemble("--version", cwd=tmp_path)
+    assert version.returncode == 0 and version.stdout.startswith("ensemble ")
+    helped = ensemble("--help", cwd=tmp_path)
+    assert helped.returncode == 0 and "run" in helped.stdout and "methods" in helped.stdout
+    listing = ensemble("methods", cwd=tmp_path).stdout.splitlines()
+    rows = {line.split()[0]: line.split() for line in listing[1:]}
+    assert rows["rk4"][1:4] == ["4", "no", "top"] and rows["euler"][1] == "1" and rows["exact"][1] == "exact"
+
+
+def test_results_do_not_depend_on_chunk_size(write_runfile):
+    spec = load(write_runfile(top_runfile(members=300, t_end=0.2)))
+    small, large = runner.simulate(spec, chunk=128), runner.simulate(spec, chunk=1000)
+    xr.testing.assert_equal(small.drop_attrs(), large.drop_attrs())
+
+
+def test_save_limits_what_is_stored(write_runfile):
+    ds = runner.simulate(load(write_runfile(top_runfile(save=["tilt"]))))
+    assert "tilt" in ds and "omega" not in ds and "axis" not in ds.dims
+
+
+def test_interrupted_run_leaves_no_complete_looking_file(write_runfile, tmp_path, monkeypatch, capsys):
+    calls = []
+    integrate = kernels.integrate
+
+    def interrupted_after_one_chunk(*args):
+        if calls:
+            raise KeyboardInterrupt
+        calls.append(1)
+        return integrate(*args)
+
+    monkeypatch.setattr(kernels, "integrate", interrupted_after_one_chunk)
+    out = tmp_path / "out.nc"
+    status = cli.main(["run", str(write_runfile(top_runfile(members=300))), "-o", str(out), "--chunk", "128"])
+    assert status == 130 and "interrupted" in capsys.readouterr().err
+    assert not out.exists()
+    with netCDF4.Dataset(tmp_path / "out.nc.part") as part:
+        assert part.members_written == 128
+        assert np.all(np.isfinite(part["omega"][:128]))

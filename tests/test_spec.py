@@ -1,0 +1,103 @@
+"""Run files: validation of every bad input, sweep expansion, seeded draws."""
+import numpy as np
+import pytest
+
+from ensemble import cli
+from ensemble.spec import SpecError, members_table, parse
+from tests.conftest import top_runfile
+
+BAD_INPUTS = {
+    "toml syntax": ("scene = 'top'\ndt = = 1\n", "TOML syntax"),
+    "unknown parameter": (top_runfile(parameters={"lamda1": 1e-3}), "parameters.lamda1"),
+    "unknown top-level key": (top_runfile(tend=3.0), "tend"),
+    "wrong type": (top_runfile(dt="fast"), "dt"),
+    "wrong type of integer": (top_runfile(members=2.5), "members"),
+    "wrong parameter type": (top_runfile(parameters={"spin0": "fast"}), "parameters.spin0"),
+    "unknown scene": (top_runfile(scene="pendulum"), "scene"),
+    "unknown method": (top_runfile(method="rk45"), "method"),
+    "dt zero": (top_runfile(dt=0.0), "dt"),
+    "dt negative": (top_runfile(dt=-1e-3), "dt"),
+    "t_end zero": (top_runfile(t_end=0.0), "t_end"),
+    "save_dt not a multiple of dt": (top_runfile(save_dt=0.0015), "save_dt"),
+    "t_end not a multiple of save_dt": (top_runfile(t_end=0.55), "t_end"),
+    "members zero": (top_runfile(members=0), "members"),
+    "lambda zero": (top_runfile(parameters={"lambda1": 0.0}), "parameters.lambda1"),
+    "lambda negative in a sweep": (top_runfile(parameters={"lambda3": None}, sweep={"lambda3": [1e-3, -1e-3]}),
+                                   "sweep.lambda3"),
+    "c negative": (top_runfile(parameters={"c": -1e-5}), "parameters.c"),
+    "no such rigid body": (top_runfile(parameters={"lambda3": 2.5e-3}), "parameters.lambda3"),
+    "uniform lo > hi": (top_runfile(parameters={"tilt0": {"uniform": [0.2, 0.1]}}), "parameters.tilt0.uniform"),
+    "normal sd < 0": (top_runfile(parameters={"spin0": {"normal": [60.0, -1.0]}}), "parameters.spin0.normal"),
+    "unknown distribution": (top_runfile(parameters={"spin0": {"gauss": [60.0, 1.0]}}), "parameters.spin0"),
+    "parameter and sweep axis": (top_runfile(sweep={"c": [1e-4, 2e-4]}), "sweep.c"),
+    "missing parameter": (top_runfile(parameters={"spin0": None}), "parameters.spin0"),
+    "missing top-level key": (top_runfile(seed=None), "seed"),
+    "unknown saved variable": (top_runfile(save=["omega", "angle"]), "save[1]"),
+    "method of another scene": (top_runfile(method="verlet"), "method"),
+}
+
+
+@pytest.mark.parametrize("case", BAD_INPUTS)
+def test_bad_input_is_one_line_naming_the_key_and_exit_2(case, write_runfile, tmp_path, capsys):
+    text, key = BAD_INPUTS[case]
+    with pytest.raises(SpecError) as error:
+        parse(text)
+    assert error.value.key == key
+    out = tmp_path / "out.nc"
+    status = cli.main(["run", str(write_runfile(text)), "-o", str(out), "--quiet"])
+    err = capsys.readouterr().err
+    assert status == 2
+    assert len(err.strip().splitlines()) == 1 and f" {key}: " in err
+    assert not out.exists() and not list(tmp_path.glob("out.nc*"))
+
+
+def test_unknown_key_suggests_the_close_one():
+    with pytest.raises(SpecError, match="did you mean 'lambda1'"):
+        parse(top_runfile(parameters={"lamda1": 1e-3}))
+
+
+def test_method_mismatch_names_the_methods_that_apply():
+    with pytest.raises(SpecError, match="euler, rk4, exact"):
+        parse(top_runfile(method="verlet"))
+
+
+def test_flat_body_on_the_bound_is_accepted():
+    """A thin annulus has lambda3 = 2 lambda1 up to rounding."""
+    lambda1 = 0.1 * (0.1**2 + 0.13**2) / 4
+    parse(top_runfile(parameters={"lambda1": lambda1, "lambda3": 2 * lambda1 * (1 + 1e-15)}))
+
+
+def test_sweep_expands_every_combination_with_replicas():
+    spec = parse(top_runfile(members=3, parameters={"c": None, "spin0": None},
+                             sweep={"c": [1e-4, 2e-4], "spin0": [10.0, 20.0, 30.0]}))
+    table = members_table(spec)
+    assert spec.sweep_points == 6 and spec.n_members == 18
+    pairs = list(zip(table["c"], table["spin0"]))
+    assert sorted(set(pairs)) == [(c, s) for c in (1e-4, 2e-4) for s in (10.0, 20.0, 30.0)]
+    assert all(pairs.count(p) == 3 for p in set(pairs))
+    np.testing.assert_array_equal(table["sweep_point"], np.repeat(np.arange(6), 3))
+    for point in range(6):  # a point's replicas share its sweep values
+        same = table["sweep_point"] == point
+        assert len(set(table["c"][same])) == 1 and len(set(table["spin0"][same])) == 1
+
+
+def test_draws_are_seeded_per_member_and_follow_their_distribution():
+    text = top_runfile(members=4000, parameters={"spin0": {"normal": [60.0, 2.0]},
+                                                 "lambda1": {"loguniform": [1e-3, 1e-2]},
+                                                 "lambda3": 1e-3})
+    a, b = members_table(parse(text)), members_table(parse(text))
+    for name in a:
+        np.testing.assert_array_equal(a[name], b[name])
+    other = members_table(parse(text.replace("seed = 7", "seed = 8")))
+    assert not np.any(other["tilt0"] == a["tilt0"])
+    assert 0.02 <= a["tilt0"].min() and a["tilt0"].max() <= 0.2
+    assert abs(a["spin0"].mean() - 60.0) < 4 * 2.0 / np.sqrt(4000)
+    assert abs(a["spin0"].std() - 2.0) < 0.1
+    log = np.log10(a["lambda1"])  # loguniform: uniform in log
+    assert -3 <= log.min() and log.max() <= -2 and abs(log.mean() + 2.5) < 0.02
+
+
+def test_a_member_keeps_its_draws_when_the_ensemble_grows():
+    small = members_table(parse(top_runfile(members=5)))
+    large = members_table(parse(top_runfile(members=50)))
+    np.testing.assert_array_equal(small["tilt0"], large["tilt0"][:5])
