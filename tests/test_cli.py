@@ -1,5 +1,6 @@
 """The command line end to end, the NetCDF file it writes, and interrupted runs."""
 import json
+import os
 import shutil
 import subprocess
 import sys
@@ -130,3 +131,13 @@ def test_interrupted_run_leaves_no_complete_looking_file(write_runfile, tmp_path
     with netCDF4.Dataset(tmp_path / "out.nc.part") as part:
         assert part.members_written == 128
         assert np.all(np.isfinite(part["omega"][:128]))
+
+
+def test_second_process_loads_kernels_from_the_disk_cache(cli_run):
+    folder, _ = cli_run  # that run compiled (or loaded) the rk4 kernel
+    env = {**os.environ, "NUMBA_DEBUG_CACHE": "1"}
+    again = subprocess.run([sys.executable, "-m", "ensemble", "run", "runs/sweep.toml", "-o", "again.nc", "--quiet"],
+                           cwd=folder, capture_output=True, text=True, env=env)
+    log = again.stdout + again.stderr
+    assert again.returncode == 0, log
+    assert "data loaded" in log and "data saved" not in log
