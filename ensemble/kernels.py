@@ -1,9 +1,14 @@
 """Parallel ensemble drivers: a scene's equations combined with a method.
 
-Members run in blocks of BLOCK; prange goes over blocks and the innermost loop
-over the members of a block, which LLVM vectorizes (see DESIGN.md). Kernels are
-built once per (scene, method) by factories whose closures capture the
-method's data as constants, and are cached on disk by Numba.
+Members run in blocks; prange goes over blocks and the innermost loop over the
+members of a block, which LLVM vectorizes (see DESIGN.md). Each block keeps
+everything a step touches in one work array at constant offsets: with a
+single base pointer LLVM proves the rows disjoint and emits only the vector
+loop (separate arrays add a runtime overlap check whose scalar fallback
+rounds differently, so results would depend on heap addresses).
+
+Kernels are generated per (scene, method, kernel key) by factories whose
+closures capture the method's data as constants; Numba caches each on disk.
 """
 from __future__ import annotations
 
@@ -12,29 +17,38 @@ from functools import cache
 import numpy as np
 from numba import njit, prange
 
-from .methods import METHODS, Tableau
-from .scenes import SCENES, top
+from .methods import DRAG, KICK, METHODS, Method
+from .scenes import SCENES, chain, top
 
-BLOCK = 128  # members per block: a compile-time constant of every kernel
+BLOCK = 128  # members per block of the top kernels
 FAST = dict(fastmath=True, error_model="numpy", boundscheck=False)
 
 
-def _top_rk_kernel(tableau: Tableau):
-    """Explicit Runge-Kutta kernel for the top, generated from a Butcher tableau.
+def _sequence(method: Method):
+    """(pieces, fractions) of a splitting method, as tuples for a closure."""
+    return (tuple(p for p, _ in method.splitting.sequence),
+            tuple(float(f) for _, f in method.splitting.sequence))
 
-    The stage loops run over compile-time constants with the full (zero-padded)
-    square of coefficients, so LLVM unrolls them and drops the zero terms: the
-    result matches a hand-written stepper (measured in analysis/bench_top.py).
+
+def _top_kernel(method: Method):
+    """Top kernel for an explicit Runge-Kutta tableau or a drag/rotation splitting.
+
+    Work rows: w1, w2, w3, p, r1, r3, then either the stage slopes k[s, c] at
+    row 6 + 3 s + c (Runge-Kutta) or the drag factors of sequence entry e at
+    rows 6 + 2 e, 7 + 2 e (splitting). Stage and sequence loops have constant
+    trip counts, so LLVM unrolls them, folds the method's coefficients and
+    drops zero terms: a generated rk4 runs as fast as a hand-written one.
     """
-    S = tableau.stages
-    a = tuple(float(tableau.a[s][r]) if r < len(tableau.a[s]) else 0.0 for s in range(S) for r in range(S))
-    b = tuple(float(x) for x in tableau.b)
+    runge_kutta = method.tableau is not None
+    if runge_kutta:
+        S, a, b = method.tableau.stages, method.tableau.square_a(), method.tableau.b
+        E, pieces, fractions = 1, (0,), (0.0,)
+    else:
+        S, a, b = 1, (0.0,), (0.0,)
+        E = len(method.splitting.sequence)
+        pieces, fractions = _sequence(method)
+    rows = 6 + (3 * S if runge_kutta else 2 * E)
 
-    # One array per block holds everything the step touches, at constant offsets
-    # (rows: w1, w2, w3, p, r1, r3, then k[s, c] at row 6 + 3 s + c). With a single
-    # base pointer LLVM proves the rows disjoint and emits only the vector loop;
-    # separate arrays need a runtime overlap check whose scalar fallback rounds
-    # differently, which made results depend on heap addresses.
     @njit(parallel=True, cache=True, **FAST)
     def kernel(state0, rate, h, steps_per_save, samples):
         """state0 (3, M), rate (3, M) -> samples (n_save, 3, M); M a multiple of BLOCK."""
@@ -42,11 +56,17 @@ def _top_rk_kernel(tableau: Tableau):
         for block in prange(state0.shape[1] // BLOCK):
             j0 = block * BLOCK
             j1 = j0 + BLOCK
-            work = np.zeros((6 + 3 * S) * BLOCK)
+            work = np.zeros(rows * BLOCK)
             for c in range(3):
                 work[c * BLOCK:(c + 1) * BLOCK] = state0[c, j0:j1]
                 work[(3 + c) * BLOCK:(4 + c) * BLOCK] = rate[c, j0:j1]
                 samples[0, c, j0:j1] = state0[c, j0:j1]
+            if not runge_kutta:
+                for e in range(E):
+                    if pieces[e] == DRAG:
+                        for j in range(BLOCK):
+                            work[(6 + 2 * e) * BLOCK + j] = top.drag_decay(work[4 * BLOCK + j], h * fractions[e])
+                            work[(7 + 2 * e) * BLOCK + j] = top.drag_decay(work[5 * BLOCK + j], h * fractions[e])
             for i in range(1, n_save):
                 for _ in range(steps_per_save):
                     for j in range(BLOCK):
@@ -56,68 +76,211 @@ def _top_rk_kernel(tableau: Tableau):
                         p = work[3 * BLOCK + j]
                         r1 = work[4 * BLOCK + j]
                         r3 = work[5 * BLOCK + j]
-                        s1 = 0.0
-                        s2 = 0.0
-                        s3 = 0.0
-                        for s in range(S):
-                            z1 = y1
-                            z2 = y2
-                            z3 = y3
-                            for r in range(S):
-                                ha = h * a[s * S + r]
-                                z1 += ha * work[(6 + 3 * r) * BLOCK + j]
-                                z2 += ha * work[(7 + 3 * r) * BLOCK + j]
-                                z3 += ha * work[(8 + 3 * r) * BLOCK + j]
-                            d1, d2, d3 = top.rhs(z1, z2, z3, p, r1, r3)
-                            work[(6 + 3 * s) * BLOCK + j] = d1
-                            work[(7 + 3 * s) * BLOCK + j] = d2
-                            work[(8 + 3 * s) * BLOCK + j] = d3
-                            s1 += b[s] * d1
-                            s2 += b[s] * d2
-                            s3 += b[s] * d3
-                        work[j] = y1 + h * s1
-                        work[BLOCK + j] = y2 + h * s2
-                        work[2 * BLOCK + j] = y3 + h * s3
+                        if runge_kutta:
+                            s1 = 0.0
+                            s2 = 0.0
+                            s3 = 0.0
+                            for s in range(S):
+                                z1 = y1
+                                z2 = y2
+                                z3 = y3
+                                for r in range(S):
+                                    ha = h * a[s * S + r]
+                                    z1 += ha * work[(6 + 3 * r) * BLOCK + j]
+                                    z2 += ha * work[(7 + 3 * r) * BLOCK + j]
+                                    z3 += ha * work[(8 + 3 * r) * BLOCK + j]
+                                d1, d2, d3 = top.rhs(z1, z2, z3, p, r1, r3)
+                                work[(6 + 3 * s) * BLOCK + j] = d1
+                                work[(7 + 3 * s) * BLOCK + j] = d2
+                                work[(8 + 3 * s) * BLOCK + j] = d3
+                                s1 += b[s] * d1
+                                s2 += b[s] * d2
+                                s3 += b[s] * d3
+                            y1 += h * s1
+                            y2 += h * s2
+                            y3 += h * s3
+                        else:
+                            for e in range(E):
+                                if pieces[e] == DRAG:
+                                    decay = work[(6 + 2 * e) * BLOCK + j]
+                                    y1 *= decay
+                                    y2 *= decay
+                                    y3 *= work[(7 + 2 * e) * BLOCK + j]
+                                else:
+                                    y1, y2, y3 = top.rotate(y1, y2, y3, p, h * fractions[e])
+                        work[j] = y1
+                        work[BLOCK + j] = y2
+                        work[2 * BLOCK + j] = y3
                 for c in range(3):
                     samples[i, c, j0:j1] = work[c * BLOCK:(c + 1) * BLOCK]
 
     return kernel
 
 
-@cache
-def kernel_for(scene: str, method: str):
-    """The compiled (or cache-loaded) kernel of a stepping method on a scene."""
-    m = METHODS[method]
-    if scene == "top" and m.tableau is not None:
-        return _top_rk_kernel(m.tableau)
-    raise ValueError(f"no kernel for method {method!r} on scene {scene!r}")
+def chain_block(n: int) -> int:
+    """Members per block for a chain of n masses: a block's state stays in the L2 cache."""
+    block = 128
+    while block > 8 and block * n > 4096:
+        block //= 2
+    return block
 
 
-def integrate(scene, method: str, state0: np.ndarray, rate: np.ndarray, dt: float,
-              steps_per_save: int, n_save: int) -> np.ndarray:
-    """Integrate members from state0 (state, M); returns samples (n_save, state, M).
+def _chain_kernel(method: Method, n: int, periodic: bool):
+    """Chain kernel for n masses: a kick/drift splitting or an explicit Runge-Kutta tableau.
 
-    Member j's result depends only on its own state0[:, j] and rate[:, j]:
-    never on M, the chunking or the thread count.
+    Work rows (B = chain_block(n) members each): X (n + 2: ghost, masses
+    1..n, ghost), V (n), 1/m (n), springs (n + 2, see chain.kernel_springs);
+    Runge-Kutta adds the stage state ZX (n + 2), ZV (n) and slopes KX, KV
+    (stages x n each). Forces come from neighbours only: O(n) per step.
     """
+    B = chain_block(n)
+    X, V = 0, n + 2
+    MINV = V + n
+    K = MINV + n
+    runge_kutta = method.tableau is not None
+    if runge_kutta:
+        S, a, b = method.tableau.stages, method.tableau.square_a(), method.tableau.b
+        E, pieces, fractions = 1, (0,), (0.0,)
+    else:
+        S, a, b = 1, (0.0,), (0.0,)
+        E = len(method.splitting.sequence)
+        pieces, fractions = _sequence(method)
+    # A splitting that starts and ends with the same piece (verlet: kick) merges
+    # the end of one step with the start of the next inside a save interval.
+    merge = E > 1 and pieces[0] == pieces[E - 1]
+    ZX = K + n + 2
+    ZV = ZX + n + 2
+    KX = ZV + n
+    KV = KX + S * n
+    rows = KV + S * n if runge_kutta else K + n + 2
+
+    @njit(inline="always", **FAST)
+    def set_ghosts(work, x):
+        """Ring: ghost sites copy masses n and 1; walls and free ends keep ghosts at 0."""
+        if periodic:
+            for j in range(B):
+                work[x * B + j] = work[(x + n) * B + j]
+                work[(x + n + 1) * B + j] = work[(x + 1) * B + j]
+
+    @njit(parallel=True, cache=True, **FAST)
+    def kernel(state0, rate, h, steps_per_save, samples):
+        """state0 (2n, M), rate (2n + 2, M) -> samples (n_save, 2n, M); M a multiple of B."""
+        n_save = samples.shape[0]
+        for block in prange(state0.shape[1] // B):
+            j0 = block * B
+            j1 = j0 + B
+            work = np.zeros(rows * B)
+            for i in range(n):
+                work[(X + 1 + i) * B:(X + 2 + i) * B] = state0[i, j0:j1]
+                work[(V + i) * B:(V + 1 + i) * B] = state0[n + i, j0:j1]
+                work[(MINV + i) * B:(MINV + 1 + i) * B] = rate[i, j0:j1]
+            for i in range(n + 2):
+                work[(K + i) * B:(K + 1 + i) * B] = rate[n + i, j0:j1]
+            set_ghosts(work, X)
+            samples[0, :, j0:j1] = state0[:, j0:j1]
+            for save in range(1, n_save):
+                for step in range(steps_per_save):
+                    if runge_kutta:
+                        for s in range(S):
+                            for i in range(n):
+                                for j in range(B):
+                                    zx = work[(X + 1 + i) * B + j]
+                                    zv = work[(V + i) * B + j]
+                                    for r in range(S):
+                                        ha = h * a[s * S + r]
+                                        zx += ha * work[(KX + r * n + i) * B + j]
+                                        zv += ha * work[(KV + r * n + i) * B + j]
+                                    work[(ZX + 1 + i) * B + j] = zx
+                                    work[(ZV + i) * B + j] = zv
+                            set_ghosts(work, ZX)
+                            for i in range(n):
+                                for j in range(B):
+                                    work[(KX + s * n + i) * B + j] = work[(ZV + i) * B + j]
+                                    work[(KV + s * n + i) * B + j] = work[(MINV + i) * B + j] * chain.force(
+                                        work[(ZX + i) * B + j], work[(ZX + 1 + i) * B + j],
+                                        work[(ZX + 2 + i) * B + j], work[(K + 1 + i) * B + j],
+                                        work[(K + 2 + i) * B + j])
+                        for i in range(n):
+                            for j in range(B):
+                                dx = 0.0
+                                dv = 0.0
+                                for s in range(S):
+                                    dx += b[s] * work[(KX + s * n + i) * B + j]
+                                    dv += b[s] * work[(KV + s * n + i) * B + j]
+                                work[(X + 1 + i) * B + j] += h * dx
+                                work[(V + i) * B + j] += h * dv
+                        set_ghosts(work, X)
+                    else:
+                        for e in range(E):
+                            tau = h * fractions[e]
+                            if merge and e == 0 and step > 0:
+                                continue  # done by the previous step's last piece
+                            if merge and e == E - 1 and step < steps_per_save - 1:
+                                tau += h * fractions[0]
+                            if pieces[e] == KICK:
+                                for i in range(n):
+                                    for j in range(B):
+                                        work[(V + i) * B + j] += tau * work[(MINV + i) * B + j] * chain.force(
+                                            work[(X + i) * B + j], work[(X + 1 + i) * B + j],
+                                            work[(X + 2 + i) * B + j], work[(K + 1 + i) * B + j],
+                                            work[(K + 2 + i) * B + j])
+                            else:
+                                for i in range(n):
+                                    for j in range(B):
+                                        work[(X + 1 + i) * B + j] += tau * work[(V + i) * B + j]
+                                set_ghosts(work, X)
+                for i in range(n):
+                    samples[save, i, j0:j1] = work[(X + 1 + i) * B:(X + 2 + i) * B]
+                    samples[save, n + i, j0:j1] = work[(V + i) * B:(V + 1 + i) * B]
+
+    return kernel
+
+
+@cache
+def kernel_for(scene: str, method: str, key: tuple = ()):
+    """The compiled (or cache-loaded) kernel of a stepping method; `key` from the scene's kernel_key."""
+    m = METHODS[method]
+    if scene == "top":
+        return _top_kernel(m)
+    return _chain_kernel(m, *key)
+
+
+def block_size(scene: str, key: tuple) -> int:
+    return BLOCK if scene == "top" else chain_block(key[0])
+
+
+def integrate(scene, method: str, values: dict[str, np.ndarray], constants: dict, dt: float,
+              steps_per_save: int, n_save: int) -> np.ndarray:
+    """Integrate the members described by `values`; returns samples (n_save, state, members).
+
+    A member's result depends only on its own values: never on how many
+    members run with it, the chunking or the thread count.
+    """
+    t = np.arange(n_save) * (steps_per_save * dt)
     if METHODS[method].closed_form:
-        t = np.arange(n_save) * (steps_per_save * dt)
-        return scene.exact(state0, rate, t)
+        return scene.exact(values, constants, t)
+    state0, rate = scene.inputs(values, constants)
+    key = scene.kernel_key(constants)
+    block = block_size(scene.NAME, key)
     n = state0.shape[1]
-    padded = -(-n // BLOCK) * BLOCK
+    padded = -(-n // block) * block
     if padded != n:  # pad with copies of the last member; trimmed below
         state0 = np.concatenate([state0, np.repeat(state0[:, -1:], padded - n, axis=1)], axis=1)
         rate = np.concatenate([rate, np.repeat(rate[:, -1:], padded - n, axis=1)], axis=1)
     samples = np.empty((n_save, state0.shape[0], padded))
-    kernel_for(scene.NAME, method)(
+    kernel_for(scene.NAME, method, key)(
         np.ascontiguousarray(state0), np.ascontiguousarray(rate), float(dt), int(steps_per_save), samples
     )
     return samples[:, :, :n]
 
 
-def prepare(scene: str, method: str) -> None:
+def prepare(scene: str, method: str, constants: dict) -> None:
     """Compile (or load from Numba's cache) the kernel of a stepping method."""
-    if not METHODS[method].closed_form:
-        size = SCENES[scene].STATE_SIZE
-        kernel_for(scene, method)(np.zeros((size, BLOCK)), np.zeros((size, BLOCK)), 1.0, 1,
-                                  np.empty((1, size, BLOCK)))
+    if METHODS[method].closed_form:
+        return
+    module = SCENES[scene]
+    key = module.kernel_key(constants)
+    state_rows, rate_rows = module.kernel_rows(constants)
+    block = block_size(scene, key)
+    kernel_for(scene, method, key)(np.zeros((state_rows, block)), np.zeros((rate_rows, block)), 1.0, 1,
+                                   np.empty((1, state_rows, block)))

@@ -34,7 +34,9 @@ class Summary:
 def default_chunk(spec: Spec) -> int:
     """Members per chunk: a multiple of the kernel block that keeps a chunk near CHUNK_BYTES."""
     scene = SCENES[spec.scene]
-    values_per_member = spec.n_save * sum(4 if "axis" in scene.OBSERVABLES[v][0] else 1 for v in spec.save)
+    sizes = {"axis": 3, **(scene.sizes(spec.constants) if hasattr(scene, "sizes") else {})}
+    values_per_member = spec.n_save * sum(
+        1 + sizes.get(scene.OBSERVABLES[v][0][-1], 0) for v in spec.save)  # + a copy while observing
     chunk = max(1, CHUNK_BYTES // (8 * values_per_member)) // kernels.BLOCK * kernels.BLOCK
     return min(max(chunk, kernels.BLOCK), spec.n_members)
 
@@ -43,20 +45,19 @@ def run(spec: Spec, out: str | Path, *, chunk: int | None = None, progress: bool
     """Integrate every member of `spec` and write the dataset to `out` (NetCDF)."""
     scene = SCENES[spec.scene]
     table = members_table(spec)
-    state0 = scene.initial_state(table)
-    rate = scene.rates(table)
     n = spec.n_members
     chunk = chunk or default_chunk(spec)
-    kernels.prepare(spec.scene, spec.method)  # compile or load before the clock starts
+    kernels.prepare(spec.scene, spec.method, spec.constants)  # compile or load before the clock starts
     start = time.perf_counter()
     with Writer(out, spec, table, chunk) as writer, tqdm(
         total=n, unit="member", file=sys.stderr, disable=not progress, leave=False
     ) as bar:
         for j0 in range(0, n, chunk):
             j1 = min(j0 + chunk, n)
-            samples = kernels.integrate(scene, spec.method, state0[:, j0:j1], rate[:, j0:j1],
+            values = {name: v[j0:j1] for name, v in table.items()}
+            samples = kernels.integrate(scene, spec.method, values, spec.constants,
                                         spec.dt, spec.steps_per_save, spec.n_save)
-            writer.write(j0, scene.observe(samples, spec.save))
+            writer.write(j0, scene.observe(samples, spec.save, values, spec.constants))
             bar.update(j1 - j0)
     return Summary(n, spec.steps, time.perf_counter() - start)
 

@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from .methods import METHODS, methods_for
+from .parameter import Mode, Parameter
 from .scenes import SCENES
 
 
@@ -69,8 +70,9 @@ class Spec:
     members: int  # replicas per sweep point
     seed: int
     save: tuple[str, ...]
-    parameters: dict[str, float | Distribution] = field(repr=False)
+    parameters: dict[str, float | list | Distribution | Mode] = field(repr=False)
     sweep: dict[str, tuple[float, ...]] = field(repr=False)
+    constants: dict[str, int | str] = field(default_factory=dict)  # run constants, e.g. n, boundary
 
     @property
     def steps_per_save(self) -> int:
@@ -130,22 +132,41 @@ def _whole_ratio(key: str, num: float, den: float, what: str) -> None:
         raise SpecError(key, f"must be a whole multiple of {what} ({num!r} / {den!r} = {ratio:.12g})")
 
 
-def _parameter(key: str, value) -> float | Distribution:
+def _distribution(key: str, value: dict) -> Distribution:
+    if len(value) != 1 or next(iter(value)) not in DISTRIBUTIONS:
+        raise SpecError(key, f"a distribution is one of {{uniform=[lo,hi]}}, {{normal=[mu,sd]}}, "
+                             f"{{loguniform=[lo,hi]}}; got {value!r}")
+    kind, args = next(iter(value.items()))
+    if not (isinstance(args, list) and len(args) == 2):
+        raise SpecError(f"{key}.{kind}", f"must be a list of two numbers, got {args!r}")
+    lo, hi = (_expect(f"{key}.{kind}", x, float) for x in args)
+    if kind == "normal" and hi < 0:
+        raise SpecError(f"{key}.normal", f"standard deviation must be >= 0, got {hi!r}")
+    if kind != "normal" and lo > hi:
+        raise SpecError(f"{key}.{kind}", f"lower bound {lo!r} is above upper bound {hi!r}")
+    if kind == "loguniform" and lo <= 0:
+        raise SpecError(f"{key}.loguniform", f"bounds must be > 0, got {lo!r}")
+    return Distribution(kind, (lo, hi))
+
+
+def _parameter(key: str, value, parameter: Parameter):
+    """A parameter's value in one of the forms its declaration accepts."""
+    if parameter.integer:
+        return _expect(key, value, int)
+    if parameter.choices:
+        if value not in parameter.choices:
+            raise SpecError(key, f"must be one of {', '.join(map(repr, parameter.choices))}, got {value!r}")
+        return value
+    if isinstance(value, dict) and parameter.mode and "mode" in value:
+        if set(value) != {"mode", "amplitude"}:
+            raise SpecError(key, f"a mode start is {{ mode = j, amplitude = A }}, got {value!r}")
+        return Mode(_expect(f"{key}.mode", value["mode"], int), _expect(f"{key}.amplitude", value["amplitude"], float))
     if isinstance(value, dict):
-        if len(value) != 1 or next(iter(value)) not in DISTRIBUTIONS:
-            raise SpecError(key, f"a distribution is one of {{uniform=[lo,hi]}}, {{normal=[mu,sd]}}, "
-                                 f"{{loguniform=[lo,hi]}}; got {value!r}")
-        kind, args = next(iter(value.items()))
-        if not (isinstance(args, list) and len(args) == 2):
-            raise SpecError(f"{key}.{kind}", f"must be a list of two numbers, got {args!r}")
-        lo, hi = (_expect(f"{key}.{kind}", x, float) for x in args)
-        if kind == "normal" and hi < 0:
-            raise SpecError(f"{key}.normal", f"standard deviation must be >= 0, got {hi!r}")
-        if kind != "normal" and lo > hi:
-            raise SpecError(f"{key}.{kind}", f"lower bound {lo!r} is above upper bound {hi!r}")
-        if kind == "loguniform" and lo <= 0:
-            raise SpecError(f"{key}.loguniform", f"bounds must be > 0, got {lo!r}")
-        return Distribution(kind, (lo, hi))
+        return _distribution(key, value)
+    if isinstance(value, list) and parameter.per:
+        return [_expect(f"{key}[{i}]", x, float) for i, x in enumerate(value)]
+    if isinstance(value, list):
+        raise SpecError(key, f"takes one value per member (a number or a distribution), got a list")
     return _expect(key, value, float)
 
 
@@ -191,30 +212,36 @@ def parse(text: str, path: str = "<string>") -> Spec:
     if not save:
         raise SpecError("save", "must name at least one variable")
 
+    declared = module.PARAMETERS
     parameters = {}
     for name, value in values.get("parameters", {}).items():
-        if name not in module.PARAMETERS:
-            raise _unknown(f"parameters.{name}", name, module.PARAMETERS)
-        parameters[name] = _parameter(f"parameters.{name}", value)
+        if name not in declared:
+            raise _unknown(f"parameters.{name}", name, declared)
+        parameters[name] = _parameter(f"parameters.{name}", value, declared[name])
     sweep = {}
     for name, axis in values.get("sweep", {}).items():
         key = f"sweep.{name}"
-        if name not in module.PARAMETERS:
-            raise _unknown(key, name, module.PARAMETERS)
+        if name not in declared:
+            raise _unknown(key, name, declared)
+        if declared[name].constant:
+            raise SpecError(key, "is a run constant and cannot be swept; use one run file per value")
         if name in parameters:
             raise SpecError(key, "is both a parameter and a sweep axis; give it in one place only")
         if not isinstance(axis, list) or not axis:
             raise SpecError(key, f"a sweep axis must be a non-empty list of numbers, got {axis!r}")
         sweep[name] = tuple(_expect(key, x, float) for x in axis)
-    for name, (_, _, default) in module.PARAMETERS.items():
+    for name, parameter in declared.items():
         if name not in parameters and name not in sweep:
-            if default is None:
+            if parameter.default is None:
                 raise SpecError(f"parameters.{name}", "missing (required)")
-            parameters[name] = default
+            parameters[name] = parameter.default
+    constants = {name: parameters.pop(name) for name, p in declared.items() if p.constant}
+    for name, problem in getattr(module, "check_constants", lambda _: [])(constants):
+        raise SpecError(f"parameters.{name}", problem)
 
     spec = Spec(path=str(path), text=text, scene=scene, method=method, dt=dt, t_end=t_end,
                 save_dt=save_dt, members=values["members"], seed=values["seed"], save=save,
-                parameters=parameters, sweep=sweep)
+                parameters=parameters, sweep=sweep, constants=constants)
     members_table(spec)  # draws and checks every member's values
     return spec
 
@@ -241,13 +268,33 @@ def members_table(spec: Spec) -> dict[str, np.ndarray]:
     table = {"sweep_point": point}
     for i, name in enumerate(spec.sweep):
         table[name] = np.array([g[i] for g in grid], dtype=float)[point]
+    scene = SCENES[spec.scene]
+    sizes = scene.sizes(spec.constants) if hasattr(scene, "sizes") else {}
+    modes = {}
     for name, value in spec.parameters.items():
-        if isinstance(value, Distribution):
+        per = scene.PARAMETERS[name].per
+        shape = (n, sizes[per]) if per else (n,)
+        if isinstance(value, Mode):
+            modes[name] = value
+        elif isinstance(value, Distribution):
             rng = np.random.default_rng([spec.seed, zlib.crc32(name.encode())])
-            table[name] = value.draw(rng, n)
+            table[name] = value.draw(rng, math.prod(shape)).reshape(shape)
+        elif isinstance(value, list):
+            if len(value) != shape[1]:
+                raise SpecError(f"parameters.{name}", f"has {len(value)} values; this chain has {shape[1]} "
+                                                      f"{'masses' if per == 'site' else 'springs'}")
+            table[name] = np.tile(np.array(value, dtype=float), (n, 1))
         else:
-            table[name] = np.full(n, value)
+            table[name] = np.full(shape, value, dtype=float)
+    for name in spec.sweep:
+        per = scene.PARAMETERS[name].per
+        if per:
+            table[name] = np.repeat(table[name][:, None], sizes[per], axis=1)
     for name, problem in SCENES[spec.scene].check(table):
         where = "sweep" if name in spec.sweep else "parameters"
         raise SpecError(f"{where}.{name}", problem)
+    for name, mode in modes.items():
+        if not 1 <= mode.number <= sizes["site"]:
+            raise SpecError(f"parameters.{name}.mode", f"must be in 1..{sizes['site']}, got {mode.number}")
+        table[name] = scene.mode_start(mode, table["m"], table["k"], spec.constants["boundary"])
     return table

@@ -27,6 +27,7 @@ def part_path(path: Path) -> Path:
 def global_attributes(spec: Spec) -> dict[str, object]:
     now = datetime.datetime.now(datetime.timezone.utc).replace(microsecond=0).isoformat()
     return {
+        **spec.constants,
         "Conventions": "CF-1.8",
         "title": f"ensemble {spec.scene} run {Path(spec.path).stem} ({spec.method})",
         "history": f"{now} ensemble {__version__}: ensemble run {spec.path}",
@@ -60,25 +61,33 @@ class Writer:
         self.nc = nc = netCDF4.Dataset(self.part, "w", format="NETCDF4")
         nc.setncatts(global_attributes(spec))
         nc.setncattr("members_written", 0)
-        nc.createDimension("member", n)
-        nc.createDimension("t", spec.n_save)
-        nc.createDimension("axis", 3)
+        sizes = {"member": n, "t": spec.n_save, "axis": 3}
+        if hasattr(self.scene, "sizes"):
+            sizes.update(self.scene.sizes(spec.constants))
+        for dim, size in sizes.items():
+            nc.createDimension(dim, size)
         self._coordinate("member", np.arange(n, dtype=np.int32), "ensemble member index")
         self._coordinate("t", spec.times(), "time since the start of the run", units="s")
         if "omega" in spec.save:
             self._coordinate("axis", AXIS_LABELS, "body-frame axis (3: symmetry axis)")
+        if "site" in sizes:
+            self._coordinate("site", np.arange(1, sizes["site"] + 1, dtype=np.int32), "mass number along the chain")
+            self._coordinate("spring", np.arange(1, sizes["spring"] + 1, dtype=np.int32),
+                             "spring number along the chain")
         self._coordinate(
             "sweep_point", table["sweep_point"].astype(np.int32), "index of the member's point on the sweep grid",
             dims=("member",),
         )
-        for name, (units, long_name, _) in self.scene.PARAMETERS.items():
-            var = nc.createVariable(name, "f8", ("member",))
-            var.setncatts({"units": units, "long_name": long_name})
+        for name, parameter in self.scene.PARAMETERS.items():
+            if parameter.constant:
+                continue
+            var = nc.createVariable(name, "f8", ("member", parameter.per) if parameter.per else ("member",))
+            var.setncatts({"units": parameter.units, "long_name": parameter.long_name})
             var[:] = table[name]
         for name in spec.save:
             dims, units, long_name = self.scene.OBSERVABLES[name]
-            sizes = {"member": min(chunk, n), "t": spec.n_save, "axis": 3}
-            var = nc.createVariable(name, "f8", dims, chunksizes=tuple(sizes[d] for d in dims))
+            chunks = {**sizes, "member": min(chunk, n)}
+            var = nc.createVariable(name, "f8", dims, chunksizes=tuple(chunks[d] for d in dims))
             var.setncatts({"units": units, "long_name": long_name})
         self.written = 0
 

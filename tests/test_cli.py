@@ -12,6 +12,7 @@ import pytest
 import xarray as xr
 
 from ensemble import cli, kernels, runner
+from ensemble.methods import METHODS
 from ensemble.scenes import top
 from ensemble.spec import load, members_table, parse
 from tests.conftest import top_runfile
@@ -65,7 +66,7 @@ def test_file_round_trips_the_kernel_output(cli_run, tmp_path):
     table = members_table(parse(SWEEP_RUN))
     for name in ("lambda1", "lambda3", "c", "spin0", "tilt0", "azimuth0"):
         np.testing.assert_array_equal(ds[name].values, table[name])
-    samples = kernels.integrate(top, "rk4", top.initial_state(table), top.rates(table), 1e-3, 100, 11)
+    samples = kernels.integrate(top, "rk4", table, {}, 1e-3, 100, 11)
     np.testing.assert_array_equal(ds.omega.values, samples.transpose(2, 0, 1))
     np.testing.assert_allclose(ds.tilt.values, top.tilt(ds.omega.values, axis=2), rtol=1e-15)
     copy = tmp_path / "copy.nc"
@@ -98,8 +99,12 @@ def test_version_help_and_methods(tmp_path):
     helped = ensemble("--help", cwd=tmp_path)
     assert helped.returncode == 0 and "run" in helped.stdout and "methods" in helped.stdout
     listing = ensemble("methods", cwd=tmp_path).stdout.splitlines()
-    rows = {line.split()[0]: line.split() for line in listing[1:]}
-    assert rows["rk4"][1:4] == ["4", "no", "top"] and rows["euler"][1] == "1" and rows["exact"][1] == "exact"
+    rows = {line.split()[0]: line.split()[1:4] for line in listing[1:]}
+    assert set(rows) == set(METHODS)
+    for name, m in METHODS.items():
+        order = "exact" if m.order is None else str(m.order)
+        assert rows[name] == [order, "yes" if m.symplectic else "no", ",".join(m.scenes)]
+    assert rows["verlet"] == ["2", "yes", "chain"] and rows["rk4"] == ["4", "no", "top,chain"]
 
 
 def test_results_do_not_depend_on_chunk_size(write_runfile):

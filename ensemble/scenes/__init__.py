@@ -3,6 +3,6 @@ from __future__ import annotations
 
 from types import ModuleType
 
-from . import top
+from . import chain, top
 
-SCENES: dict[str, ModuleType] = {"top": top}
+SCENES: dict[str, ModuleType] = {"top": top, "chain": chain}

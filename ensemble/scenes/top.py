@@ -12,20 +12,23 @@ equations read w1' = -p w3 w2 - r1 w1, w2' = p w3 w1 - r1 w2, w3' = -r3 w3.
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from numba import njit
+
+from ..parameter import Parameter
 
 NAME = "top"
 STATE_SIZE = 3
 
-# name: (units, long_name, default or None when required)
-PARAMETERS: dict[str, tuple[str, str, float | None]] = {
-    "lambda1": ("kg m2", "principal moment of inertia about the transverse axes e1, e2", None),
-    "lambda3": ("kg m2", "principal moment of inertia about the symmetry axis e3", None),
-    "c": ("kg m2 s-1", "air-drag torque coefficient (torque = -c omega)", None),
-    "spin0": ("rad s-1", "magnitude of the angular velocity at t = 0", None),
-    "tilt0": ("rad", "angle between omega and e3 at t = 0", None),
-    "azimuth0": ("rad", "azimuth of omega about e3 at t = 0, from e1", 0.0),
+PARAMETERS = {
+    "lambda1": Parameter("kg m2", "principal moment of inertia about the transverse axes e1, e2"),
+    "lambda3": Parameter("kg m2", "principal moment of inertia about the symmetry axis e3"),
+    "c": Parameter("kg m2 s-1", "air-drag torque coefficient (torque = -c omega)"),
+    "spin0": Parameter("rad s-1", "magnitude of the angular velocity at t = 0"),
+    "tilt0": Parameter("rad", "angle between omega and e3 at t = 0"),
+    "azimuth0": Parameter("rad", "azimuth of omega about e3 at t = 0, from e1", default=0.0),
 }
 
 # Saved variables: name -> (dims, units, long_name). Default: all of them.
@@ -78,8 +81,43 @@ def rhs(w1, w2, w3, p, r1, r3):
     return -p * w3 * w2 - r1 * w1, p * w3 * w1 - r1 * w2, -r3 * w3
 
 
-def exact(state0: np.ndarray, rate: np.ndarray, t: np.ndarray) -> np.ndarray:
-    """Closed-form body rates at times t (s); returns shape (len(t), 3, members).
+@njit(inline="always", fastmath=True, error_model="numpy")
+def rotate(w1, w2, w3, p, tau):
+    """Free symmetric-top rotation for time tau (s): (w1, w2) turns about e3 by p w3 tau."""
+    angle = p * w3 * tau
+    cos = math.cos(angle)
+    sin = math.sin(angle)
+    return cos * w1 - sin * w2, sin * w1 + cos * w2, w3
+
+
+@njit(inline="always", fastmath=True, error_model="numpy")
+def drag_decay(r, tau):
+    """Drag alone for time tau (s) scales a rate by exp(-r tau): r1 for w1, w2 and r3 for w3."""
+    return math.exp(-r * tau)
+
+
+def inputs(values: dict[str, np.ndarray], constants: dict) -> tuple[np.ndarray, np.ndarray]:
+    """Kernel state and parameters: body rates (3, members) and (p, r1, r3) (3, members)."""
+    return initial_state(values), rates(values)
+
+
+def kernel_rows(constants: dict) -> tuple[int, int]:
+    """Rows of the kernel state and parameter arrays."""
+    return 3, 3
+
+
+def kernel_key(constants: dict) -> tuple:
+    """The top's kernels are the same for every run."""
+    return ()
+
+
+def exact(values: dict[str, np.ndarray], constants: dict, t: np.ndarray) -> np.ndarray:
+    """Closed-form body rates at times t (s); returns shape (len(t), 3, members)."""
+    return closed_form(initial_state(values), rates(values), t)
+
+
+def closed_form(state0: np.ndarray, rate: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """Body rates at times t (s) from rates at 0 (3, members) and (p, r1, r3); shape (len(t), 3, members).
 
     w3 = w30 exp(-r3 t). z = w1 + i w2 obeys z' = (i p w3 - r1) z, so
     z = z0 exp(-r1 t) exp(i theta), theta = p w30 (1 - exp(-r3 t)) / r3
@@ -111,7 +149,7 @@ def tilt_theory(values: dict[str, np.ndarray], t: np.ndarray) -> np.ndarray:
     return np.arctan(np.tan(values["tilt0"])[:, None] * np.exp(-rate[:, None] * np.asarray(t)[None, :]))
 
 
-def observe(samples: np.ndarray, names) -> dict[str, np.ndarray]:
+def observe(samples: np.ndarray, names, values=None, constants=None) -> dict[str, np.ndarray]:
     """Saved variables from kernel samples of shape (t, 3, members), member-major."""
     out = {}
     if "omega" in names:

@@ -1,0 +1,35 @@
+"""How a scene declares its run-file parameters."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class Parameter:
+    """One run-file parameter of a scene.
+
+    Most parameters take one number per member (or, with `per`, one per site or
+    spring): a number, a list (when `per` is set), a distribution drawn per
+    member, or a sweep axis. Parameters with `choices` or `integer` are run
+    constants: one value for the whole run, never drawn or swept.
+    """
+
+    units: str
+    long_name: str
+    default: object = None  # None: required
+    per: str | None = None  # "site" or "spring": an array per member
+    choices: tuple[str, ...] = ()  # a string run constant
+    integer: bool = False  # an integer run constant
+    mode: bool = False  # also accepts { mode = j, amplitude = A }
+
+    @property
+    def constant(self) -> bool:
+        return bool(self.choices) or self.integer
+
+
+@dataclass(frozen=True)
+class Mode:
+    """Start in normal mode `number` (1 = lowest frequency), largest entry `amplitude`."""
+
+    number: int
+    amplitude: float

@@ -1,0 +1,193 @@
+"""Spring chains: N masses joined by springs, between walls, free, or in a ring.
+
+    m_i x_i'' = -k_{i-1} (x_i - x_{i-1}) - k_i (x_i - x_{i+1})
+
+Boundaries: "fixed" (walls at both ends, N+1 springs), "free" (N-1 springs),
+"periodic" (a ring of N springs). Spring s connects, in order:
+fixed: the left wall and mass 1, mass s and s+1, ..., mass N and the right wall;
+free: mass s and s+1; periodic: mass s and s+1, the last one mass N and mass 1.
+Displacements x (m) are measured from equilibrium.
+"""
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+from ..parameter import Mode, Parameter
+
+NAME = "chain"
+BOUNDARIES = ("fixed", "free", "periodic")
+
+PARAMETERS = {
+    "n": Parameter("1", "number of masses", integer=True),
+    "boundary": Parameter("1", "boundary of the chain", default="fixed", choices=BOUNDARIES),
+    "m": Parameter("kg", "mass", per="site"),
+    "k": Parameter("N m-1", "spring constant", per="spring"),
+    "x0": Parameter("m", "displacement at t = 0", default=0.0, per="site", mode=True),
+    "v0": Parameter("m s-1", "velocity at t = 0", default=0.0, per="site", mode=True),
+}
+
+OBSERVABLES: dict[str, tuple[tuple[str, ...], str, str]] = {
+    "x": (("member", "t", "site"), "m", "displacement from equilibrium"),
+    "v": (("member", "t", "site"), "m s-1", "velocity"),
+    "energy": (("member", "t"), "J", "total energy 1/2 v.M.v + 1/2 x.K.x"),
+}
+
+
+@njit(inline="always", fastmath=True, error_model="numpy")
+def force(x_left, x, x_right, k_left, k_right):
+    """Spring force (N) on a mass at x between neighbours x_left, x_right (m)."""
+    return k_left * (x_left - x) + k_right * (x_right - x)
+
+
+def spring_count(n: int, boundary: str) -> int:
+    return {"fixed": n + 1, "free": n - 1, "periodic": n}[boundary]
+
+
+def sizes(constants: dict) -> dict[str, int]:
+    """Length of the per-site and per-spring parameters."""
+    return {"site": constants["n"], "spring": spring_count(constants["n"], constants["boundary"])}
+
+
+def check_constants(constants: dict) -> list[tuple[str, str]]:
+    if constants["n"] < 1:
+        return [("n", f"must be >= 1, got {constants['n']}")]
+    if constants["boundary"] == "free" and constants["n"] < 2:
+        return [("n", "a free chain needs at least 2 masses (it has n - 1 springs)")]
+    return []
+
+
+def check(values: dict[str, np.ndarray]) -> list[tuple[str, str]]:
+    """Physical constraints on per-member parameters: [(parameter, problem), ...]."""
+    return [(name, f"must be > 0 (got {values[name].min():g})")
+            for name in ("m", "k") if values[name].size and np.any(values[name] <= 0)]
+
+
+def incidence(n: int, boundary: str) -> np.ndarray:
+    """D (springs, n) with spring extensions D @ x."""
+    d = np.zeros((spring_count(n, boundary), n))
+    for s in range(d.shape[0]):
+        if boundary == "fixed":
+            if s < n:
+                d[s, s] += 1.0
+            if s > 0:
+                d[s, s - 1] -= 1.0
+        else:  # free: s and s + 1; periodic: s and (s + 1) mod n
+            d[s, (s + 1) % n] += 1.0
+            d[s, s] -= 1.0
+    return d
+
+
+def stiffness(k: np.ndarray, n: int, boundary: str) -> np.ndarray:
+    """K = D^T diag(k) D, shape (..., n, n), N/m; k of shape (..., springs)."""
+    d = incidence(n, boundary)
+    return np.einsum("si,...s,sj->...ij", d, k, d)
+
+
+def energy(x, v, m, k, boundary: str) -> np.ndarray:
+    """1/2 v.M.v + 1/2 x.K.x (J); x, v (..., n), m (..., n), k (..., springs) broadcast."""
+    stretch = x @ incidence(x.shape[-1], boundary).T
+    return 0.5 * np.sum(m * v * v, axis=-1) + 0.5 * np.sum(k * stretch * stretch, axis=-1)
+
+
+def normal_modes(m, k, boundary: str = "fixed") -> tuple[np.ndarray, np.ndarray]:
+    """Frequencies (rad/s, ascending) and mode shapes of K v = w^2 M v.
+
+    m (..., n) kg, k (..., springs) N/m. Returns omega (..., n) and shapes
+    (..., n, n) whose columns are M-orthonormal (shape^T M shape = I), each
+    with its first clearly nonzero entry positive. Solved as the symmetric
+    problem M^-1/2 K M^-1/2 u = w^2 u, which stays accurate for large mass
+    ratios. Zero modes of free and periodic chains have omega = 0.
+    """
+    m = np.asarray(m, dtype=float)
+    k = np.asarray(k, dtype=float)
+    n = m.shape[-1]
+    root = np.sqrt(m)
+    scaled = stiffness(k, n, boundary) / (root[..., :, None] * root[..., None, :])
+    eigenvalues, u = np.linalg.eigh(scaled)
+    scale = np.abs(eigenvalues).max(axis=-1, keepdims=True)
+    eigenvalues = np.where(eigenvalues < 1e-13 * scale, 0.0, eigenvalues)  # rounding around a zero mode
+    shapes = u / root[..., :, None]
+    big = np.abs(shapes) > 1e-8 * np.abs(shapes).max(axis=-2, keepdims=True)
+    first = np.take_along_axis(shapes, np.argmax(big, axis=-2)[..., None, :], axis=-2)
+    return np.sqrt(eigenvalues), shapes * np.sign(first)
+
+
+def mode_start(mode: Mode, m, k, boundary: str) -> np.ndarray:
+    """Displacements (or velocities) along normal mode `mode.number`, largest entry `mode.amplitude`."""
+    _, shapes = normal_modes(m, k, boundary)
+    shape = shapes[..., :, mode.number - 1]
+    return mode.amplitude * shape / np.abs(shape).max(axis=-1, keepdims=True)
+
+
+def kernel_springs(k: np.ndarray, n: int, boundary: str) -> np.ndarray:
+    """Spring constants in the kernels' layout, shape (n + 2, members).
+
+    The kernels number masses 1..n with ghost sites 0 and n+1 (at rest for
+    walls and free ends; copies of masses n and 1 in a ring); row r holds the
+    spring between sites r - 1 and r, and row 0 is unused.
+    """
+    members = k.shape[0]
+    rows = np.zeros((n + 2, members))
+    if boundary == "fixed":
+        rows[1:] = k.T
+    elif boundary == "free":
+        rows[2:n + 1] = k.T
+    else:
+        rows[2:n + 1] = k[:, :n - 1].T
+        rows[1] = rows[n + 1] = k[:, n - 1]
+    return rows
+
+
+def inputs(values: dict[str, np.ndarray], constants: dict) -> tuple[np.ndarray, np.ndarray]:
+    """Kernel state (x; v), shape (2n, members), and parameters (1/m; springs), shape (2n + 2, members)."""
+    n, boundary = constants["n"], constants["boundary"]
+    state = np.concatenate((values["x0"].T, values["v0"].T))
+    rate = np.concatenate((1.0 / values["m"].T, kernel_springs(values["k"], n, boundary)))
+    return state, rate
+
+
+def kernel_rows(constants: dict) -> tuple[int, int]:
+    """Rows of the kernel state (x; v) and parameter (1/m; springs) arrays."""
+    return 2 * constants["n"], 2 * constants["n"] + 2
+
+
+def kernel_key(constants: dict) -> tuple:
+    """What the chain kernels are compiled for: the number of masses and whether it is a ring."""
+    return constants["n"], constants["boundary"] == "periodic"
+
+
+def exact(values: dict[str, np.ndarray], constants: dict, t: np.ndarray) -> np.ndarray:
+    """Modal superposition at times t (s); samples (len(t), 2n, members) as (x; v).
+
+    q_j(t) = q_j(0) cos(w_j t) + q_j'(0) sin(w_j t) / w_j, with q = shape^T M x;
+    a zero mode drifts: q(t) = q(0) + q'(0) t.
+    """
+    boundary = constants["boundary"]
+    m = values["m"]
+    omega, shapes = normal_modes(m, values["k"], boundary)  # (M, n), (M, n, n)
+    q0 = np.einsum("mij,mi->mj", shapes, m * values["x0"])
+    p0 = np.einsum("mij,mi->mj", shapes, m * values["v0"])
+    wt = omega[:, None, :] * np.asarray(t, dtype=float)[None, :, None]  # (M, T, n)
+    moving = omega[:, None, :] > 0
+    safe = np.where(moving, omega[:, None, :], 1.0)
+    q = q0[:, None] * np.cos(wt) + p0[:, None] * np.where(moving, np.sin(wt) / safe, t[None, :, None])
+    qdot = -q0[:, None] * omega[:, None, :] * np.sin(wt) + p0[:, None] * np.cos(wt)
+    x = np.einsum("mij,mtj->tim", shapes, q)
+    v = np.einsum("mij,mtj->tim", shapes, qdot)
+    return np.concatenate((x, v), axis=1)
+
+
+def observe(samples: np.ndarray, names, values: dict[str, np.ndarray], constants: dict) -> dict[str, np.ndarray]:
+    """Saved variables from samples (t, 2n, members), member-major."""
+    n = constants["n"]
+    x = samples[:, :n].transpose(2, 0, 1)
+    v = samples[:, n:].transpose(2, 0, 1)
+    out = {}
+    if "x" in names:
+        out["x"] = np.ascontiguousarray(x)
+    if "v" in names:
+        out["v"] = np.ascontiguousarray(v)
+    if "energy" in names:
+        out["energy"] = energy(x, v, values["m"][:, None, :], values["k"][:, None, :], constants["boundary"])
+    return out
