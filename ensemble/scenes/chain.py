@@ -164,6 +164,7 @@ def exact(values: dict[str, np.ndarray], constants: dict, t: np.ndarray) -> np.n
     a zero mode drifts: q(t) = q(0) + q'(0) t.
     """
     boundary = constants["boundary"]
+    t = np.asarray(t, dtype=float)
     m = values["m"]
     omega, shapes = normal_modes(m, values["k"], boundary)  # (M, n), (M, n, n)
     q0 = np.einsum("mij,mi->mj", shapes, m * values["x0"])

@@ -1,0 +1,222 @@
+"""Spring chains: normal modes, the exact solution, and every stepping method against them."""
+import numpy as np
+import pytest
+import xarray as xr
+from scipy.linalg import expm
+
+from ensemble import cli, kernels, runner
+from ensemble.methods import METHODS
+from ensemble.scenes import chain
+from ensemble.spec import SpecError, load, parse
+
+CHAIN_METHODS = [name for name, m in METHODS.items() if "chain" in m.scenes and not m.closed_form]
+
+
+def chain_runfile(parameters=None, **top_level) -> str:
+    head = dict(scene='"chain"', method='"verlet"', dt=1e-3, t_end=1.0, save_dt=0.1, members=4, seed=3)
+    head.update({k: v for k, v in top_level.items()})
+    params = dict(n=2, m=1.0, k=1.0, x0="{ mode = 2, amplitude = 0.1 }")
+    params.update(parameters or {})
+    lines = [f"{k} = {v}" for k, v in head.items() if v is not None]
+    return "\n".join(lines + ["[parameters]"] + [f"{k} = {v}" for k, v in params.items() if v is not None]) + "\n"
+
+
+def disordered(n, boundary, members=3, seed=0):
+    """Members with random masses, springs and initial state: a members table."""
+    rng = np.random.default_rng(seed)
+    springs = chain.spring_count(n, boundary)
+    return {"m": rng.uniform(0.5, 2.0, (members, n)), "k": rng.uniform(0.5, 2.0, (members, springs)),
+            "x0": rng.normal(0, 0.1, (members, n)), "v0": rng.normal(0, 0.1, (members, n))}
+
+
+def relative_error(samples, reference):
+    return np.abs(samples - reference).max(axis=(0, 1)) / np.abs(reference).max(axis=(0, 1))
+
+
+# --- normal modes -------------------------------------------------------------------------------
+
+def test_course_two_mass_modes():
+    omega, shapes = chain.normal_modes([2.0, 2.0], [5.0, 5.0, 5.0])
+    np.testing.assert_allclose(omega, [np.sqrt(5 / 2), np.sqrt(3 * 5 / 2)], rtol=1e-14)
+    np.testing.assert_allclose(shapes / shapes[0], [[1, 1], [1, -1]], atol=1e-14)
+
+
+@pytest.mark.parametrize("n", [1, 2, 7, 32])
+def test_uniform_fixed_chain_frequencies(n):
+    m, k = 0.7, 3.0
+    omega, _ = chain.normal_modes(np.full(n, m), np.full(n + 1, k))
+    j = np.arange(1, n + 1)
+    np.testing.assert_allclose(omega, 2 * np.sqrt(k / m) * np.sin(j * np.pi / (2 * (n + 1))), rtol=1e-12)
+
+
+def test_uniform_ring_and_free_chain_frequencies():
+    n, m, k = 8, 1.5, 2.0
+    ring, _ = chain.normal_modes(np.full(n, m), np.full(n, k), "periodic")
+    expected = np.sort(2 * np.sqrt(k / m) * np.abs(np.sin(np.pi * np.arange(n) / n)))
+    np.testing.assert_allclose(ring, expected, rtol=1e-12, atol=1e-12)
+    free, _ = chain.normal_modes(np.full(n, m), np.full(n - 1, k), "free")
+    np.testing.assert_allclose(free, 2 * np.sqrt(k / m) * np.sin(np.pi * np.arange(n) / (2 * n)), atol=1e-12)
+
+
+def test_large_mass_ratio_stays_accurate():
+    """Two masses 1 and 1e8 between walls: w^2 = k((m1+m2) +- sqrt(m1^2 - m1 m2 + m2^2)) / (m1 m2)."""
+    m1, m2, k = 1.0, 1e8, 1.0
+    root = np.sqrt(m1 * m1 - m1 * m2 + m2 * m2)
+    high = k * (m1 + m2 + root) / (m1 * m2)
+    low = 3 * k * k / (m1 * m2 * high)  # the product of the roots, free of cancellation
+    omega, shapes = chain.normal_modes([m1, m2], [k, k, k])
+    np.testing.assert_allclose(omega ** 2, [low, high], rtol=1e-12)
+    mass = np.diag([m1, m2])
+    np.testing.assert_allclose(shapes.T @ mass @ shapes, np.eye(2), atol=1e-12)
+
+
+@pytest.mark.parametrize("boundary", chain.BOUNDARIES)
+def test_modes_solve_the_generalized_eigenproblem(boundary):
+    values = disordered(6, boundary, members=4)
+    omega, shapes = chain.normal_modes(values["m"], values["k"], boundary)
+    stiff = chain.stiffness(values["k"], 6, boundary)
+    mass = values["m"][:, :, None] * np.eye(6)
+    np.testing.assert_allclose(stiff @ shapes, mass @ shapes * omega[:, None, :] ** 2, atol=1e-12)
+    np.testing.assert_allclose(np.swapaxes(shapes, 1, 2) @ mass @ shapes, np.broadcast_to(np.eye(6), mass.shape),
+                               atol=1e-12)
+
+
+# --- the exact solution -------------------------------------------------------------------------
+
+@pytest.mark.parametrize("boundary", chain.BOUNDARIES)
+def test_exact_matches_the_matrix_exponential(boundary):
+    """Including the free and periodic chains' zero mode, which drifts."""
+    n = 5
+    values = disordered(n, boundary, members=3, seed=1)
+    t = np.linspace(0, 7, 15)
+    samples = chain.exact(values, {"n": n, "boundary": boundary}, t)
+    for j in range(3):
+        stiff = chain.stiffness(values["k"][j], n, boundary)
+        generator = np.block([[np.zeros((n, n)), np.eye(n)], [-stiff / values["m"][j][:, None], np.zeros((n, n))]])
+        y0 = np.concatenate((values["x0"][j], values["v0"][j]))
+        reference = np.array([expm(generator * ti) @ y0 for ti in t])
+        np.testing.assert_allclose(samples[:, :, j], reference, atol=1e-12 * np.abs(reference).max())
+    if boundary != "fixed":  # the centre of mass moves at its initial velocity
+        m = values["m"]
+        centre = np.einsum("mi,tim->tm", m, samples[:, :n]) / m.sum(axis=1)
+        drift = (m * values["v0"]).sum(axis=1) / m.sum(axis=1)
+        np.testing.assert_allclose(centre - centre[0], t[:, None] * drift, atol=1e-12)
+
+
+# --- stepping methods ---------------------------------------------------------------------------
+
+def run(method, values, constants, dt, steps_per_save, n_save):
+    return kernels.integrate(chain, method, values, constants, dt, steps_per_save, n_save)
+
+
+@pytest.mark.parametrize("boundary", ["fixed", "periodic"])
+@pytest.mark.parametrize("method", CHAIN_METHODS)
+def test_convergence_order(method, boundary):
+    n, t_end = 4, 2.0
+    constants = {"n": n, "boundary": boundary}
+    values = disordered(n, boundary)
+    exact = chain.exact(values, constants, [0.0, t_end])
+    dts = {1: (2e-4, 1e-4, 5e-5), 2: (1e-2, 5e-3, 2.5e-3), 4: (4e-2, 2e-2, 1e-2)}[METHODS[method].order]
+    errors = [relative_error(run(method, values, constants, dt, round(t_end / dt), 2), exact) for dt in dts]
+    slopes = np.diff(np.log(errors), axis=0) / np.diff(np.log(dts))[:, None]
+    np.testing.assert_allclose(slopes, METHODS[method].order, atol=0.15)
+
+
+def test_symplectic_methods_keep_energy_bounded_and_euler_does_not():
+    n, h, steps = 4, 0.02, 100_000
+    constants = {"n": n, "boundary": "fixed"}
+    values = disordered(n, "fixed", members=2)
+    drift = {}
+    for method in ("verlet", "yoshida4", "euler"):
+        samples = run(method, values, constants, h, steps // 100, 101)
+        x, v = samples[:, :n].transpose(2, 0, 1), samples[:, n:].transpose(2, 0, 1)
+        e = chain.energy(x, v, values["m"][:, None], values["k"][:, None], "fixed")
+        drift[method] = np.abs(e / e[:, :1] - 1)
+    # verlet's energy error is O((w h)^2) and does not grow: the last half is no worse than the first
+    for method, bound in (("verlet", 1e-3), ("yoshida4", 1e-6)):
+        assert drift[method].max() < bound
+        assert drift[method][:, 51:].max() < 2 * drift[method][:, 1:51].max()
+    assert np.all(np.diff(drift["euler"][:, 1:], axis=1) > 0) and drift["euler"][:, -1].min() > 1.0
+
+
+def test_verlet_is_reversible():
+    n, h, steps = 4, 1e-2, 2000
+    constants = {"n": n, "boundary": "fixed"}
+    values = disordered(n, "fixed")
+    forward = run("verlet", values, constants, h, steps, 2)[1]
+    back = run("verlet", {**values, "x0": forward[:n].T, "v0": forward[n:].T}, constants, -h, steps, 2)[1]
+    start = np.concatenate((values["x0"].T, values["v0"].T))
+    np.testing.assert_allclose(back, start, atol=1e-12 * np.abs(start).max())
+
+
+def test_course_chain_in_mode_two_oscillates_at_sqrt_3k_over_m(write_runfile):
+    """Two masses m = 2 kg, springs k = 5 N/m: x1 = -x2 = A cos(w t), w = sqrt(3k/m).
+
+    Verlet shows the frequency (2/h) asin(w h / 2) instead of w; both are checked.
+    """
+    text = chain_runfile({"m": 2.0, "k": 5.0}, t_end=10.0, save_dt=0.01, dt=1e-2)
+    w = np.sqrt(3 * 5.0 / 2.0)
+    for method, frequency in (("exact", w), ("verlet", 2 / 1e-2 * np.arcsin(w * 1e-2 / 2))):
+        ds = runner.simulate(load(write_runfile(text.replace('"verlet"', f'"{method}"'), f"{method}.toml")))
+        x = ds.x.values
+        np.testing.assert_array_equal(x[:, :, 0], -x[:, :, 1])
+        expected = np.broadcast_to(0.1 * np.cos(frequency * ds.t.values), x[:, :, 0].shape)
+        np.testing.assert_allclose(x[:, :, 0], expected, rtol=0, atol=1e-13)
+
+
+def test_dataset_energy_and_parameters(write_runfile):
+    """Energy in the file equals the hand-written spring sum; parameters have their per-site dims."""
+    text = chain_runfile({"n": 4, "m": "{ uniform = [0.5, 2.0] }", "k": "[1.0, 2.0, 3.0, 4.0, 5.0]",
+                          "x0": "{ normal = [0.0, 0.1] }"}, method='"rk4"')
+    ds = runner.simulate(load(write_runfile(text)))
+    assert ds.x.dims == ("member", "t", "site") and ds.sizes["site"] == 4 and ds.sizes["spring"] == 5
+    assert ds.m.dims == ("member", "site") and ds.k.dims == ("member", "spring")
+    assert ds.attrs["n"] == 4 and ds.attrs["boundary"] == "fixed"
+    np.testing.assert_array_equal(ds.k.values, np.tile([1.0, 2.0, 3.0, 4.0, 5.0], (4, 1)))
+    x, v, m, k = ds.x.values, ds.v.values, ds.m.values[:, None], ds.k.values[:, None]
+    walls = np.pad(x, ((0, 0), (0, 0), (1, 1)))
+    by_hand = 0.5 * (m * v ** 2).sum(-1) + 0.5 * (k * np.diff(walls, axis=-1) ** 2).sum(-1)
+    np.testing.assert_allclose(ds.energy.values, by_hand, rtol=1e-14)
+    np.testing.assert_allclose(ds.energy.values / ds.energy.values[:, :1], 1, atol=1e-9)  # rk4, small steps
+
+
+@pytest.mark.parametrize("n", [4, 40])  # blocks of 128 and 64 members
+def test_chain_results_do_not_depend_on_chunk_size(n, write_runfile):
+    text = chain_runfile({"n": n, "m": "{ uniform = [0.5, 2.0] }", "x0": "{ normal = [0.0, 0.1] }"},
+                         members=70, t_end=0.2)
+    spec = load(write_runfile(text))
+    xr.testing.assert_equal(runner.simulate(spec, chunk=16).drop_attrs(), runner.simulate(spec).drop_attrs())
+
+
+BAD_CHAINS = {
+    "n below 1": ({"n": 0}, "parameters.n"),
+    "n not an integer": ({"n": 2.5}, "parameters.n"),
+    "masses list too long": ({"m": "[1.0, 2.0, 3.0]"}, "parameters.m"),
+    "springs list too short": ({"k": "[1.0, 2.0]"}, "parameters.k"),
+    "free chain springs": ({"boundary": '"free"', "k": "[1.0, 2.0]"}, "parameters.k"),
+    "mass zero": ({"m": 0.0}, "parameters.m"),
+    "negative spring in a list": ({"k": "[1.0, -2.0, 1.0]"}, "parameters.k"),
+    "drawn negative mass": ({"m": "{ normal = [0.1, 1.0] }"}, "parameters.m"),
+    "mode above n": ({"x0": "{ mode = 3, amplitude = 0.1 }"}, "parameters.x0.mode"),
+    "mode zero": ({"v0": "{ mode = 0, amplitude = 0.1 }"}, "parameters.v0.mode"),
+    "unknown boundary": ({"boundary": '"open"'}, "parameters.boundary"),
+}
+
+
+@pytest.mark.parametrize("case", list(BAD_CHAINS))
+def test_bad_chain_input(case, write_runfile, tmp_path, capsys):
+    change, key = BAD_CHAINS[case]
+    text = chain_runfile(change)
+    with pytest.raises(SpecError) as error:
+        parse(text)
+    assert error.value.key == key
+    out = tmp_path / "out.nc"
+    assert cli.main(["run", str(write_runfile(text)), "-o", str(out), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1 and f" {key}: " in err and not out.exists()
+
+
+def test_run_constants_cannot_be_swept():
+    with pytest.raises(SpecError) as error:
+        parse(chain_runfile({"n": None}) + "[sweep]\nn = [2, 3]\n")
+    assert error.value.key == "sweep.n"
