@@ -1,4 +1,10 @@
 """Spring chains: normal modes, the exact solution, and every stepping method against them."""
+import json
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
 import numpy as np
 import pytest
 import xarray as xr
@@ -220,3 +226,14 @@ def test_run_constants_cannot_be_swept():
     with pytest.raises(SpecError) as error:
         parse(chain_runfile({"n": None}) + "[sweep]\nn = [2, 3]\n")
     assert error.value.key == "sweep.n"
+
+
+def test_chain_output_passes_the_cf_compliance_checker(write_runfile, tmp_path):
+    out = tmp_path / "chain.nc"
+    text = chain_runfile({"n": 4, "boundary": '"periodic"', "k": "{ uniform = [1.0, 2.0] }"})
+    runner.run(load(write_runfile(text)), out, progress=False)
+    executable = shutil.which("compliance-checker", path=str(Path(sys.executable).parent)) or "compliance-checker"
+    checker = subprocess.run([executable, "--test=cf:1.8", "-f", "json", "-o", "-", str(out)],
+                             capture_output=True, text=True)
+    report = json.loads(checker.stdout)["cf:1.8"]
+    assert report["high_count"] == 0, report["high_priorities"]
