@@ -24,10 +24,17 @@ BLOCK = 128  # members per block of the top kernels
 FAST = dict(fastmath=True, error_model="numpy", boundscheck=False)
 
 
-def _sequence(method: Method):
-    """(pieces, fractions) of a splitting method, as tuples for a closure."""
-    return (tuple(p for p, _ in method.splitting.sequence),
-            tuple(float(f) for _, f in method.splitting.sequence))
+def _method_constants(method: Method):
+    """A method's data as plain tuples for a kernel closure (unused parts get placeholders).
+
+    Returns (runge_kutta, stages, a (stages x stages, flat), b, entries, pieces, fractions).
+    """
+    if method.tableau is not None:
+        t = method.tableau
+        return True, t.stages, t.square_a(), tuple(float(x) for x in t.b), 1, (0,), (0.0,)
+    sequence = method.splitting.sequence
+    return (False, 1, (0.0,), (0.0,), len(sequence),
+            tuple(p for p, _ in sequence), tuple(float(f) for _, f in sequence))
 
 
 def _top_kernel(method: Method):
@@ -39,14 +46,7 @@ def _top_kernel(method: Method):
     trip counts, so LLVM unrolls them, folds the method's coefficients and
     drops zero terms: a generated rk4 runs as fast as a hand-written one.
     """
-    runge_kutta = method.tableau is not None
-    if runge_kutta:
-        S, a, b = method.tableau.stages, method.tableau.square_a(), method.tableau.b
-        E, pieces, fractions = 1, (0,), (0.0,)
-    else:
-        S, a, b = 1, (0.0,), (0.0,)
-        E = len(method.splitting.sequence)
-        pieces, fractions = _sequence(method)
+    runge_kutta, S, a, b, E, pieces, fractions = _method_constants(method)
     rows = 6 + (3 * S if runge_kutta else 2 * E)
 
     @njit(parallel=True, cache=True, **FAST)
@@ -137,14 +137,7 @@ def _chain_kernel(method: Method, n: int, periodic: bool):
     X, V = 0, n + 2
     MINV = V + n
     K = MINV + n
-    runge_kutta = method.tableau is not None
-    if runge_kutta:
-        S, a, b = method.tableau.stages, method.tableau.square_a(), method.tableau.b
-        E, pieces, fractions = 1, (0,), (0.0,)
-    else:
-        S, a, b = 1, (0.0,), (0.0,)
-        E = len(method.splitting.sequence)
-        pieces, fractions = _sequence(method)
+    runge_kutta, S, a, b, E, pieces, fractions = _method_constants(method)
     # A splitting that starts and ends with the same piece (verlet: kick) merges
     # the end of one step with the start of the next inside a save interval.
     merge = E > 1 and pieces[0] == pieces[E - 1]
