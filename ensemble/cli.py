@@ -64,10 +64,12 @@ def _run(args) -> int:
 def _methods() -> int:
     from .methods import METHODS
 
-    print(f"{'method':<10} {'order':>5}  {'symplectic':<10}  {'scenes':<12} description")
+    width = max(len(name) for name in METHODS)
+    print(f"{'method':<{width}} {'order':>5}  {'symplectic':<10}  {'scenes':<12} description")
     for m in METHODS.values():
         order = "exact" if m.order is None else str(m.order)
-        print(f"{m.name:<10} {order:>5}  {'yes' if m.symplectic else 'no':<10}  {','.join(m.scenes):<12} {m.summary}")
+        print(f"{m.name:<{width}} {order:>5}  {'yes' if m.symplectic else 'no':<10}  {','.join(m.scenes):<12} "
+              f"{m.summary}")
     return 0
 
 
