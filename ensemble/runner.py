@@ -34,7 +34,7 @@ class Summary:
 def default_chunk(spec: Spec) -> int:
     """Members per chunk: a multiple of the kernel block that keeps a chunk near CHUNK_BYTES."""
     scene = SCENES[spec.scene]
-    sizes = {"axis": 3, **(scene.sizes(spec.constants) if hasattr(scene, "sizes") else {})}
+    sizes = {"axis": 3, **scene.sizes(spec.constants)}
     values_per_member = spec.n_save * sum(
         1 + sizes.get(scene.OBSERVABLES[v][0][-1], 0) for v in spec.save)  # + a copy while observing
     chunk = max(1, CHUNK_BYTES // (8 * values_per_member)) // kernels.BLOCK * kernels.BLOCK

@@ -236,7 +236,7 @@ def parse(text: str, path: str = "<string>") -> Spec:
                 raise SpecError(f"parameters.{name}", "missing (required)")
             parameters[name] = parameter.default
     constants = {name: parameters.pop(name) for name, p in declared.items() if p.constant}
-    for name, problem in getattr(module, "check_constants", lambda _: [])(constants):
+    for name, problem in module.check_constants(constants):
         raise SpecError(f"parameters.{name}", problem)
 
     spec = Spec(path=str(path), text=text, scene=scene, method=method, dt=dt, t_end=t_end,
@@ -269,7 +269,7 @@ def members_table(spec: Spec) -> dict[str, np.ndarray]:
     for i, name in enumerate(spec.sweep):
         table[name] = np.array([g[i] for g in grid], dtype=float)[point]
     scene = SCENES[spec.scene]
-    sizes = scene.sizes(spec.constants) if hasattr(scene, "sizes") else {}
+    sizes = scene.sizes(spec.constants)
     modes = {}
     for name, value in spec.parameters.items():
         per = scene.PARAMETERS[name].per

@@ -61,9 +61,7 @@ class Writer:
         self.nc = nc = netCDF4.Dataset(self.part, "w", format="NETCDF4")
         nc.setncatts(global_attributes(spec))
         nc.setncattr("members_written", 0)
-        sizes = {"member": n, "t": spec.n_save, "axis": 3}
-        if hasattr(self.scene, "sizes"):
-            sizes.update(self.scene.sizes(spec.constants))
+        sizes = {"member": n, "t": spec.n_save, "axis": 3, **self.scene.sizes(spec.constants)}
         for dim, size in sizes.items():
             nc.createDimension(dim, size)
         self._coordinate("member", np.arange(n, dtype=np.int32), "ensemble member index")

@@ -41,6 +41,16 @@ OBSERVABLES: dict[str, tuple[tuple[str, ...], str, str]] = {
 _FLAT_BODY_RTOL = 1e-9
 
 
+def sizes(constants: dict) -> dict[str, int]:
+    """The top has no per-site or per-spring parameters."""
+    return {}
+
+
+def check_constants(constants: dict) -> list[tuple[str, str]]:
+    """The top has no run constants."""
+    return []
+
+
 def check(values: dict[str, np.ndarray]) -> list[tuple[str, str]]:
     """Physical constraints on per-member parameters: [(parameter, problem), ...]."""
     problems = []
