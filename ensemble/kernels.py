@@ -202,7 +202,6 @@ def _chain_kernel(method: Method, n: int, periodic: bool):
                                     dv += b[s] * work[(KV + s * n + i) * B + j]
                                 work[(X + 1 + i) * B + j] += h * dx
                                 work[(V + i) * B + j] += h * dv
-                        set_ghosts(work, X)
                     else:
                         for e in range(E):
                             tau = h * fractions[e]

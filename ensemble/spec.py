@@ -14,7 +14,7 @@ import itertools
 import math
 import tomllib
 import zlib
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -73,6 +73,7 @@ class Spec:
     parameters: dict[str, float | list | Distribution | Mode] = field(repr=False)
     sweep: dict[str, tuple[float, ...]] = field(repr=False)
     constants: dict[str, int | str] = field(default_factory=dict)  # run constants, e.g. n, boundary
+    table: dict[str, np.ndarray] | None = field(default=None, repr=False, compare=False)  # see members_table
 
     @property
     def steps_per_save(self) -> int:
@@ -242,8 +243,8 @@ def parse(text: str, path: str = "<string>") -> Spec:
     spec = Spec(path=str(path), text=text, scene=scene, method=method, dt=dt, t_end=t_end,
                 save_dt=save_dt, members=values["members"], seed=values["seed"], save=save,
                 parameters=parameters, sweep=sweep, constants=constants)
-    members_table(spec)  # draws and checks every member's values
-    return spec
+    # Drawing every member's values checks them; keep them, as mode starts may cost an eigensolve each.
+    return replace(spec, table=_build_table(spec))
 
 
 def load(path: str | Path) -> Spec:
@@ -257,11 +258,15 @@ def load(path: str | Path) -> Spec:
 
 
 def members_table(spec: Spec) -> dict[str, np.ndarray]:
-    """Every member's parameter values, each an array over members.
+    """Every member's parameter values, each an array over members (built once, by parse).
 
     Members are ordered sweep point major, replica minor; the table also holds
     `sweep_point`, the index of each member's point on the sweep grid.
     """
+    return spec.table if spec.table is not None else _build_table(spec)
+
+
+def _build_table(spec: Spec) -> dict[str, np.ndarray]:
     n = spec.n_members
     grid = list(itertools.product(*spec.sweep.values())) or [()]
     point = np.repeat(np.arange(len(grid)), spec.members)
