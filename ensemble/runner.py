@@ -1,14 +1,13 @@
 """Running a validated spec: members in chunks through a kernel into NetCDF."""
 from __future__ import annotations
 
-import os
+import math
 import sys
 import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
 
-import numpy as np
 from tqdm import tqdm
 
 from . import kernels
@@ -32,13 +31,15 @@ class Summary:
 
 
 def default_chunk(spec: Spec) -> int:
-    """Members per chunk: a multiple of the kernel block that keeps a chunk near CHUNK_BYTES."""
+    """Members per chunk: a multiple of the kernel block that keeps a chunk within CHUNK_BYTES."""
     scene = SCENES[spec.scene]
     sizes = {"axis": 3, **scene.sizes(spec.constants)}
-    values_per_member = spec.n_save * sum(
-        1 + sizes.get(scene.OBSERVABLES[v][0][-1], 0) for v in spec.save)  # + a copy while observing
-    chunk = max(1, CHUNK_BYTES // (8 * values_per_member)) // kernels.BLOCK * kernels.BLOCK
-    return min(max(chunk, kernels.BLOCK), spec.n_members)
+    state_rows, _ = scene.kernel_rows(spec.constants)
+    saved = sum(math.prod(sizes[d] for d in scene.OBSERVABLES[v][0][2:]) for v in spec.save)
+    values_per_member = spec.n_save * (state_rows + saved)  # kernel samples and the saved variables
+    block = kernels.block_size(spec.scene, scene.kernel_key(spec.constants))
+    chunk = CHUNK_BYTES // (8 * values_per_member) // block * block
+    return min(max(chunk, block), spec.n_members)  # at least one kernel block
 
 
 def run(spec: Spec, out: str | Path, *, chunk: int | None = None, progress: bool = True) -> Summary:

@@ -253,7 +253,7 @@ def load(path: str | Path) -> Spec:
     try:
         text = path.read_text()
     except OSError as e:
-        raise SpecError(str(path), e.strerror or str(e)) from None
+        raise SpecError("run file", f"cannot read it: {e.strerror or e}") from None
     return parse(text, str(path))
 
 

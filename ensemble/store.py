@@ -98,8 +98,7 @@ class Writer:
         """Store the saved variables of members start, start + 1, ... (member-major arrays)."""
         for name, values in data.items():
             self.nc.variables[name][start:start + len(values)] = values
-            count = len(values)
-        self.written += count
+        self.written += len(next(iter(data.values())))
         self.nc.setncattr("members_written", self.written)
         self.nc.sync()
 

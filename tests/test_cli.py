@@ -13,7 +13,7 @@ import xarray as xr
 
 from ensemble import cli, kernels, runner
 from ensemble.methods import METHODS
-from ensemble.scenes import top
+from ensemble.scenes import SCENES, top
 from ensemble.spec import load, members_table, parse
 from tests.conftest import top_runfile
 
@@ -146,3 +146,36 @@ def test_second_process_loads_kernels_from_the_disk_cache(cli_run):
     log = again.stdout + again.stderr
     assert again.returncode == 0, log
     assert "data loaded" in log and "data saved" not in log
+
+
+@pytest.mark.parametrize("args, key", [(["--chunk", "0"], "--chunk"), ([], "run file")])
+def test_bad_command_line_input_is_one_line_and_exit_2(args, key, write_runfile, tmp_path, capsys):
+    runfile = write_runfile(top_runfile()) if args else tmp_path / "missing.toml"
+    out = tmp_path / "out.nc"
+    assert cli.main(["run", str(runfile), "-o", str(out), *args]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and f" {key}: " in err and err.count(str(runfile)) <= 1
+    assert not list(tmp_path.glob("out.nc*"))
+
+
+@pytest.mark.parametrize("text", [
+    top_runfile(members=100_000, t_end=100.0, save_dt=0.1),
+    "scene = 'chain'\nmethod = 'verlet'\ndt = 0.01\nt_end = 10.0\nsave_dt = 0.01\nmembers = 5000\nseed = 1\n"
+    "save = ['energy']\n[parameters]\nn = 256\nm = 1.0\nk = 1.0\n",
+    "scene = 'chain'\nmethod = 'verlet'\ndt = 0.01\nt_end = 10.0\nsave_dt = 0.1\nmembers = 5000\nseed = 1\n"
+    "save = ['energy']\n[parameters]\nn = 256\nm = 1.0\nk = 1.0\n",
+])
+def test_default_chunk_keeps_kernel_samples_and_saved_data_near_the_budget(text):
+    """A chunk holds the kernel's samples (state rows) and the saved variables, 8 bytes a value;
+    it is whole kernel blocks, and a single block when one block alone exceeds the budget."""
+    spec = parse(text)
+    chunk = runner.default_chunk(spec)
+    block = kernels.block_size(spec.scene, SCENES[spec.scene].kernel_key(spec.constants))
+    state_rows = 3 if spec.scene == "top" else 2 * spec.constants["n"]
+    saved = 4 if spec.scene == "top" else 1  # omega (3) + tilt, or energy
+    per_member = spec.n_save * (state_rows + saved) * 8
+    assert chunk % block == 0
+    if block * per_member > runner.CHUNK_BYTES:
+        assert chunk == block
+    else:
+        assert runner.CHUNK_BYTES / 2 < chunk * per_member <= runner.CHUNK_BYTES

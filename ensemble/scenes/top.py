@@ -159,7 +159,7 @@ def tilt_theory(values: dict[str, np.ndarray], t: np.ndarray) -> np.ndarray:
     return np.arctan(np.tan(values["tilt0"])[:, None] * np.exp(-rate[:, None] * np.asarray(t)[None, :]))
 
 
-def observe(samples: np.ndarray, names, values=None, constants=None) -> dict[str, np.ndarray]:
+def observe(samples: np.ndarray, names, values: dict[str, np.ndarray], constants: dict) -> dict[str, np.ndarray]:
     """Saved variables from kernel samples of shape (t, 3, members), member-major."""
     out = {}
     if "omega" in names:
