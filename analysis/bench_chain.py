@@ -19,14 +19,14 @@ from ensemble import kernels
 from ensemble.scenes import chain
 
 
-def numpy_verlet(x, v, minv, springs, h, steps):
-    """Velocity Verlet over members with NumPy: x, v, minv (n, M); springs (n + 2, M), kernel layout."""
+def numpy_verlet(x, v, c_left, c_right, h, steps):
+    """Velocity Verlet over members with NumPy: x, v and spring constants over mass c_left, c_right (n, M)."""
     x, v = x.copy(), v.copy()
     walls = np.zeros((x.shape[0] + 2, x.shape[1]))
 
     def acceleration():
         walls[1:-1] = x
-        return minv * (springs[1:-1] * (walls[:-2] - x) + springs[2:] * (walls[2:] - x))
+        return c_left * (walls[:-2] - x) + c_right * (walls[2:] - x)
 
     a = acceleration()
     for _ in range(steps):

@@ -118,34 +118,38 @@ def _top_kernel(method: Method):
 
 
 def chain_block(n: int) -> int:
-    """Members per block for a chain of n masses: a block's state stays in the L2 cache."""
-    block = 128
-    while block > 8 and block * n > 4096:
-        block //= 2
-    return block
+    """Members per block for a chain of n masses.
+
+    From 16 masses on, a block is 8 members: each row is one 64-byte line (one
+    AVX-512 vector), so a row update is a single vector operation. Shorter
+    chains take 64 members, so that a step has enough independent work to
+    hide the latency of the kick-drift dependency (analysis/bench_chain.py).
+    """
+    return 64 if n < 16 else 8
 
 
 def _chain_kernel(method: Method, n: int, periodic: bool):
     """Chain kernel for n masses: a kick/drift splitting or an explicit Runge-Kutta tableau.
 
     Work rows (B = chain_block(n) members each): X (n + 2: ghost, masses
-    1..n, ghost), V (n), 1/m (n), springs (n + 2, see chain.kernel_springs);
-    Runge-Kutta adds the stage state ZX (n + 2), ZV (n) and slopes KX, KV
-    (stages x n each). Forces come from neighbours only: O(n) per step.
+    1..n, ghost), V (n), then CL and CR (n each: the springs' constants left
+    and right of each mass over its mass, see chain.inputs); Runge-Kutta adds
+    the stage state ZX (n + 2), ZV (n) and slopes KX, KV (stages x n each).
+    Forces come from neighbours only: O(n) per step.
     """
     B = chain_block(n)
     X, V = 0, n + 2
-    MINV = V + n
-    K = MINV + n
+    CL = V + n
+    CR = CL + n
     runge_kutta, S, a, b, E, pieces, fractions = _method_constants(method)
     # A splitting that starts and ends with the same piece (verlet: kick) merges
     # the end of one step with the start of the next inside a save interval.
     merge = E > 1 and pieces[0] == pieces[E - 1]
-    ZX = K + n + 2
+    ZX = CR + n
     ZV = ZX + n + 2
     KX = ZV + n
     KV = KX + S * n
-    rows = KV + S * n if runge_kutta else K + n + 2
+    rows = KV + S * n if runge_kutta else CR + n
 
     @njit(inline="always", **FAST)
     def set_ghosts(work, x):
@@ -155,77 +159,93 @@ def _chain_kernel(method: Method, n: int, periodic: bool):
                 work[x * B + j] = work[(x + n) * B + j]
                 work[(x + n + 1) * B + j] = work[(x + 1) * B + j]
 
+    @njit(inline="always", **FAST)
+    def load_block(state0, rate, j0, samples):
+        """A block's work array with its state and parameters; also its first sample."""
+        work = np.zeros(rows * B)
+        for i in range(n):
+            work[(X + 1 + i) * B:(X + 2 + i) * B] = state0[i, j0:j0 + B]
+            work[(V + i) * B:(V + 1 + i) * B] = state0[n + i, j0:j0 + B]
+            work[(CL + i) * B:(CL + 1 + i) * B] = rate[i, j0:j0 + B]
+            work[(CR + i) * B:(CR + 1 + i) * B] = rate[n + i, j0:j0 + B]
+            samples[0, i, j0:j0 + B] = state0[i, j0:j0 + B]
+            samples[0, n + i, j0:j0 + B] = state0[n + i, j0:j0 + B]
+        set_ghosts(work, X)
+        return work
+
+    @njit(inline="always", **FAST)
+    def store_sample(work, samples, save, j0):
+        for i in range(n):
+            samples[save, i, j0:j0 + B] = work[(X + 1 + i) * B:(X + 2 + i) * B]
+            samples[save, n + i, j0:j0 + B] = work[(V + i) * B:(V + 1 + i) * B]
+
     @njit(parallel=True, cache=True, **FAST)
-    def kernel(state0, rate, h, steps_per_save, samples):
-        """state0 (2n, M), rate (2n + 2, M) -> samples (n_save, 2n, M); M a multiple of B."""
-        n_save = samples.shape[0]
+    def splitting_kernel(state0, rate, h, steps_per_save, samples):
+        """state0 (2n, M), rate (2n, M) -> samples (n_save, 2n, M); M a multiple of B."""
         for block in prange(state0.shape[1] // B):
             j0 = block * B
-            j1 = j0 + B
-            work = np.zeros(rows * B)
-            for i in range(n):
-                work[(X + 1 + i) * B:(X + 2 + i) * B] = state0[i, j0:j1]
-                work[(V + i) * B:(V + 1 + i) * B] = state0[n + i, j0:j1]
-                work[(MINV + i) * B:(MINV + 1 + i) * B] = rate[i, j0:j1]
-            for i in range(n + 2):
-                work[(K + i) * B:(K + 1 + i) * B] = rate[n + i, j0:j1]
-            set_ghosts(work, X)
-            samples[0, :, j0:j1] = state0[:, j0:j1]
-            for save in range(1, n_save):
+            work = load_block(state0, rate, j0, samples)
+            for save in range(1, samples.shape[0]):
                 for step in range(steps_per_save):
-                    if runge_kutta:
-                        for s in range(S):
+                    for e in range(E):
+                        tau = h * fractions[e]
+                        if merge and e == 0 and step > 0:
+                            continue  # done by the previous step's last piece
+                        if merge and e == E - 1 and step < steps_per_save - 1:
+                            tau += h * fractions[0]
+                        if pieces[e] == KICK:
                             for i in range(n):
                                 for j in range(B):
-                                    zx = work[(X + 1 + i) * B + j]
-                                    zv = work[(V + i) * B + j]
-                                    for r in range(S):
-                                        ha = h * a[s * S + r]
-                                        zx += ha * work[(KX + r * n + i) * B + j]
-                                        zv += ha * work[(KV + r * n + i) * B + j]
-                                    work[(ZX + 1 + i) * B + j] = zx
-                                    work[(ZV + i) * B + j] = zv
-                            set_ghosts(work, ZX)
+                                    work[(V + i) * B + j] += tau * chain.acceleration(
+                                        work[(X + i) * B + j], work[(X + 1 + i) * B + j],
+                                        work[(X + 2 + i) * B + j], work[(CL + i) * B + j],
+                                        work[(CR + i) * B + j])
+                        else:
                             for i in range(n):
                                 for j in range(B):
-                                    work[(KX + s * n + i) * B + j] = work[(ZV + i) * B + j]
-                                    work[(KV + s * n + i) * B + j] = work[(MINV + i) * B + j] * chain.force(
-                                        work[(ZX + i) * B + j], work[(ZX + 1 + i) * B + j],
-                                        work[(ZX + 2 + i) * B + j], work[(K + 1 + i) * B + j],
-                                        work[(K + 2 + i) * B + j])
+                                    work[(X + 1 + i) * B + j] += tau * work[(V + i) * B + j]
+                            set_ghosts(work, X)
+                store_sample(work, samples, save, j0)
+
+    @njit(parallel=True, cache=True, **FAST)
+    def runge_kutta_kernel(state0, rate, h, steps_per_save, samples):
+        """state0 (2n, M), rate (2n, M) -> samples (n_save, 2n, M); M a multiple of B."""
+        for block in prange(state0.shape[1] // B):
+            j0 = block * B
+            work = load_block(state0, rate, j0, samples)
+            for save in range(1, samples.shape[0]):
+                for _ in range(steps_per_save):
+                    for s in range(S):
                         for i in range(n):
                             for j in range(B):
-                                dx = 0.0
-                                dv = 0.0
-                                for s in range(S):
-                                    dx += b[s] * work[(KX + s * n + i) * B + j]
-                                    dv += b[s] * work[(KV + s * n + i) * B + j]
-                                work[(X + 1 + i) * B + j] += h * dx
-                                work[(V + i) * B + j] += h * dv
-                    else:
-                        for e in range(E):
-                            tau = h * fractions[e]
-                            if merge and e == 0 and step > 0:
-                                continue  # done by the previous step's last piece
-                            if merge and e == E - 1 and step < steps_per_save - 1:
-                                tau += h * fractions[0]
-                            if pieces[e] == KICK:
-                                for i in range(n):
-                                    for j in range(B):
-                                        work[(V + i) * B + j] += tau * work[(MINV + i) * B + j] * chain.force(
-                                            work[(X + i) * B + j], work[(X + 1 + i) * B + j],
-                                            work[(X + 2 + i) * B + j], work[(K + 1 + i) * B + j],
-                                            work[(K + 2 + i) * B + j])
-                            else:
-                                for i in range(n):
-                                    for j in range(B):
-                                        work[(X + 1 + i) * B + j] += tau * work[(V + i) * B + j]
-                                set_ghosts(work, X)
-                for i in range(n):
-                    samples[save, i, j0:j1] = work[(X + 1 + i) * B:(X + 2 + i) * B]
-                    samples[save, n + i, j0:j1] = work[(V + i) * B:(V + 1 + i) * B]
+                                zx = work[(X + 1 + i) * B + j]
+                                zv = work[(V + i) * B + j]
+                                for r in range(S):
+                                    ha = h * a[s * S + r]
+                                    zx += ha * work[(KX + r * n + i) * B + j]
+                                    zv += ha * work[(KV + r * n + i) * B + j]
+                                work[(ZX + 1 + i) * B + j] = zx
+                                work[(ZV + i) * B + j] = zv
+                        set_ghosts(work, ZX)
+                        for i in range(n):
+                            for j in range(B):
+                                work[(KX + s * n + i) * B + j] = work[(ZV + i) * B + j]
+                                work[(KV + s * n + i) * B + j] = chain.acceleration(
+                                    work[(ZX + i) * B + j], work[(ZX + 1 + i) * B + j],
+                                    work[(ZX + 2 + i) * B + j], work[(CL + i) * B + j],
+                                    work[(CR + i) * B + j])
+                    for i in range(n):
+                        for j in range(B):
+                            dx = 0.0
+                            dv = 0.0
+                            for s in range(S):
+                                dx += b[s] * work[(KX + s * n + i) * B + j]
+                                dv += b[s] * work[(KV + s * n + i) * B + j]
+                            work[(X + 1 + i) * B + j] += h * dx
+                            work[(V + i) * B + j] += h * dv
+                store_sample(work, samples, save, j0)
 
-    return kernel
+    return runge_kutta_kernel if runge_kutta else splitting_kernel
 
 
 @cache

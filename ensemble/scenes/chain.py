@@ -35,9 +35,12 @@ OBSERVABLES: dict[str, tuple[tuple[str, ...], str, str]] = {
 
 
 @njit(inline="always", fastmath=True, error_model="numpy")
-def force(x_left, x, x_right, k_left, k_right):
-    """Spring force (N) on a mass at x between neighbours x_left, x_right (m)."""
-    return k_left * (x_left - x) + k_right * (x_right - x)
+def acceleration(x_left, x, x_right, c_left, c_right):
+    """Acceleration (m/s^2) of a mass at x between neighbours x_left, x_right (m).
+
+    c_left and c_right (1/s^2) are the springs' constants on each side over the mass.
+    """
+    return c_left * (x_left - x) + c_right * (x_right - x)
 
 
 def spring_count(n: int, boundary: str) -> int:
@@ -140,16 +143,17 @@ def kernel_springs(k: np.ndarray, n: int, boundary: str) -> np.ndarray:
 
 
 def inputs(values: dict[str, np.ndarray], constants: dict) -> tuple[np.ndarray, np.ndarray]:
-    """Kernel state (x; v), shape (2n, members), and parameters (1/m; springs), shape (2n + 2, members)."""
+    """Kernel state (x; v) and parameters (k_left / m; k_right / m), each shape (2n, members)."""
     n, boundary = constants["n"], constants["boundary"]
     state = np.concatenate((values["x0"].T, values["v0"].T))
-    rate = np.concatenate((1.0 / values["m"].T, kernel_springs(values["k"], n, boundary)))
-    return state, rate
+    springs = kernel_springs(values["k"], n, boundary)
+    minv = 1.0 / values["m"].T
+    return state, np.concatenate((springs[1:n + 1] * minv, springs[2:] * minv))
 
 
 def kernel_rows(constants: dict) -> tuple[int, int]:
-    """Rows of the kernel state (x; v) and parameter (1/m; springs) arrays."""
-    return 2 * constants["n"], 2 * constants["n"] + 2
+    """Rows of the kernel state (x; v) and parameter (k_left / m; k_right / m) arrays."""
+    return 2 * constants["n"], 2 * constants["n"]
 
 
 def kernel_key(constants: dict) -> tuple:
