@@ -12,7 +12,7 @@ from tqdm import tqdm
 
 from . import kernels
 from .scenes import SCENES
-from .spec import Spec, members_table
+from .spec import Spec, members_table, observation_noise
 from .store import Writer
 
 CHUNK_BYTES = 32 * 2**20  # saved data held in memory per chunk
@@ -58,7 +58,10 @@ def run(spec: Spec, out: str | Path, *, chunk: int | None = None, progress: bool
             values = {name: v[j0:j1] for name, v in table.items()}
             samples = kernels.integrate(scene, spec.method, values, spec.constants,
                                         spec.dt, spec.steps_per_save, spec.n_save)
-            writer.write(j0, scene.observe(samples, spec.save, values, spec.constants))
+            data = scene.observe(samples, spec.save, values, spec.constants)
+            for name in spec.noise:
+                data[name] = data[name] + observation_noise(spec, name, j0, data[name].shape)
+            writer.write(j0, data)
             bar.update(j1 - j0)
     return Summary(n, spec.steps, time.perf_counter() - start)
 

@@ -4,8 +4,10 @@ A run file is TOML (see README.md). Every problem is a SpecError naming the
 key, so the command line can print one line and exit with status 2.
 
 Randomness: parameter `name` of member i is the i-th draw of a stream seeded by
-(seed, crc32(name)). It depends only on the seed, the parameter and the member
-index, never on chunk size, thread count, or the order of keys in the file.
+(seed, crc32(name)). Observation noise on variable `name` of member i comes
+from a stream seeded by (seed, crc32("noise:" + name), i). Both depend only on
+the seed, the variable and the member index, never on chunk size, thread
+count, or the order of keys in the file.
 """
 from __future__ import annotations
 
@@ -35,8 +37,9 @@ class SpecError(ValueError):
 
 TOP_LEVEL = {
     "scene": str, "method": str, "dt": float, "t_end": float, "save_dt": float,
-    "members": int, "seed": int, "save": list, "parameters": dict, "sweep": dict,
+    "members": int, "seed": int, "save": list, "parameters": dict, "sweep": dict, "observe": dict,
 }
+OBSERVE_KEYS = ("noise",)
 REQUIRED = ("scene", "method", "dt", "t_end", "save_dt", "members", "seed")
 DISTRIBUTIONS = ("uniform", "normal", "loguniform")
 _STEP_RTOL = 1e-9  # how close save_dt / dt and t_end / save_dt must be to whole numbers
@@ -73,6 +76,7 @@ class Spec:
     parameters: dict[str, float | list | Distribution | Mode] = field(repr=False)
     sweep: dict[str, tuple[float, ...]] = field(repr=False)
     constants: dict[str, int | str] = field(default_factory=dict)  # run constants, e.g. n, boundary
+    noise: dict[str, float] = field(default_factory=dict)  # Gaussian observation noise: variable -> stddev
     table: dict[str, np.ndarray] | None = field(default=None, repr=False, compare=False)  # see members_table
 
     @property
@@ -213,6 +217,8 @@ def parse(text: str, path: str = "<string>") -> Spec:
     if not save:
         raise SpecError("save", "must name at least one variable")
 
+    noise = _noise(values.get("observe", {}), save, module)
+
     declared = module.PARAMETERS
     parameters = {}
     for name, value in values.get("parameters", {}).items():
@@ -242,9 +248,29 @@ def parse(text: str, path: str = "<string>") -> Spec:
 
     spec = Spec(path=str(path), text=text, scene=scene, method=method, dt=dt, t_end=t_end,
                 save_dt=save_dt, members=values["members"], seed=values["seed"], save=save,
-                parameters=parameters, sweep=sweep, constants=constants)
+                parameters=parameters, sweep=sweep, constants=constants, noise=noise)
     # Drawing every member's values checks them; keep them, as mode starts may cost an eigensolve each.
     return replace(spec, table=_build_table(spec))
+
+
+def _noise(observe: dict, save: tuple[str, ...], module) -> dict[str, float]:
+    """The [observe] table: noise = { variable = standard deviation (the variable's units) }."""
+    for key in observe:
+        if key not in OBSERVE_KEYS:
+            raise _unknown(f"observe.{key}", key, OBSERVE_KEYS)
+    noise = _expect("observe.noise", observe.get("noise", {}), dict)
+    out = {}
+    for name, sigma in noise.items():
+        key = f"observe.noise.{name}"
+        if name not in module.OBSERVABLES:
+            raise _unknown(key, name, module.OBSERVABLES)
+        if name not in save:
+            raise SpecError(key, f"{name!r} is not saved; add it to save")
+        sigma = _expect(key, sigma, float)
+        if not sigma >= 0 or math.isinf(sigma):
+            raise SpecError(key, f"must be a finite standard deviation >= 0, got {sigma}")
+        out[name] = sigma
+    return out
 
 
 def load(path: str | Path) -> Spec:
@@ -303,3 +329,11 @@ def _build_table(spec: Spec) -> dict[str, np.ndarray]:
             raise SpecError(f"parameters.{name}.mode", f"must be in 1..{sizes['site']}, got {mode.number}")
         table[name] = scene.mode_start(mode, table["m"], table["k"], spec.constants["boundary"])
     return table
+
+
+def observation_noise(spec: Spec, name: str, first: int, shape: tuple[int, ...]) -> np.ndarray:
+    """Gaussian noise (stddev spec.noise[name]) for members first, first + 1, ...; shape (members, ...)."""
+    stream = zlib.crc32(f"noise:{name}".encode())
+    return spec.noise[name] * np.stack([
+        np.random.default_rng([spec.seed, stream, first + i]).standard_normal(shape[1:]) for i in range(shape[0])
+    ])

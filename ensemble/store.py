@@ -87,6 +87,10 @@ class Writer:
             chunks = {**sizes, "member": min(chunk, n)}
             var = nc.createVariable(name, "f8", dims, chunksizes=tuple(chunks[d] for d in dims))
             var.setncatts({"units": units, "long_name": long_name})
+            if name in spec.noise:
+                var.setncattr("observation_noise_stddev", spec.noise[name])
+                var.setncattr("comment", "includes Gaussian observation noise of stddev observation_noise_stddev "
+                                         "(same units), drawn per member from the run's seed")
         self.written = 0
 
     def _coordinate(self, name, values, long_name, units="1", dims=None):
