@@ -25,6 +25,18 @@ class Tableau:
     def stages(self) -> int:
         return len(self.b)
 
+    def stability(self, z):
+        """Stability function R(z) = 1 + z b^T (I - z A)^-1 1: one step's factor on y' = lambda y, z = lambda h."""
+        import numpy as np
+
+        z = np.asarray(z, dtype=complex)
+        s = self.stages
+        a = np.array(self.square_a()).reshape(s, s)
+        flat = z.reshape(-1)
+        eye = np.eye(s)
+        slopes = np.linalg.solve(eye[None] - flat[:, None, None] * a[None], np.ones((flat.size, s, 1)))
+        return (1 + flat * (slopes[:, :, 0] @ np.array(self.b))).reshape(z.shape)
+
     def square_a(self) -> tuple[float, ...]:
         """a as a flat, zero-padded stages x stages tuple (row major)."""
         s = self.stages

@@ -116,6 +116,35 @@ def normal_modes(m, k, boundary: str = "fixed") -> tuple[np.ndarray, np.ndarray]
     return np.sqrt(eigenvalues), shapes * np.sign(first)
 
 
+def step_eigenvalue(method: str, omega, h: float) -> np.ndarray:
+    """What one step of `method` does to a normal mode of frequency omega (rad/s): a complex factor.
+
+    Its angle over h is the frequency the method shows, its modulus the
+    amplitude growth per step (1 for a stable symplectic step). Runge-Kutta:
+    R(i omega h); splittings: the eigenvalue of the one-step map of
+    x'' = -omega^2 x with positive angle; exact: exp(i omega h).
+    """
+    from ..methods import DRIFT, METHODS
+
+    omega = np.asarray(omega, dtype=float)
+    m = METHODS[method]
+    if m.closed_form:
+        return np.exp(1j * omega * h)
+    if m.tableau is not None:
+        return m.tableau.stability(1j * omega * h)
+    step = np.broadcast_to(np.eye(2), omega.shape + (2, 2)).copy()
+    for piece, fraction in m.splitting.sequence:
+        tau = fraction * h
+        one = np.broadcast_to(np.eye(2), omega.shape + (2, 2)).copy()
+        if piece == DRIFT:
+            one[..., 0, 1] = tau  # x += tau v
+        else:
+            one[..., 1, 0] = -omega**2 * tau  # v += tau a
+        step = one @ step
+    eigenvalues = np.linalg.eigvals(step)
+    return np.where(eigenvalues[..., 0].imag >= eigenvalues[..., 1].imag, eigenvalues[..., 0], eigenvalues[..., 1])
+
+
 def mode_start(mode: Mode, m, k, boundary: str) -> np.ndarray:
     """Displacements (or velocities) along normal mode `mode.number`, largest entry `mode.amplitude`."""
     _, shapes = normal_modes(m, k, boundary)

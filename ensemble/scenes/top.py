@@ -159,6 +159,32 @@ def tilt_theory(values: dict[str, np.ndarray], t: np.ndarray) -> np.ndarray:
     return np.arctan(np.tan(values["tilt0"])[:, None] * np.exp(-rate[:, None] * np.asarray(t)[None, :]))
 
 
+def tilt_rate_method(method: str, values: dict[str, np.ndarray], h: float, t: np.ndarray) -> np.ndarray:
+    """The tilt decay rate (1/s) that `method` with step h (s) shows over times t (s); shape (members,).
+
+    Per step, w1 + i w2 is multiplied by R(h (i W - r1)) with W = p w3 the
+    body-frame precession rate, and w3 by R(-h r3); the log of their moduli's
+    ratio over h is the instantaneous rate. W falls as w3 decays, so this
+    returns the slope a straight-line fit of the predicted log tan(tilt) over
+    t finds. Exact and split methods solve both pieces exactly (they
+    commute), so they show the course's rate.
+    """
+    from ..methods import METHODS
+
+    tableau = METHODS[method].tableau
+    p, r1, r3 = (x[:, None] for x in rates(values))
+    if tableau is None:
+        return (r1 - r3)[:, 0]
+    t = np.asarray(t, dtype=float)
+    w3 = initial_state(values)[2][:, None] * np.exp(-r3 * t[None, :])
+    transverse = np.abs(tableau.stability(h * (1j * p * w3 - r1)))
+    axial = np.abs(tableau.stability(-h * r3))
+    rate = -np.log(transverse / axial) / h
+    log_tan = -np.concatenate((np.zeros((rate.shape[0], 1)), np.cumsum(
+        0.5 * (rate[:, 1:] + rate[:, :-1]) * np.diff(t), axis=1)), axis=1)
+    return -np.polyfit(t, log_tan.T, 1)[0]
+
+
 def observe(samples: np.ndarray, names, values: dict[str, np.ndarray], constants: dict) -> dict[str, np.ndarray]:
     """Saved variables from kernel samples of shape (t, 3, members), member-major."""
     out = {}
