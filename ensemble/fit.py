@@ -1,0 +1,295 @@
+"""Fits over result datasets: tilt decay rates of tops, normal-mode frequencies of chains.
+
+Each fit takes a result Dataset (as `ensemble run` writes it) and returns a
+Dataset over its members. Beside every estimate stand two predictions: the
+physics (`*_theory`) and what the run's numerical method shows (`*_method`,
+which equals the physics for `exact` and the top's split methods), so a
+physics effect can be told from an integrator effect.
+
+Error bars: with observation noise (the variable's `observation_noise_stddev`
+attribute) they follow from that noise; without it, from the fit residuals.
+A member whose fit is impossible (non-finite data, too few usable samples)
+gets NaN and is counted in the result's `members_failed` attribute.
+"""
+from __future__ import annotations
+
+import numpy as np
+import xarray as xr
+from scipy.optimize import least_squares, linear_sum_assignment
+from scipy.signal import find_peaks
+from scipy.signal.windows import blackmanharris
+
+from .scenes import chain, top
+
+MIN_SAMPLES = 5  # usable samples a member needs for a fit
+TILT_FLOOR = 1e-150  # rad: noise-free tilts below this are too close to underflow to use
+NOISE_WINDOW = 5.0  # noisy tilts are used while the fitted tilt is this many stddevs from 0 and pi/2
+PEAK_FALSE_ALARM = 30.0  # a spectral peak counts when its power exceeds this many times the noise's
+PEAK_DYNAMIC_RANGE = 1e-7  # peaks weaker than this fraction of the strongest are rounding, not modes
+MIN_PERIODS = 4  # periods a mode must complete in the record: slower ones sit in the drift's main lobe
+
+
+class FitError(ValueError):
+    """A result that cannot be fitted: wrong scene, missing variables, too few samples."""
+
+
+def _require(ds: xr.Dataset, scene: str, variables: tuple[str, ...], fit: str) -> None:
+    found = ds.attrs.get("scene")
+    if found != scene:
+        raise FitError(f"{fit} needs a {scene} result; this one is {'a ' + repr(found) if found else 'not from ensemble'}"
+                       f" result")
+    missing = [v for v in variables if v not in ds.variables]
+    if missing:
+        raise FitError(f"{fit}: the result lacks {', '.join(missing)} (save them in the run file)")
+    if ds.sizes.get("t", 0) < MIN_SAMPLES:
+        raise FitError(f"{fit}: the result has {ds.sizes.get('t', 0)} saved times; a fit needs at least {MIN_SAMPLES}")
+
+
+def _noise(var: xr.DataArray) -> float:
+    return float(var.attrs.get("observation_noise_stddev", 0.0))
+
+
+def _members(ds: xr.Dataset) -> dict[str, xr.DataArray]:
+    coords = {"member": ds["member"]}
+    if "sweep_point" in ds:
+        coords["sweep_point"] = ds["sweep_point"]
+    return coords
+
+
+# ---------------------------------------------------------------- tops
+
+
+def tilt_decay(ds: xr.Dataset) -> xr.Dataset:
+    """Fit tan(tilt) ~ exp(-rate t) per member of a top result.
+
+    Returns over member: rate (1/s; negative when the tilt grows, as for a
+    prolate top), rate_stderr, rate_theory = c (1/lambda1 - 1/lambda3),
+    rate_method (what the run's method shows, see top.tilt_rate_method),
+    z = (rate - rate_theory) / rate_stderr, z_method likewise, and samples_used.
+    """
+    _require(ds, "top", ("tilt", "lambda1", "lambda3", "c", "tilt0", "spin0"), "tilt_decay")
+    t = ds["t"].values
+    tilt = ds["tilt"].values
+    sigma = _noise(ds["tilt"])
+    values = {name: ds[name].values for name in top.PARAMETERS if name in ds}
+    rate, stderr, used = (_tilt_fit_noisy if sigma > 0 else _tilt_fit_clean)(t, tilt, sigma)
+    theory = values["c"] * (1 / values["lambda1"] - 1 / values["lambda3"])
+    method = top.tilt_rate_method(ds.attrs["method"], values, ds.attrs["dt"], t)
+    data = {
+        "rate": (rate, "s-1", "fitted tilt decay rate: tan(tilt) ~ exp(-rate t)"),
+        "rate_stderr": (stderr, "s-1", "standard error of rate"),
+        "rate_theory": (theory, "s-1", "c (1/lambda1 - 1/lambda3)"),
+        "rate_method": (method, "s-1", f"rate shown by {ds.attrs['method']} at dt = {ds.attrs['dt']} s"),
+        "z": ((rate - theory) / stderr, "1", "(rate - rate_theory) / rate_stderr"),
+        "z_method": ((rate - method) / stderr, "1", "(rate - rate_method) / rate_stderr"),
+        "samples_used": (used, "1", "saved times inside the fitted part of the record"),
+    }
+    return _dataset(ds, data, "member", noise=sigma, fit="tilt_decay")
+
+
+def _masked_line(t, y, mask):
+    """Least-squares line y = a - rate t over mask per row; returns (a, rate, residual sum of squares, count)."""
+    w = mask.astype(float)
+    y = np.where(mask, y, 0.0)
+    count = w.sum(axis=1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        t_mean = (w * t).sum(axis=1) / count
+        y_mean = (w * y).sum(axis=1) / count
+        dt = np.where(mask, t - t_mean[:, None], 0.0)
+        sxx = (dt * dt).sum(axis=1)
+        slope = (dt * (y - y_mean[:, None])).sum(axis=1) / sxx
+        a = y_mean - slope * t_mean
+        rss = (w * (y - a[:, None] - slope[:, None] * t) ** 2).sum(axis=1)
+    return a, -slope, rss, count, sxx
+
+
+def _tilt_fit_clean(t, tilt, sigma):
+    """Noise-free: ordinary least squares of log tan(tilt) on t; stderr from the residuals."""
+    with np.errstate(invalid="ignore", divide="ignore"):
+        y = np.log(np.tan(tilt))
+    mask = np.isfinite(y) & (tilt > TILT_FLOOR) & (tilt < np.pi / 2)
+    _, rate, rss, count, sxx = _masked_line(t, y, mask)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        stderr = np.sqrt(rss / (count - 2) / sxx)
+    bad = count < MIN_SAMPLES
+    return np.where(bad, np.nan, rate), np.where(bad, np.nan, stderr), count.astype(np.int32)
+
+
+def _tilt_fit_noisy(t, tilt, sigma, iterations=12):
+    """Gaussian noise of stddev sigma on the tilt: least squares of tilt = atan(exp(a - rate t)).
+
+    This is the line log tan(tilt) = a - rate t, fitted where the noise is
+    Gaussian (on the tilt itself); the fitted part of the record is where the
+    model tilt lies NOISE_WINDOW sigma inside (0, pi/2), chosen from the model
+    and not from the noisy data, so the choice does not bias the fit.
+    """
+    finite = np.isfinite(tilt)
+    lo, hi = NOISE_WINDOW * sigma, np.pi / 2 - NOISE_WINDOW * sigma
+    with np.errstate(invalid="ignore", divide="ignore"):
+        start = finite & (tilt > 2 * lo) & (tilt < np.pi / 2 - 2 * lo)
+        a, rate, _, _, _ = _masked_line(t, np.log(np.tan(tilt)), start)
+    for _ in range(iterations):
+        model = np.arctan(np.exp(a[:, None] - rate[:, None] * t))
+        mask = finite & (model > lo) & (model < hi)
+        slope = np.where(mask, 0.5 * np.sin(2 * model), 0.0)  # d model / d a
+        res = np.where(mask, tilt - model, 0.0)
+        ja, jr = slope, -t * slope  # d model / d (a, rate)
+        saa, sar, srr = (ja * ja).sum(1), (ja * jr).sum(1), (jr * jr).sum(1)
+        ga, gr = (ja * res).sum(1), (jr * res).sum(1)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            det = saa * srr - sar * sar
+            a = a + (srr * ga - sar * gr) / det
+            rate = rate + (saa * gr - sar * ga) / det
+    count = mask.sum(axis=1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        stderr = sigma * np.sqrt(saa / det)
+    bad = (count < MIN_SAMPLES) | ~np.isfinite(rate)
+    return np.where(bad, np.nan, rate), np.where(bad, np.nan, stderr), count.astype(np.int32)
+
+
+# ---------------------------------------------------------------- chains
+
+
+def mode_frequencies(ds: xr.Dataset) -> xr.Dataset:
+    """Estimate each chain member's normal-mode frequencies from its saved x(t) alone.
+
+    Peaks of the windowed spectrum (summed over sites) give starting
+    frequencies; a least-squares fit of a sum of sinusoids (plus a constant
+    and a drift, per site) refines them far below the FFT bin 2 pi / T. The
+    residual is searched again until no significant peak is left. Only then
+    are the estimates matched to the theoretical frequencies (nearest, one to
+    one). Returns over (member, mode): frequency (rad/s; NaN for modes not
+    found, and for zero modes, which do not oscillate), frequency_stderr,
+    frequency_theory (eigenfrequencies of K v = w^2 M v), frequency_method
+    (what the run's method shows, see chain.step_eigenvalue), z and z_method.
+    """
+    _require(ds, "chain", ("x", "m", "k"), "mode_frequencies")
+    n, boundary = int(ds.attrs["n"]), str(ds.attrs["boundary"])
+    t = ds["t"].values
+    x = ds["x"].values
+    sigma = _noise(ds["x"])
+    theory, _ = chain.normal_modes(ds["m"].values, ds["k"].values, boundary)
+    dt = float(ds.attrs.get("dt", t[1] - t[0]))
+    method = np.angle(chain.step_eigenvalue(ds.attrs["method"], theory, dt)) / dt
+    frequency = np.full(theory.shape, np.nan)
+    stderr = np.full(theory.shape, np.nan)
+    for i in range(x.shape[0]):
+        found, errors = _member_frequencies(t, x[i], sigma, n)
+        oscillating = np.flatnonzero(theory[i] > 0)
+        if found.size == 0 or oscillating.size == 0:
+            continue
+        cost = np.abs(found[:, None] - method[i, oscillating][None, :])
+        rows, cols = linear_sum_assignment(cost)
+        frequency[i, oscillating[cols]] = found[rows]
+        stderr[i, oscillating[cols]] = errors[rows]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        z = (frequency - theory) / stderr
+        z_method = (frequency - method) / stderr
+    data = {
+        "frequency": (frequency, "rad s-1", "fitted normal-mode angular frequency"),
+        "frequency_stderr": (stderr, "rad s-1", "standard error of frequency"),
+        "frequency_theory": (theory, "rad s-1", "eigenfrequency of K v = w^2 M v"),
+        "frequency_method": (method, "rad s-1", f"frequency shown by {ds.attrs['method']} at dt = {dt} s"),
+        "z": (z, "1", "(frequency - frequency_theory) / frequency_stderr"),
+        "z_method": (z_method, "1", "(frequency - frequency_method) / frequency_stderr"),
+    }
+    return _dataset(ds, data, ("member", "mode"), noise=sigma, fit="mode_frequencies")
+
+
+def _member_frequencies(t: np.ndarray, x: np.ndarray, sigma: float, most: int):
+    """Frequencies (rad/s, ascending) and their standard errors in x (times, sites)."""
+    if not np.all(np.isfinite(x)):
+        return np.empty(0), np.empty(0)
+    times, sites = x.shape
+    tc = t - t.mean()
+    window = blackmanharris(times)
+    pad = 4 * 2 ** int(np.ceil(np.log2(times)))
+    grid = 2 * np.pi * np.fft.rfftfreq(pad, t[1] - t[0])
+    lobe = 4 * pad // times  # the window's main-lobe half width, in padded bins
+    noise_power = sigma**2 * np.sum(window**2) * sites
+
+    def design(w):
+        phase = np.outer(tc, w)
+        return np.hstack((np.ones((times, 1)), tc[:, None], np.cos(phase), np.sin(phase)))
+
+    def solve(w):
+        """Least-squares amplitudes for frequencies w: orthonormal basis Q, amplitudes, residual."""
+        q, r = np.linalg.qr(design(w))
+        projected = q.T @ x
+        return q, np.linalg.solve(r, projected), x - q @ projected
+
+    def residual(w):
+        return solve(w)[2].ravel()
+
+    def jacobian(w):
+        """Kaufman's variable-projection Jacobian: -(I - Q Q^T) (d design / d w_k) amplitudes."""
+        q, amplitudes, _ = solve(w)
+        k = w.size
+        phase = np.outer(tc, w)
+        columns = []
+        for j in range(k):
+            derivative = np.outer(-tc * np.sin(phase[:, j]), amplitudes[2 + j]) + np.outer(
+                tc * np.cos(phase[:, j]), amplitudes[2 + k + j])
+            columns.append(-(derivative - q @ (q.T @ derivative)).ravel())
+        return np.stack(columns, axis=1)
+
+    scale = np.sqrt(np.mean(x**2))
+    slowest = 2 * np.pi * MIN_PERIODS / (t[-1] - t[0])
+    found = np.empty(0)
+    strongest = None
+    left = solve(found)[2]
+    fit = None
+    while found.size < most:
+        power = np.sum(np.abs(np.fft.rfft(left * window[:, None], pad, axis=0)) ** 2, axis=1)
+        power[grid < slowest] = 0.0
+        strongest = strongest or power.max()
+        floor = max(PEAK_DYNAMIC_RANGE * strongest, PEAK_FALSE_ALARM * noise_power)
+        peaks, _ = find_peaks(power, height=floor, distance=lobe)
+        new = [grid[p] for p in peaks if np.all(np.abs(grid[p] - found) > grid[1] * lobe / 4)]
+        if not new or power.max() == 0.0:
+            break
+        new = sorted(new, key=lambda w: -power[np.searchsorted(grid, w)])[: most - found.size]
+        fit = least_squares(residual, np.concatenate((found, new)), jac=jacobian, method="lm",
+                            xtol=1e-15, ftol=1e-15, gtol=1e-15)
+        found = fit.x
+        left = solve(found)[2]
+        if sigma == 0 and np.sqrt(np.mean(left**2)) < 1e-11 * scale:
+            break
+    if fit is None:
+        return np.empty(0), np.empty(0)
+    # A fit can pull a component to zero or past the Nyquist frequency when the record
+    # is too short to separate two modes; such components are not estimates of a mode.
+    keep = (found > slowest) & (found < grid[-1])
+    found, jacobian = found[keep], fit.jac[:, keep]
+    dof = times * sites - found.size - sites * (2 + 2 * found.size)
+    variance = sigma**2 if sigma > 0 else np.sum(left**2) / max(dof, 1)
+    try:
+        errors = np.sqrt(np.diag(np.linalg.inv(jacobian.T @ jacobian)) * variance)
+    except np.linalg.LinAlgError:
+        errors = np.full(found.size, np.nan)
+    order = np.argsort(found)
+    return found[order], errors[order]
+
+
+def _dataset(ds: xr.Dataset, data: dict, dims, *, noise: float, fit: str) -> xr.Dataset:
+    out = xr.Dataset(coords=_members(ds))
+    if "mode" in dims:
+        out = out.assign_coords(mode=("mode", np.arange(1, ds.sizes["site"] + 1, dtype=np.int32)))
+        out["mode"].attrs = {"units": "1", "long_name": "normal mode number, ascending in frequency"}
+    for name, (values, units, long_name) in data.items():
+        out[name] = (dims, values)
+        out[name].attrs = {"units": units, "long_name": long_name}
+    first = "rate" if "rate" in data else "frequency"
+    failed = int(np.sum(np.all(~np.isfinite(np.atleast_2d(out[first].values.T).T.reshape(out.sizes["member"], -1)),
+                               axis=1)))
+    out.attrs = {
+        "Conventions": "CF-1.8",
+        "title": f"{fit} fits of {ds.attrs.get('title', 'an ensemble result')}",
+        "source": ds.attrs.get("source", ""),
+        "method": ds.attrs.get("method", ""),
+        "dt": ds.attrs.get("dt", np.nan),
+        "observation_noise_stddev": noise,
+        "members_failed": failed,
+        "sweep_axes": ds.attrs.get("sweep_axes", ""),
+    }
+    return out
