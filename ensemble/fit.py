@@ -72,7 +72,7 @@ def tilt_decay(ds: xr.Dataset) -> xr.Dataset:
     tilt = ds["tilt"].values
     sigma = _noise(ds["tilt"])
     values = {name: ds[name].values for name in top.PARAMETERS if name in ds}
-    rate, stderr, used = (_tilt_fit_noisy if sigma > 0 else _tilt_fit_clean)(t, tilt, sigma)
+    intercept, rate, stderr, used = (_tilt_fit_noisy if sigma > 0 else _tilt_fit_clean)(t, tilt, sigma)
     theory = values["c"] * (1 / values["lambda1"] - 1 / values["lambda3"])
     method = top.tilt_rate_method(ds.attrs["method"], values, ds.attrs["dt"], t)
     data = {
@@ -82,6 +82,7 @@ def tilt_decay(ds: xr.Dataset) -> xr.Dataset:
         "rate_method": (method, "s-1", f"rate shown by {ds.attrs['method']} at dt = {ds.attrs['dt']} s"),
         "z": ((rate - theory) / stderr, "1", "(rate - rate_theory) / rate_stderr"),
         "z_method": ((rate - method) / stderr, "1", "(rate - rate_method) / rate_stderr"),
+        "log_tan_tilt0": (intercept, "1", "fitted line's log tan(tilt) at t = 0"),
         "samples_used": (used, "1", "saved times inside the fitted part of the record"),
     }
     return _dataset(ds, data, "member", noise=sigma, fit="tilt_decay")
@@ -108,11 +109,12 @@ def _tilt_fit_clean(t, tilt, sigma):
     with np.errstate(invalid="ignore", divide="ignore"):
         y = np.log(np.tan(tilt))
     mask = np.isfinite(y) & (tilt > TILT_FLOOR) & (tilt < np.pi / 2)
-    _, rate, rss, count, sxx = _masked_line(t, y, mask)
+    a, rate, rss, count, sxx = _masked_line(t, y, mask)
     with np.errstate(invalid="ignore", divide="ignore"):
         stderr = np.sqrt(rss / (count - 2) / sxx)
     bad = count < MIN_SAMPLES
-    return np.where(bad, np.nan, rate), np.where(bad, np.nan, stderr), count.astype(np.int32)
+    return (np.where(bad, np.nan, a), np.where(bad, np.nan, rate), np.where(bad, np.nan, stderr),
+            count.astype(np.int32))
 
 
 def _tilt_fit_noisy(t, tilt, sigma, iterations=12):
@@ -144,7 +146,8 @@ def _tilt_fit_noisy(t, tilt, sigma, iterations=12):
     with np.errstate(invalid="ignore", divide="ignore"):
         stderr = sigma * np.sqrt(saa / det)
     bad = (count < MIN_SAMPLES) | ~np.isfinite(rate)
-    return np.where(bad, np.nan, rate), np.where(bad, np.nan, stderr), count.astype(np.int32)
+    return (np.where(bad, np.nan, a), np.where(bad, np.nan, rate), np.where(bad, np.nan, stderr),
+            count.astype(np.int32))
 
 
 # ---------------------------------------------------------------- chains

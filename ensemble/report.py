@@ -1,0 +1,167 @@
+"""What the analysis scripts share: the command line, per-sweep-point tables against theory, charts.
+
+Plotting needs matplotlib (the `plot` extra); the tables do not.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import xarray as xr
+
+Z_TOLERANCE = 5.0  # a sweep point passes when its mean is within this many standard errors of theory...
+RTOL = 1e-6  # ...or within this relative difference (noise-free runs have tiny standard errors)
+
+
+@dataclass(frozen=True)
+class Row:
+    label: str
+    mean: float
+    error: float  # standard error of the mean
+    theory: float
+    method: float
+    members: int
+    failed: int
+    against: str = "theory"  # or "method": what z and pass compare with
+
+    @property
+    def reference(self) -> float:
+        return self.method if self.against == "method" else self.theory
+
+    @property
+    def z(self) -> float:
+        miss = self.mean - self.reference
+        return miss / self.error if self.error > 0 else np.inf * np.sign(miss)
+
+    @property
+    def result(self) -> str:
+        return "none fitted" if self.members == 0 else "pass" if self.passed else "FAIL"
+
+    @property
+    def passed(self) -> bool:
+        close = abs(self.mean - self.reference) <= RTOL * abs(self.reference)
+        return bool(self.members > 0 and (close or abs(self.z) <= Z_TOLERANCE))
+
+
+def mean_with_error(values: np.ndarray, stderr: np.ndarray) -> tuple[float, float]:
+    """Mean of member estimates and its standard error: the larger of the scatter and the fits' own errors."""
+    n = values.size
+    if n == 0:
+        return np.nan, np.nan
+    mean = float(values.mean())
+    propagated = float(np.sqrt(np.sum(stderr**2))) / n
+    scatter = float(values.std(ddof=1) / np.sqrt(n)) if n > 1 else 0.0
+    return mean, max(propagated, scatter)
+
+
+def rows(fits: xr.Dataset, value: str, label_of, against: str = "theory") -> list[Row]:
+    """One row per sweep point (and per extra dimension such as mode) of a fit dataset."""
+    out = []
+    points = np.unique(fits["sweep_point"].values) if "sweep_point" in fits.coords else [None]
+    extra = [d for d in fits[value].dims if d != "member"]
+    index = [()] if not extra else [(i,) for i in range(fits.sizes[extra[0]])]
+    for point in points:
+        chosen = fits if point is None else fits.isel(member=np.flatnonzero(fits["sweep_point"].values == point))
+        for idx in index:
+            sel = chosen if not idx else chosen.isel({extra[0]: idx[0]})
+            v, e = sel[value].values, sel[f"{value}_stderr"].values
+            ok = np.isfinite(v) & np.isfinite(e)
+            mean, error = mean_with_error(v[ok], e[ok])
+            out.append(Row(label_of(sel, point, idx), mean, error, float(np.nanmean(sel[f"{value}_theory"].values)),
+                           float(np.nanmean(sel[f"{value}_method"].values)), int(ok.sum()), int((~ok).sum()),
+                           against))
+    return out
+
+
+def print_table(title: str, rows_: list[Row], units: str) -> None:
+    print(title)
+    print(f"{'':<28} {'fitted mean':>14} {'+-':>10} {'theory':>14} {'method shows':>14} {'z':>8}  members  result")
+    for r in rows_:
+        failed = f" ({r.failed} not fitted)" if r.failed else ""
+        print(f"{r.label:<28} {r.mean:>14.8g} {r.error:>10.2g} {r.theory:>14.8g} {r.method:>14.8g} {r.z:>8.2f}"
+              f"  {r.members:>7}  {r.result}{failed}")
+    against = rows_[0].against if rows_ else "theory"
+    what = "theory" if against == "theory" else "what the method shows"
+    print(f"z and pass against {what}: pass within {Z_TOLERANCE:g} standard errors, or within {RTOL:g} relative;"
+          f" units {units}")
+
+
+def outputs(result: Path, fit: str) -> tuple[Path, Path]:
+    """Where a script writes its fits (NetCDF) and the stem of its charts, next to the result."""
+    stem = result.with_suffix("")
+    return stem.with_name(f"{stem.name}_{fit}.nc"), stem.with_name(f"{stem.name}_{fit}")
+
+
+def parser(doc: str) -> argparse.ArgumentParser:
+    """The options every analysis script takes: RESULT, --check and --against."""
+    out = argparse.ArgumentParser(description=doc, formatter_class=argparse.RawDescriptionHelpFormatter)
+    out.add_argument("result", type=Path, help="a result file written by `ensemble run`")
+    out.add_argument("--check", action="store_true", help="exit 1 when a fitted sweep point disagrees")
+    out.add_argument("--against", choices=("theory", "method"), default="theory",
+                     help="compare with the physics (default) or with what the run's method shows")
+    return out
+
+
+def run_script(args, fit_function, *, name: str, value: str, units: str, title: str, label, draw,
+               validate=None) -> int:
+    """Fit a result, print the table, write the fits and charts; the exit status of a script.
+
+    draw(plt, ds, fits, rows, stem) returns the paths of the script's own charts;
+    the z histogram is added here. Bad input prints one line and returns 2.
+    """
+    import xarray as xr
+
+    try:
+        ds = xr.load_dataset(args.result)
+        fits = fit_function(ds)
+        if validate:
+            validate(ds)
+    except (OSError, ValueError) as e:
+        print(f"error: {args.result}: {e}", file=sys.stderr)
+        return 2
+    for axis in ds.attrs.get("sweep_axes", "").split():
+        fits[axis] = ds[axis]
+    table = rows(fits, value, label, args.against)
+    print_table(f"{title} of {args.result} ({ds.attrs['method']}, dt = {ds.attrs['dt']} s)", table, units)
+    if fits.attrs["members_failed"]:
+        print(f"{fits.attrs['members_failed']} members could not be fitted and are left out")
+    out, stem = outputs(args.result, name)
+    fits.to_netcdf(out)
+    print(f"fits: {out}")
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    paths = draw(plt, ds, fits, table, stem)
+    fig, ax = plt.subplots(figsize=(5.5, 4.5), layout="constrained")
+    z_histogram(ax, fits["z"].values.ravel(), "fits")
+    ax.set_title(f"{title}: fitted against theory")
+    paths.append(save(plt, fig, stem, "z"))
+    print("charts:", *paths)
+    return 1 if args.check and not all(r.passed for r in table if r.members) else 0
+
+
+def save(plt, fig, stem: Path, chart: str) -> Path:
+    path = stem.with_name(f"{stem.name}_{chart}.png")
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path
+
+
+def z_histogram(ax, z: np.ndarray, label: str) -> None:
+    """Histogram of z values as a density, with the N(0, 1) density over it."""
+    z = z[np.isfinite(z)]
+    span = max(4.0, float(np.nanmax(np.abs(z))) if z.size else 4.0)
+    span = min(span, 50.0)
+    ax.hist(np.clip(z, -span, span), bins=40, range=(-span, span), density=True, alpha=0.6, label=f"{label} ({z.size})")
+    grid = np.linspace(-span, span, 400)
+    ax.plot(grid, np.exp(-grid**2 / 2) / np.sqrt(2 * np.pi), "k-", label="N(0, 1)")
+    ax.set_xlabel("z = (fitted - theory) / standard error")
+    ax.set_ylabel("density")
+    ax.legend()
+

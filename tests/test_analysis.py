@@ -1,0 +1,71 @@
+"""The analysis scripts users run on results: tables, fits files, charts, --check and bad input."""
+from __future__ import annotations
+
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import xarray as xr
+
+from ensemble import runner, spec
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def run_small(name: str, folder: Path, members: int, **replace) -> Path:
+    text = re.sub(r"^members = \d+", f"members = {members}", (ROOT / "runs" / name).read_text(), flags=re.M)
+    for old, new in replace.items():
+        text = text.replace(old, new)
+    out = folder / name.replace(".toml", ".nc")
+    runner.run(spec.parse(text, name), out, progress=False)
+    return out
+
+
+def script(name: str, *args) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, str(ROOT / "analysis" / name), *map(str, args)],
+                          capture_output=True, text=True, cwd=ROOT)
+
+
+def test_tilt_decay_script_on_the_aerobie(tmp_path):
+    result = run_small("aerobie.toml", tmp_path, 4)
+    done = script("tilt_decay.py", result, "--check", "--against", "method")
+    assert done.returncode == 0, done.stderr
+    assert len(re.findall(r"^c = .* pass$", done.stdout, flags=re.M)) == 3 and "FAIL" not in done.stdout
+    # rk4 at W h = 0.06 shifts the slowest rate by 1.8e-6 relative: beyond 1e-6 of the physics.
+    against_theory = script("tilt_decay.py", result, "--check")
+    assert against_theory.returncode == 1
+    assert re.search(r"^c = 5e-05 .* FAIL$", against_theory.stdout, flags=re.M)
+    fits = xr.load_dataset(tmp_path / "aerobie_tilt_decay.nc")
+    assert set(fits.data_vars) >= {"rate", "rate_stderr", "rate_theory", "rate_method", "z"}
+    for chart in ("tilt", "rates", "z"):
+        assert (tmp_path / f"aerobie_tilt_decay_{chart}.png").stat().st_size > 10_000
+
+
+def test_normal_modes_script_on_the_two_mass_chain(tmp_path):
+    result = run_small("two_mass.toml", tmp_path, 2)
+    done = script("normal_modes.py", result, "--check")
+    assert done.returncode == 0, done.stderr
+    lines = done.stdout.splitlines()
+    assert any(line.startswith("mode 1") and "none fitted" in line for line in lines)
+    assert any(line.startswith("mode 2") and line.rstrip().endswith("pass") for line in lines)
+    for chart in ("spectrum", "frequencies", "z"):
+        assert (tmp_path / f"two_mass_normal_modes_{chart}.png").stat().st_size > 10_000
+
+
+def test_check_fails_when_the_method_moves_the_frequency(tmp_path):
+    # Verlet at w h = 0.5: the fitted frequency (2/h) asin(w h / 2) is 1% above the physics.
+    result = run_small("two_mass.toml", tmp_path, 2, **{"dt = 1e-3": "dt = 0.1", "k = 1.0 ": "k = 0.08333333333333333 "})
+    done = script("normal_modes.py", result, "--check")
+    assert done.returncode == 1 and "FAIL" in done.stdout
+
+
+@pytest.mark.parametrize("name", ["tilt_decay.py", "normal_modes.py"])
+def test_bad_input_is_one_line_and_exit_2(tmp_path, name):
+    missing = script(name, tmp_path / "nothing.nc")
+    assert missing.returncode == 2 and len(missing.stderr.strip().splitlines()) == 1
+    wrong = run_small("two_mass.toml" if name == "tilt_decay.py" else "prolate.toml", tmp_path, 1)
+    refused = script(name, wrong)
+    assert refused.returncode == 2
+    assert re.fullmatch(r"error: .*needs a (top|chain) result.*\n", refused.stderr)
