@@ -72,7 +72,7 @@ def tilt_decay(ds: xr.Dataset) -> xr.Dataset:
     tilt = ds["tilt"].values
     sigma = _noise(ds["tilt"])
     values = {name: ds[name].values for name in top.PARAMETERS if name in ds}
-    intercept, rate, stderr, used = (_tilt_fit_noisy if sigma > 0 else _tilt_fit_clean)(t, tilt, sigma)
+    intercept, rate, stderr, used = _tilt_fit_noisy(t, tilt, sigma) if sigma > 0 else _tilt_fit_clean(t, tilt)
     theory = values["c"] * (1 / values["lambda1"] - 1 / values["lambda3"])
     method = top.tilt_rate_method(ds.attrs["method"], values, ds.attrs["dt"], t)
     data = {
@@ -89,7 +89,11 @@ def tilt_decay(ds: xr.Dataset) -> xr.Dataset:
 
 
 def _masked_line(t, y, mask):
-    """Least-squares line y = a - rate t over mask per row; returns (a, rate, residual sum of squares, count)."""
+    """Least-squares line y = a - rate t over mask, per row.
+
+    Returns a, rate, the residual sum of squares, the count of masked-in
+    samples and their sum of squared deviations of t (all per row).
+    """
     w = mask.astype(float)
     y = np.where(mask, y, 0.0)
     count = w.sum(axis=1)
@@ -104,7 +108,7 @@ def _masked_line(t, y, mask):
     return a, -slope, rss, count, sxx
 
 
-def _tilt_fit_clean(t, tilt, sigma):
+def _tilt_fit_clean(t, tilt):
     """Noise-free: ordinary least squares of log tan(tilt) on t; stderr from the residuals."""
     with np.errstate(invalid="ignore", divide="ignore"):
         y = np.log(np.tan(tilt))
@@ -215,26 +219,34 @@ def _member_frequencies(t: np.ndarray, x: np.ndarray, sigma: float, most: int):
         phase = np.outer(tc, w)
         return np.hstack((np.ones((times, 1)), tc[:, None], np.cos(phase), np.sin(phase)))
 
+    last = {}
+
     def solve(w):
-        """Least-squares amplitudes for frequencies w: orthonormal basis Q, amplitudes, residual."""
-        q, r = np.linalg.qr(design(w))
-        projected = q.T @ x
-        return q, np.linalg.solve(r, projected), x - q @ projected
+        """Least-squares amplitudes for frequencies w: orthonormal basis Q, amplitudes, residual.
+
+        least_squares asks for the residual and then the Jacobian at the same
+        w, so the last factorization is kept.
+        """
+        if last.get("w") is None or not np.array_equal(last["w"], w):
+            q, r = np.linalg.qr(design(w))
+            projected = q.T @ x
+            last.update(w=w.copy(), solved=(q, np.linalg.solve(r, projected), x - q @ projected))
+        return last["solved"]
 
     def residual(w):
         return solve(w)[2].ravel()
 
     def jacobian(w):
-        """Kaufman's variable-projection Jacobian: -(I - Q Q^T) (d design / d w_k) amplitudes."""
+        """Kaufman's variable-projection Jacobian: -(I - Q Q^T) (d design / d w_k) amplitudes, all k at once."""
         q, amplitudes, _ = solve(w)
         k = w.size
-        phase = np.outer(tc, w)
-        columns = []
-        for j in range(k):
-            derivative = np.outer(-tc * np.sin(phase[:, j]), amplitudes[2 + j]) + np.outer(
-                tc * np.cos(phase[:, j]), amplitudes[2 + k + j])
-            columns.append(-(derivative - q @ (q.T @ derivative)).ravel())
-        return np.stack(columns, axis=1)
+        phase = np.outer(tc, w)  # (times, k)
+        # d design / d w_k times the amplitudes: (times, sites, k)
+        derivative = (-(tc[:, None] * np.sin(phase))[:, None, :] * amplitudes[2:2 + k].T[None, :, :]
+                      + (tc[:, None] * np.cos(phase))[:, None, :] * amplitudes[2 + k:].T[None, :, :])
+        flat = derivative.reshape(times, sites * k)
+        projected = flat - q @ (q.T @ flat)
+        return -projected.reshape(times * sites, k)
 
     scale = np.sqrt(np.mean(x**2))
     slowest = 2 * np.pi * MIN_PERIODS / (t[-1] - t[0])
@@ -282,9 +294,8 @@ def _dataset(ds: xr.Dataset, data: dict, dims, *, noise: float, fit: str) -> xr.
     for name, (values, units, long_name) in data.items():
         out[name] = (dims, values)
         out[name].attrs = {"units": units, "long_name": long_name}
-    first = "rate" if "rate" in data else "frequency"
-    failed = int(np.sum(np.all(~np.isfinite(np.atleast_2d(out[first].values.T).T.reshape(out.sizes["member"], -1)),
-                               axis=1)))
+    estimates = out["rate" if "rate" in data else "frequency"].values.reshape(out.sizes["member"], -1)
+    failed = int(np.all(~np.isfinite(estimates), axis=1).sum())  # members with no estimate at all
     out.attrs = {
         "Conventions": "CF-1.8",
         "title": f"{fit} fits of {ds.attrs.get('title', 'an ensemble result')}",
