@@ -18,12 +18,11 @@ import numpy as np
 from ensemble import fit, report
 
 
-def label(sel, point, idx) -> str:
-    mode = f"mode {idx[0] + 1}" if idx else ""
+def label(sel, point, mode) -> str:
     axes = [a for a in sel.attrs.get("sweep_axes", "").split() if a in sel]
     if point is None or not axes:
-        return mode
-    return ", ".join([f"{a} = {float(sel[a].values[0]):.4g}" for a in axes] + [mode])
+        return f"mode {mode}"
+    return ", ".join([f"{a} = {float(sel[a].values[0]):.4g}" for a in axes] + [f"mode {mode}"])
 
 
 def draw(plt, ds, fits, rows, stem, member):

@@ -17,7 +17,7 @@ import numpy as np
 from ensemble import fit, report
 
 
-def label(sel, point, idx) -> str:
+def label(sel, point, mode) -> str:
     axes = [a for a in sel.attrs.get("sweep_axes", "").split() if a in sel]
     if point is None or not axes:
         return "all members"
@@ -54,7 +54,7 @@ def draw(plt, ds, fits, rows, stem, sample):
 
 def main(argv=None) -> int:
     parser = report.parser(__doc__)
-    parser.add_argument("--sample", type=int, default=6, help="members drawn in the tilt chart")
+    parser.add_argument("--sample", type=report.positive_int, default=6, help="members drawn in the tilt chart")
     args = parser.parse_args(argv)
     return report.run_script(args, fit.tilt_decay, name="tilt_decay", value="rate", units="1/s",
                              title="tilt decay rates", label=label,

@@ -12,6 +12,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numpy as np
+
 
 @dataclass(frozen=True)
 class Tableau:
@@ -27,8 +29,6 @@ class Tableau:
 
     def stability(self, z):
         """Stability function R(z) = 1 + z b^T (I - z A)^-1 1: one step's factor on y' = lambda y, z = lambda h."""
-        import numpy as np
-
         z = np.asarray(z, dtype=complex)
         s = self.stages
         a = np.array(self.square_a()).reshape(s, s)

@@ -64,20 +64,22 @@ def mean_with_error(values: np.ndarray, stderr: np.ndarray) -> tuple[float, floa
 
 
 def rows(fits: xr.Dataset, value: str, label_of, against: str = "theory") -> list[Row]:
-    """One row per sweep point (and per extra dimension such as mode) of a fit dataset."""
+    """One row per sweep point (and per mode, for chains) of a fit dataset.
+
+    label_of(selection, sweep point or None, mode number or None) names a row.
+    """
     out = []
     points = np.unique(fits["sweep_point"].values) if "sweep_point" in fits.coords else [None]
-    extra = [d for d in fits[value].dims if d != "member"]
-    index = [()] if not extra else [(i,) for i in range(fits.sizes[extra[0]])]
+    modes = fits["mode"].values if "mode" in fits[value].dims else [None]
     for point in points:
         chosen = fits if point is None else fits.isel(member=np.flatnonzero(fits["sweep_point"].values == point))
-        for idx in index:
-            sel = chosen if not idx else chosen.isel({extra[0]: idx[0]})
+        for mode in modes:
+            sel = chosen if mode is None else chosen.sel(mode=mode)
             v, e = sel[value].values, sel[f"{value}_stderr"].values
             theory, method = sel[f"{value}_theory"].values, sel[f"{value}_method"].values
             ok = np.isfinite(v) & np.isfinite(e)
             miss, error = mean_with_error((v - (method if against == "method" else theory))[ok], e[ok])
-            out.append(Row(label_of(sel, point, idx), float(np.mean(v[ok])) if ok.any() else np.nan,
+            out.append(Row(label_of(sel, point, mode), float(np.mean(v[ok])) if ok.any() else np.nan,
                            float(np.mean(theory)), float(np.mean(method)), miss, error,
                            int(ok.sum()), int((~ok).sum()), against))
     return out
@@ -103,6 +105,14 @@ def outputs(result: Path, fit: str) -> tuple[Path, Path]:
     return stem.with_name(f"{stem.name}_{fit}.nc"), stem.with_name(f"{stem.name}_{fit}")
 
 
+def positive_int(text: str) -> int:
+    """An argparse type: an integer >= 1."""
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be >= 1, got {value}")
+    return value
+
+
 def parser(doc: str) -> argparse.ArgumentParser:
     """The options every analysis script takes: RESULT, --check and --against."""
     out = argparse.ArgumentParser(description=doc, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -120,15 +130,18 @@ def run_script(args, fit_function, *, name: str, value: str, units: str, title: 
     draw(plt, ds, fits, rows, stem) returns the paths of the script's own charts;
     the z histogram is added here. Bad input prints one line and returns 2.
     """
-    import xarray as xr
-
     try:
-        ds = xr.load_dataset(args.result)
-        fits = fit_function(ds)
+        import matplotlib
+    except ImportError:
+        print('error: the charts need matplotlib: pip install "ensemble[plot]"', file=sys.stderr)
+        return 2
+    try:
+        ds = xr.load_dataset(args.result, engine="netcdf4")
         if validate:
             validate(ds)
+        fits = fit_function(ds)
     except (OSError, ValueError) as e:
-        print(f"error: {args.result}: {e}", file=sys.stderr)
+        print(f"error: {args.result}: {str(e).splitlines()[0]}", file=sys.stderr)
         return 2
     for axis in ds.attrs.get("sweep_axes", "").split():
         fits[axis] = ds[axis]
@@ -140,15 +153,14 @@ def run_script(args, fit_function, *, name: str, value: str, units: str, title: 
     fits.to_netcdf(out)
     print(f"fits: {out}")
 
-    import matplotlib
-
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     paths = draw(plt, ds, fits, table, stem)
     fig, ax = plt.subplots(figsize=(5.5, 4.5), layout="constrained")
-    z_histogram(ax, fits["z"].values.ravel(), "fits")
-    ax.set_title(f"{title}: fitted against theory")
+    what = "theory" if args.against == "theory" else "what the method shows"
+    z_histogram(ax, fits["z" if args.against == "theory" else "z_method"].values.ravel(), "fits", what)
+    ax.set_title(f"{title}: fitted against {what}")
     paths.append(save(plt, fig, stem, "z"))
     print("charts:", *paths)
     return 1 if args.check and not all(r.passed for r in table if r.members) else 0
@@ -161,7 +173,7 @@ def save(plt, fig, stem: Path, chart: str) -> Path:
     return path
 
 
-def z_histogram(ax, z: np.ndarray, label: str) -> None:
+def z_histogram(ax, z: np.ndarray, label: str, reference: str = "theory") -> None:
     """Histogram of z values as a density, with the N(0, 1) density over it."""
     z = z[np.isfinite(z)]
     span = max(4.0, float(np.nanmax(np.abs(z))) if z.size else 4.0)
@@ -169,7 +181,7 @@ def z_histogram(ax, z: np.ndarray, label: str) -> None:
     ax.hist(np.clip(z, -span, span), bins=40, range=(-span, span), density=True, alpha=0.6, label=f"{label} ({z.size})")
     grid = np.linspace(-span, span, 400)
     ax.plot(grid, np.exp(-grid**2 / 2) / np.sqrt(2 * np.pi), "k-", label="N(0, 1)")
-    ax.set_xlabel("z = (fitted - theory) / standard error")
+    ax.set_xlabel(f"z = (fitted - {reference}) / standard error")
     ax.set_ylabel("density")
     ax.legend()
 

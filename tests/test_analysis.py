@@ -69,3 +69,17 @@ def test_bad_input_is_one_line_and_exit_2(tmp_path, name):
     refused = script(name, wrong)
     assert refused.returncode == 2
     assert re.fullmatch(r"error: .*needs a (top|chain) result.*\n", refused.stderr)
+
+
+def test_bad_options_are_one_line_and_exit_2(tmp_path):
+    result = run_small("two_mass.toml", tmp_path, 1)
+    member = script("normal_modes.py", result, "--member", "5")
+    assert member.returncode == 2 and member.stderr.strip().splitlines() == [
+        f"error: {result}: --member 5 is not in 0..0"]
+    assert not (tmp_path / "two_mass_normal_modes.nc").exists()
+    sample = script("tilt_decay.py", result, "--sample", "0")
+    assert sample.returncode == 2 and "--sample: must be >= 1" in sample.stderr
+    not_netcdf = tmp_path / "notes.nc"
+    not_netcdf.write_text("not a result\n")
+    refused = script("normal_modes.py", not_netcdf)
+    assert refused.returncode == 2 and len(refused.stderr.strip().splitlines()) == 1

@@ -13,6 +13,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from ..methods import DRIFT, METHODS
 from ..parameter import Mode, Parameter
 
 NAME = "chain"
@@ -124,8 +125,6 @@ def step_eigenvalue(method: str, omega, h: float) -> np.ndarray:
     R(i omega h); splittings: the eigenvalue of the one-step map of
     x'' = -omega^2 x with positive angle; exact: exp(i omega h).
     """
-    from ..methods import DRIFT, METHODS
-
     omega = np.asarray(omega, dtype=float)
     m = METHODS[method]
     if m.closed_form:
@@ -202,7 +201,7 @@ def exact(values: dict[str, np.ndarray], constants: dict, t: np.ndarray) -> np.n
     omega, shapes = normal_modes(m, values["k"], boundary)  # (M, n), (M, n, n)
     q0 = np.einsum("mij,mi->mj", shapes, m * values["x0"])
     p0 = np.einsum("mij,mi->mj", shapes, m * values["v0"])
-    wt = omega[:, None, :] * np.asarray(t, dtype=float)[None, :, None]  # (M, T, n)
+    wt = omega[:, None, :] * t[None, :, None]  # (M, T, n)
     moving = omega[:, None, :] > 0
     safe = np.where(moving, omega[:, None, :], 1.0)
     q = q0[:, None] * np.cos(wt) + p0[:, None] * np.where(moving, np.sin(wt) / safe, t[None, :, None])

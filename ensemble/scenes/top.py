@@ -17,6 +17,7 @@ import math
 import numpy as np
 from numba import njit
 
+from ..methods import METHODS
 from ..parameter import Parameter
 
 NAME = "top"
@@ -169,8 +170,6 @@ def tilt_rate_method(method: str, values: dict[str, np.ndarray], h: float, t: np
     t finds. Exact and split methods solve both pieces exactly (they
     commute), so they show the course's rate.
     """
-    from ..methods import METHODS
-
     tableau = METHODS[method].tableau
     p, r1, r3 = (x[:, None] for x in rates(values))
     if tableau is None:
