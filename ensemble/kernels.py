@@ -122,8 +122,8 @@ def chain_block(n: int) -> int:
 
     From 16 masses on, a block is 8 members: each row is one 64-byte line (one
     AVX-512 vector), so a row update is a single vector operation. Shorter
-    chains take 64 members, so that a step has enough independent work to
-    hide the latency of the kick-drift dependency (analysis/bench_chain.py).
+    chains ran 2x slower in 8-member blocks than in 64-member ones (measured
+    side by side; our guess is too little independent work per step).
     """
     return 64 if n < 16 else 8
 
