@@ -11,8 +11,17 @@ EXIT_BAD_INPUT = 2
 EXIT_INTERRUPTED = 130
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse with one-line errors (no usage block), exit status 2."""
+
+    def error(self, message):
+        where = self.prog.removeprefix("ensemble").strip()
+        self.exit(EXIT_BAD_INPUT, f"ensemble: error: {where + ': ' if where else ''}{message} "
+                                  f"(see {self.prog} --help)\n")
+
+
 def _parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="ensemble", description="Integrate ensembles of tops and spring chains; write NetCDF.")
     parser.add_argument("--version", action="version", version=f"ensemble {__version__}")
     commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
@@ -25,7 +34,58 @@ def _parser() -> argparse.ArgumentParser:
     run.add_argument("--quiet", action="store_true", help="no progress bar")
     commands.add_parser("methods", help="list the integration methods",
                         description="List each method: order, symplectic or not, and the scenes it applies to.")
+    _inertia_parser(commands)
     return parser
+
+
+def _inertia_parser(commands) -> None:
+    from .inertia import SHAPES
+
+    inertia = commands.add_parser(
+        "inertia", help="inertia tensor, principal moments and axes of a body",
+        description="Print the inertia tensor of a uniform body about a point, its principal moments (ascending) "
+                    "and principal axes. Units: kg, m, kg m2. Laminae lie in the xy plane.")
+    shapes = inertia.add_subparsers(dest="shape", required=True, metavar="SHAPE")
+    polygon = shapes.add_parser("polygon", help="uniform lamina bounded by a simple polygon (origin: that of "
+                                                "its vertices)")
+    polygon.add_argument("--vertices", required=True, type=_pairs,
+                         help='vertices in m, in order: "x1,y1 x2,y2 ..."')
+    point_masses = shapes.add_parser("points", help="point masses (origin: that of their positions)")
+    point_masses.add_argument("--points", required=True, type=_point_masses,
+                              help='"m1,x1,y1,z1 m2,x2,y2,z2 ..." in kg and m')
+    for name, shape in SHAPES.items():
+        sub = shapes.add_parser(name, help=shape.summary)
+        for length in shape.lengths:
+            sub.add_argument(f"--{length.replace('_', '-')}", dest=length, type=float, required=True,
+                             metavar="M", help=f"{length.replace('_', ' ')} (m)")
+    for sub in (polygon, *(shapes.choices[name] for name in SHAPES)):
+        sub.add_argument("--mass", type=float, required=True, metavar="KG", help="mass (kg)")
+    for sub in shapes.choices.values():
+        sub.add_argument("--origin", type=_numbers(3), default=(0.0, 0.0, 0.0), metavar="X,Y,Z",
+                         help="point the tensor is taken about (m; default: the shape's own origin)")
+        sub.add_argument("--json", action="store_true",
+                         help="print one JSON object: tensor, principal_moments, principal_axes (columns)")
+
+
+def _numbers(count: int):
+    def parse(text: str) -> tuple[float, ...]:
+        try:
+            values = tuple(float(x) for x in text.split(","))
+        except ValueError:
+            values = ()
+        if len(values) != count:
+            raise argparse.ArgumentTypeError(f"expected {count} comma-separated numbers, got {text!r}")
+        return values
+    parse.__name__ = f"{count} comma-separated numbers"
+    return parse
+
+
+def _pairs(text: str) -> list[tuple[float, ...]]:
+    return [_numbers(2)(item) for item in text.split()]
+
+
+def _point_masses(text: str) -> list[tuple[float, ...]]:
+    return [_numbers(4)(item) for item in text.split()]
 
 
 def _error(message: str) -> int:
@@ -73,8 +133,52 @@ def _methods() -> int:
     return 0
 
 
+def _inertia(args) -> int:
+    import json
+
+    import numpy as np
+
+    from . import inertia
+
+    try:
+        if args.shape == "polygon":
+            body = inertia.polygon(args.mass, args.vertices)
+        elif args.shape == "points":
+            table = np.array(args.points, dtype=float)
+            body = inertia.points(table[:, 0], table[:, 1:])
+        else:
+            shape = inertia.SHAPES[args.shape]
+            body = shape.build(args.mass, **{length: getattr(args, length) for length in shape.lengths})
+    except inertia.ShapeError as e:
+        return _error(f"inertia {args.shape}: --{e.name.replace('_', '-')}: {e.problem.replace('r_outer', '--r-outer')}")
+    tensor = body.tensor(args.origin)
+    moments, axes = inertia.principal(tensor)
+    if args.json:
+        print(json.dumps({"tensor": tensor.tolist(), "principal_moments": moments.tolist(),
+                          "principal_axes": axes.tolist()}))
+        return 0
+    scale = np.abs(tensor).max()
+
+    def row(values, tiny):
+        return "  ".join(f"{0.0 if abs(v) <= tiny else v:>15.10g}" for v in values)
+
+    mass = float(np.sum(body.mass))
+    print(f"{args.shape}: mass {mass:.10g} kg, centre of mass ({', '.join(f'{c:.10g}' for c in body.centre)}) m")
+    print(f"inertia tensor about ({', '.join(f'{c:.10g}' for c in args.origin)}) m, kg m2:")
+    for line in tensor:
+        print("  " + row(line, 1e-14 * scale))
+    print("principal moments, kg m2 (ascending):")
+    print("  " + row(moments, 1e-14 * scale))
+    print("principal axes (unit column vectors, in the order of the moments):")
+    for line in axes:
+        print("  " + row(line, 1e-14))
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     if args.command == "run":
         return _run(args)
+    if args.command == "inertia":
+        return _inertia(args)
     return _methods()

@@ -21,6 +21,7 @@ class Parameter:
     choices: tuple[str, ...] = ()  # a string run constant
     integer: bool = False  # an integer run constant
     mode: bool = False  # also accepts { mode = j, amplitude = A }
+    derives: tuple[str, ...] = ()  # a shape table { shape = ..., mass = ..., lengths } that gives these parameters
 
     @property
     def constant(self) -> bool:

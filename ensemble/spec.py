@@ -21,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .inertia import SHAPES, ShapeError
 from .methods import METHODS, methods_for
 from .parameter import Mode, Parameter
 from .scenes import SCENES
@@ -76,6 +77,7 @@ class Spec:
     parameters: dict[str, float | list | Distribution | Mode] = field(repr=False)
     sweep: dict[str, tuple[float, ...]] = field(repr=False)
     constants: dict[str, int | str] = field(default_factory=dict)  # run constants, e.g. n, boundary
+    declared: dict[str, Parameter] = field(default_factory=dict, repr=False)  # every per-member parameter
     noise: dict[str, float] = field(default_factory=dict)  # Gaussian observation noise: variable -> stddev
     table: dict[str, np.ndarray] | None = field(default=None, repr=False, compare=False)  # see members_table
 
@@ -219,17 +221,70 @@ def parse(text: str, path: str = "<string>") -> Spec:
 
     noise = _noise(values.get("observe", {}), save, module)
 
-    declared = module.PARAMETERS
+    parameters, sweep, constants, declared = _parameters(values.get("parameters", {}), values.get("sweep", {}), module)
+
+    spec = Spec(path=str(path), text=text, scene=scene, method=method, dt=dt, t_end=t_end,
+                save_dt=save_dt, members=values["members"], seed=values["seed"], save=save,
+                parameters=parameters, sweep=sweep, constants=constants, noise=noise, declared=declared)
+    # Drawing every member's values checks them; keep them, as mode starts may cost an eigensolve each.
+    return replace(spec, table=_build_table(spec))
+
+
+def _parameters(given: dict, axes: dict, module):
+    """[parameters] and [sweep] checked against the scene's declarations.
+
+    Returns per-member parameters (name -> value), sweep axes (name -> values),
+    run constants and the declarations of every per-member parameter the
+    dataset records. A parameter that `derives` others (the top's `body`) is
+    a shape table: its shape becomes the constant `<name>_shape`, its mass and
+    lengths become parameters `<name>_<dimension>` (sweep them as
+    `<name>.<dimension>` under [sweep]), and the parameters it derives are
+    computed from it when the members table is built.
+    """
+    given, axes = dict(given), dict(axes)
+    declared = dict(module.PARAMETERS)
+    keys = {name: (f"parameters.{name}", f"sweep.{name}") for name in declared}
+    constants = {}
+    for name, parameter in module.PARAMETERS.items():
+        if not parameter.derives:
+            continue
+        del declared[name]
+        if name not in given:
+            if name in axes:
+                raise SpecError(f"sweep.{name}", f"needs parameters.{name} with its shape")
+            continue
+        for other in parameter.derives:
+            if other in given or other in axes:
+                raise SpecError(f"parameters.{other}", f"is given by parameters.{name}; give "
+                                                       f"{' and '.join(parameter.derives)}, or {name}, not both")
+        shape, dimensions = _shape(f"parameters.{name}", given.pop(name))
+        swept = _expect(f"sweep.{name}", axes.pop(name, {}), dict)
+        constants[f"{name}_shape"] = shape
+        for dim in ("mass", *SHAPES[shape].lengths):
+            flat = f"{name}_{dim}"
+            if flat in given or flat in axes:
+                raise SpecError(f"{'parameters' if flat in given else 'sweep'}.{flat}",
+                                f"give it as {dim} in parameters.{name} (or as {name}.{dim} under [sweep])")
+            keys[flat] = (f"parameters.{name}.{dim}", f"sweep.{name}.{dim}")
+            declared[flat] = Parameter("kg" if dim == "mass" else "m", f"{dim.replace('_', ' ')} of the {shape} body")
+            if dim in dimensions:
+                given[flat] = dimensions.pop(dim)
+            if dim in swept:
+                axes[flat] = swept.pop(dim)
+        for dim in (*dimensions, *swept):
+            where = f"parameters.{name}" if dim in dimensions else f"sweep.{name}"
+            raise _unknown(f"{where}.{dim}", dim, ("shape", "mass", *SHAPES[shape].lengths))
+
     parameters = {}
-    for name, value in values.get("parameters", {}).items():
+    for name, value in given.items():
         if name not in declared:
-            raise _unknown(f"parameters.{name}", name, declared)
-        parameters[name] = _parameter(f"parameters.{name}", value, declared[name])
+            raise _unknown(f"parameters.{name}", name, module.PARAMETERS)
+        parameters[name] = _parameter(keys[name][0], value, declared[name])
     sweep = {}
-    for name, axis in values.get("sweep", {}).items():
-        key = f"sweep.{name}"
+    for name, axis in axes.items():
         if name not in declared:
-            raise _unknown(key, name, declared)
+            raise _unknown(f"sweep.{name}", name, module.PARAMETERS)
+        key = keys[name][1]
         if declared[name].constant:
             raise SpecError(key, "is a run constant and cannot be swept; use one run file per value")
         if name in parameters:
@@ -238,19 +293,33 @@ def parse(text: str, path: str = "<string>") -> Spec:
             raise SpecError(key, f"a sweep axis must be a non-empty list of numbers, got {axis!r}")
         sweep[name] = tuple(_expect(key, x, float) for x in axis)
     for name, parameter in declared.items():
-        if name not in parameters and name not in sweep:
+        if name not in parameters and name not in sweep and not _derived(name, module, constants):
             if parameter.default is None:
-                raise SpecError(f"parameters.{name}", "missing (required)")
+                sources = [source for source, p in module.PARAMETERS.items() if name in p.derives]
+                raise SpecError(keys[name][0], "missing (required" + "".join(
+                    f"; or give parameters.{source} as a shape" for source in sources) + ")")
             parameters[name] = parameter.default
-    constants = {name: parameters.pop(name) for name, p in declared.items() if p.constant}
+    constants.update({name: parameters.pop(name) for name, p in declared.items() if p.constant})
     for name, problem in module.check_constants(constants):
         raise SpecError(f"parameters.{name}", problem)
+    return parameters, sweep, constants, {name: p for name, p in declared.items() if not p.constant}
 
-    spec = Spec(path=str(path), text=text, scene=scene, method=method, dt=dt, t_end=t_end,
-                save_dt=save_dt, members=values["members"], seed=values["seed"], save=save,
-                parameters=parameters, sweep=sweep, constants=constants, noise=noise)
-    # Drawing every member's values checks them; keep them, as mode starts may cost an eigensolve each.
-    return replace(spec, table=_build_table(spec))
+
+def _derived(name: str, module, constants: dict) -> bool:
+    """`name` is computed from a shape parameter that the run file gives."""
+    return any(name in p.derives and f"{source}_shape" in constants for source, p in module.PARAMETERS.items())
+
+
+def _shape(key: str, value) -> tuple[str, dict]:
+    """A shape table { shape = "...", mass = ..., <lengths> = ... }: the shape and the rest."""
+    if not isinstance(value, dict) or "shape" not in value:
+        raise SpecError(key, f'must be a shape table such as {{ shape = "annulus", mass = 0.1, r_inner = 0.1, '
+                             f'r_outer = 0.13 }}, got {value!r}')
+    value = dict(value)
+    shape = value.pop("shape")
+    if not isinstance(shape, str) or shape not in SHAPES:
+        raise SpecError(f"{key}.shape", f"unknown shape {shape!r}; shapes: {', '.join(SHAPES)}")
+    return shape, value
 
 
 def _noise(observe: dict, save: tuple[str, ...], module) -> dict[str, float]:
@@ -303,7 +372,7 @@ def _build_table(spec: Spec) -> dict[str, np.ndarray]:
     sizes = scene.sizes(spec.constants)
     modes = {}
     for name, value in spec.parameters.items():
-        per = scene.PARAMETERS[name].per
+        per = spec.declared[name].per
         shape = (n, sizes[per]) if per else (n,)
         if isinstance(value, Mode):
             modes[name] = value
@@ -318,9 +387,12 @@ def _build_table(spec: Spec) -> dict[str, np.ndarray]:
         else:
             table[name] = np.full(shape, value, dtype=float)
     for name in spec.sweep:
-        per = scene.PARAMETERS[name].per
+        per = spec.declared[name].per
         if per:
             table[name] = np.repeat(table[name][:, None], sizes[per], axis=1)
+    for source, parameter in scene.PARAMETERS.items():
+        if f"{source}_shape" in spec.constants:
+            table.update(_from_shape(spec, source, table))
     for name, problem in SCENES[spec.scene].check(table):
         where = "sweep" if name in spec.sweep else "parameters"
         raise SpecError(f"{where}.{name}", problem)
@@ -329,6 +401,21 @@ def _build_table(spec: Spec) -> dict[str, np.ndarray]:
             raise SpecError(f"parameters.{name}.mode", f"must be in 1..{sizes['site']}, got {mode.number}")
         table[name] = scene.mode_start(mode, table["m"], table["k"], spec.constants["boundary"])
     return table
+
+
+def _from_shape(spec: Spec, source: str, table: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """The parameters that shape parameter `source` derives, for every member."""
+    shape = SHAPES[spec.constants[f"{source}_shape"]]
+    dimensions = {dim: table[f"{source}_{dim}"] for dim in ("mass", *shape.lengths)}
+    try:
+        body = shape.build(**dimensions)
+    except ShapeError as e:
+        where = "sweep" if f"{source}_{e.name}" in spec.sweep else "parameters"
+        raise SpecError(f"{where}.{source}.{e.name}", e.problem) from None
+    try:
+        return SCENES[spec.scene].from_body(body)
+    except ValueError as e:
+        raise SpecError(f"parameters.{source}", str(e)) from None
 
 
 def observation_noise(spec: Spec, name: str, first: int, shape: tuple[int, ...]) -> np.ndarray:

@@ -76,11 +76,14 @@ class Writer:
             "sweep_point", table["sweep_point"].astype(np.int32), "index of the member's point on the sweep grid",
             dims=("member",),
         )
-        for name, parameter in self.scene.PARAMETERS.items():
-            if parameter.constant:
-                continue
+        derived = {name: source for source, p in self.scene.PARAMETERS.items() if f"{source}_shape" in spec.constants
+                   for name in p.derives}
+        for name, parameter in spec.declared.items():
             var = nc.createVariable(name, "f8", ("member", parameter.per) if parameter.per else ("member",))
             var.setncatts({"units": parameter.units, "long_name": parameter.long_name})
+            if name in derived:
+                var.setncattr("comment", f"from the principal moments of the {derived[name]} "
+                                         f"({spec.constants[derived[name] + '_shape']}) about its centre of mass")
             var[:] = table[name]
         for name in spec.save:
             dims, units, long_name = self.scene.OBSERVABLES[name]

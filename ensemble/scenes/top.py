@@ -17,6 +17,7 @@ import math
 import numpy as np
 from numba import njit
 
+from ..inertia import EQUAL_RTOL, Body
 from ..methods import METHODS
 from ..parameter import Parameter
 
@@ -30,6 +31,8 @@ PARAMETERS = {
     "spin0": Parameter("rad s-1", "magnitude of the angular velocity at t = 0"),
     "tilt0": Parameter("rad", "angle between omega and e3 at t = 0"),
     "azimuth0": Parameter("rad", "azimuth of omega about e3 at t = 0, from e1", default=0.0),
+    "body": Parameter("", "the body as a uniform shape, instead of lambda1 and lambda3",
+                      derives=("lambda1", "lambda3")),
 }
 
 # Saved variables: name -> (dims, units, long_name). Default: all of them.
@@ -70,6 +73,27 @@ def check(values: dict[str, np.ndarray]) -> list[tuple[str, str]]:
         if np.any(ratio > 2 * (1 + _FLAT_BODY_RTOL)):
             problems.append(("lambda3", f"lambda3 > 2 lambda1 (ratio {ratio.max():.6g}): no rigid body has that"))
     return problems
+
+
+def from_body(body: Body) -> dict[str, np.ndarray]:
+    """lambda1 and lambda3 (kg m2, per member) of bodies that are symmetric tops about their centre of mass.
+
+    Two of the three principal moments must be equal (to EQUAL_RTOL): they
+    are lambda1, the third is lambda3. A ValueError names the moments of the
+    first body that has no such pair.
+    """
+    moments = np.linalg.eigvalsh(body.inertia).reshape(-1, 3)  # ascending, per member
+    low, middle, high = moments.T
+    low_pair = middle - low <= EQUAL_RTOL * high
+    high_pair = high - middle <= EQUAL_RTOL * high
+    if not np.all(low_pair | high_pair):
+        i = int(np.argmin(low_pair | high_pair))
+        which = f" (member {i})" if len(moments) > 1 else ""
+        raise ValueError(f"is not a symmetric top{which}: its principal moments about its centre of mass are "
+                         f"{low[i]:.6g}, {middle[i]:.6g}, {high[i]:.6g} kg m2, no two of them equal")
+    lambda1 = np.where(low_pair, (low + middle) / 2, (middle + high) / 2)
+    lambda3 = np.where(low_pair, np.where(high_pair, middle, high), low)
+    return {"lambda1": lambda1, "lambda3": lambda3}
 
 
 def initial_state(values: dict[str, np.ndarray]) -> np.ndarray:
