@@ -19,6 +19,7 @@ from scipy.optimize import least_squares, linear_sum_assignment
 from scipy.signal import find_peaks
 from scipy.signal.windows import blackmanharris
 
+from .methods import METHODS
 from .scenes import chain, top
 
 MIN_SAMPLES = 5  # usable samples a member needs for a fit
@@ -59,6 +60,33 @@ def _members(ds: xr.Dataset) -> dict[str, xr.DataArray]:
 # ---------------------------------------------------------------- tops
 
 
+def member_settings(ds: xr.Dataset) -> tuple[np.ndarray, np.ndarray]:
+    """Each member's method (names) and dt (s; NaN where none): per-member variables when swept, else attributes."""
+    n = ds.sizes["member"]
+    if "method" in ds.variables:
+        names = np.array(ds["method"].attrs["flag_meanings"].split())
+        methods = names[ds["method"].values.astype(int)]
+    else:
+        methods = np.full(n, ds.attrs["method"])
+    dt = ds["dt"].values if "dt" in ds.variables else np.full(n, float(ds.attrs.get("dt", np.nan)))
+    return methods, dt
+
+
+def _method_prediction(ds: xr.Dataset, theory: np.ndarray, predict) -> np.ndarray:
+    """What each member's method shows: predict(method, dt, member indices) per (method, dt) group.
+
+    Adaptive methods keep their error to the tolerance: they show the physics.
+    """
+    methods, dt = member_settings(ds)
+    out = np.array(theory, dtype=float, copy=True)
+    for name, step in set(zip(methods, dt)):
+        if METHODS[name].adaptive or not np.isfinite(step):
+            continue
+        chosen = np.flatnonzero((methods == name) & ((dt == step) | (np.isnan(dt) & np.isnan(step))))
+        out[chosen] = predict(name, step, chosen)
+    return out
+
+
 def tilt_decay(ds: xr.Dataset) -> xr.Dataset:
     """Fit tan(tilt) ~ exp(-rate t) per member of a top result.
 
@@ -74,12 +102,13 @@ def tilt_decay(ds: xr.Dataset) -> xr.Dataset:
     values = {name: ds[name].values for name in top.PARAMETERS if name in ds}
     intercept, rate, stderr, used = _tilt_fit_noisy(t, tilt, sigma) if sigma > 0 else _tilt_fit_clean(t, tilt)
     theory = values["c"] * (1 / values["lambda1"] - 1 / values["lambda3"])
-    method = top.tilt_rate_method(ds.attrs["method"], values, ds.attrs["dt"], t)
+    method = _method_prediction(ds, theory, lambda name, dt, chosen: top.tilt_rate_method(
+        name, {k: v[chosen] for k, v in values.items()}, dt, t))
     data = {
         "rate": (rate, "s-1", "fitted tilt decay rate: tan(tilt) ~ exp(-rate t)"),
         "rate_stderr": (stderr, "s-1", "standard error of rate"),
         "rate_theory": (theory, "s-1", "c (1/lambda1 - 1/lambda3)"),
-        "rate_method": (method, "s-1", f"rate shown by {ds.attrs['method']} at dt = {ds.attrs['dt']} s"),
+        "rate_method": (method, "s-1", "rate shown by the member's method at its dt"),
         "z": ((rate - theory) / stderr, "1", "(rate - rate_theory) / rate_stderr"),
         "z_method": ((rate - method) / stderr, "1", "(rate - rate_method) / rate_stderr"),
         "log_tan_tilt0": (intercept, "1", "fitted line's log tan(tilt) at t = 0"),
@@ -176,8 +205,8 @@ def mode_frequencies(ds: xr.Dataset) -> xr.Dataset:
     x = ds["x"].values
     sigma = _noise(ds["x"])
     theory, _ = chain.normal_modes(ds["m"].values, ds["k"].values, boundary)
-    dt = float(ds.attrs.get("dt", t[1] - t[0]))
-    method = np.angle(chain.step_eigenvalue(ds.attrs["method"], theory, dt)) / dt
+    method = _method_prediction(ds, theory, lambda name, dt, chosen: np.angle(
+        chain.step_eigenvalue(name, theory[chosen], dt)) / dt)
     frequency = np.full(theory.shape, np.nan)
     stderr = np.full(theory.shape, np.nan)
     for i in range(x.shape[0]):
@@ -196,7 +225,7 @@ def mode_frequencies(ds: xr.Dataset) -> xr.Dataset:
         "frequency": (frequency, "rad s-1", "fitted normal-mode angular frequency"),
         "frequency_stderr": (stderr, "rad s-1", "standard error of frequency"),
         "frequency_theory": (theory, "rad s-1", "eigenfrequency of K v = w^2 M v"),
-        "frequency_method": (method, "rad s-1", f"frequency shown by {ds.attrs['method']} at dt = {dt} s"),
+        "frequency_method": (method, "rad s-1", "frequency shown by the member's method at its dt"),
         "z": (z, "1", "(frequency - frequency_theory) / frequency_stderr"),
         "z_method": (z_method, "1", "(frequency - frequency_method) / frequency_stderr"),
     }
@@ -301,9 +330,66 @@ def _dataset(ds: xr.Dataset, data: dict, dims, *, noise: float, fit: str) -> xr.
         "title": f"{fit} fits of {ds.attrs.get('title', 'an ensemble result')}",
         "source": ds.attrs.get("source", ""),
         "method": ds.attrs.get("method", ""),
-        "dt": ds.attrs.get("dt", np.nan),
+        "dt": ds.attrs.get("dt", np.nan),  # NaN when dt was swept
         "observation_noise_stddev": noise,
         "members_failed": failed,
         "sweep_axes": ds.attrs.get("sweep_axes", ""),
     }
     return out
+
+
+def work_precision(ds: xr.Dataset) -> xr.Dataset:
+    """Per sweep point of a run with [measure] error (and timing): method, dt, rtol, median error and work.
+
+    Returns over `point`: method (name), dt (s; for adaptive methods the mean
+    step t_end / steps), rtol, error (median over members of error_max),
+    steps (median steps taken per member), rhs_evals (median) and seconds
+    (median kernel seconds per member to t_end: seconds_per_step x steps;
+    NaN without timing).
+    """
+    if "error_max" not in ds:
+        raise FitError("work_precision needs a result of a run with [measure] error = true (no error_max in it)")
+    methods, dt = member_settings(ds)
+    points = ds["sweep_point"].values
+    steps = ds["steps_accepted"].values + ds["steps_rejected"].values
+    rtol = ds["rtol"].values if "rtol" in ds else np.full(points.size, float(ds.attrs.get("rtol", np.nan)))
+    timing = ds["seconds_per_step"].values if "seconds_per_step" in ds else np.full(points.size, np.nan)
+    rows = []
+    for point in np.unique(points):
+        chosen = points == point
+        first = np.flatnonzero(chosen)[0]
+        taken = np.median(steps[chosen])
+        mean_step = float(ds.attrs["t_end"]) / np.median(ds["steps_accepted"].values[chosen])
+        rows.append((methods[first], dt[first] if np.isfinite(dt[first]) else mean_step, rtol[first],
+                     np.median(ds["error_max"].values[chosen]), taken, np.median(ds["rhs_evals"].values[chosen]),
+                     np.median(timing[chosen] * steps[chosen])))
+    columns = list(zip(*rows))
+    out = xr.Dataset(coords={"point": np.arange(len(rows))})
+    for name, values, units, long_name in (
+            ("method", np.array(columns[0]), "", "integration method"),
+            ("dt", np.array(columns[1]), "s", "step (adaptive methods: mean step t_end / steps accepted)"),
+            ("rtol", np.array(columns[2]), "1", "relative tolerance (adaptive methods)"),
+            ("error", np.array(columns[3]), "1", "median over members of error_max"),
+            ("steps", np.array(columns[4]), "1", "median steps per member, rejected ones included"),
+            ("rhs_evals", np.array(columns[5]), "1", "median right-hand-side evaluations per member"),
+            ("seconds", np.array(columns[6]), "s", "median kernel seconds per member to t_end")):
+        out[name] = ("point", values, {"units": units, "long_name": long_name} if units else {"long_name": long_name})
+    return out
+
+
+ROUNDOFF = 1e3 * np.finfo(float).eps  # errors below ROUNDOFF sqrt(steps) are round-off, not truncation
+ASYMPTOTIC = 1e-2  # errors above this are not yet in the asymptotic regime
+
+
+def convergence_order(table: xr.Dataset, method: str) -> tuple[float, int]:
+    """Measured order of a fixed-step method from a work_precision table: (slope of log error on log dt, points).
+
+    Uses the points in the asymptotic range: error below ASYMPTOTIC and above
+    round-off (ROUNDOFF sqrt(steps)). NaN with fewer than 3 such points.
+    """
+    chosen = table["method"].values == method
+    error, dt, steps = (table[name].values[chosen] for name in ("error", "dt", "steps"))
+    usable = np.isfinite(error) & (error < ASYMPTOTIC) & (error > ROUNDOFF * np.sqrt(steps))
+    if usable.sum() < 3:
+        return np.nan, int(usable.sum())
+    return float(np.polyfit(np.log(dt[usable]), np.log(error[usable]), 1)[0]), int(usable.sum())

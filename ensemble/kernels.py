@@ -12,6 +12,7 @@ closures capture the method's data as constants; Numba caches each on disk.
 """
 from __future__ import annotations
 
+import math
 from functools import cache
 
 import numpy as np
@@ -117,6 +118,165 @@ def _top_kernel(method: Method):
     return kernel
 
 
+def _adaptive_constants(method: Method):
+    """An adaptive method's tableau and controller as plain constants for a kernel closure."""
+    t, control = method.tableau, method.control
+    assert t.fsal and t.error is not None, "adaptive kernels need an FSAL embedded pair"
+    return (t.stages, t.square_a(), tuple(float(x) for x in t.error), control.alpha, control.beta, control.safety,
+            control.min_factor, control.max_factor)
+
+
+# Rows of an adaptive kernel's per-member control block (after the scene's rows), and of `counts`.
+H, TIME, STEP, ERR, ERR_PREVIOUS, REJECTED_LAST, RTOL, ATOL = range(8)
+CONTROL_ROWS = 8
+ACCEPTED, REJECTED, RHS_EVALS = range(3)
+
+
+@njit(inline="always", **FAST)
+def _control_step(work, c0, B, target, counts, j0, alpha, beta, safety, min_factor, max_factor):
+    """After a trial step of every member in a block: accept or reject each and choose its next step.
+
+    Afterwards ERR is -1 for members that had no step to take, -2 for members
+    whose step underflowed (they stop: H = 0), and REJECTED_LAST is 0 for
+    members whose step was accepted; the caller moves those to their new state.
+    """
+    for j in range(B):
+        step = work[(c0 + STEP) * B + j]
+        if step <= 0.0:
+            work[(c0 + ERR) * B + j] = -1.0  # nothing to do: mark as not accepted
+            continue
+        err = work[(c0 + ERR) * B + j]
+        counts[RHS_EVALS, j0 + j] += 6.0
+        if err <= 1.0:
+            factor = safety * max(err, 1e-10) ** -alpha * work[(c0 + ERR_PREVIOUS) * B + j] ** beta
+            if work[(c0 + REJECTED_LAST) * B + j] > 0.0:
+                factor = min(factor, 1.0)
+            factor = min(max_factor, max(min_factor, factor))
+            remaining = target - work[(c0 + TIME) * B + j]
+            work[(c0 + TIME) * B + j] = target if step >= remaining else work[(c0 + TIME) * B + j] + step
+            # A step clipped to land on a saved time does not shrink the next one.
+            work[(c0 + H) * B + j] = max(step * factor, work[(c0 + H) * B + j] if step >= remaining else 0.0)
+            work[(c0 + ERR_PREVIOUS) * B + j] = max(err, 1e-4)
+            work[(c0 + REJECTED_LAST) * B + j] = 0.0
+            counts[ACCEPTED, j0 + j] += 1.0
+        else:
+            h = step * max(min_factor, safety * err ** -alpha) if err < np.inf else step * min_factor
+            if not h > 1e-14 * target:  # the step underflowed (or the error is not a number): give up
+                h = 0.0
+                work[(c0 + ERR) * B + j] = -2.0
+            work[(c0 + H) * B + j] = h
+            work[(c0 + REJECTED_LAST) * B + j] = 1.0
+            counts[REJECTED, j0 + j] += 1.0
+
+
+@njit(inline="always", **FAST)
+def _first_step(size, slope, save_dt):
+    """Hairer's first guess from |y| and |y'| in units of the tolerance: 1% of their ratio, at most save_dt."""
+    return min(0.01 * size / slope if size > 1e-5 and slope > 1e-5 else 1e-6, save_dt)
+
+
+@njit(inline="always", **FAST)
+def _trial_steps(work, c0, B, target):
+    """Each member's next trial step (STEP), clipped to land on `target`; 0 for members there. Returns how many move."""
+    left = 0
+    for j in range(B):
+        remaining = target - work[(c0 + TIME) * B + j]
+        step = min(work[(c0 + H) * B + j], remaining) if remaining > 0.0 else 0.0
+        work[(c0 + STEP) * B + j] = step
+        work[(c0 + ERR) * B + j] = 0.0
+        left += step > 0.0
+    return left
+
+
+def _top_adaptive_kernel(method: Method):
+    """Top kernel for an adaptive embedded pair: every member controls its own step.
+
+    Work rows: w1, w2, w3, p, r1, r3, stage slopes k[s, c] at 6 + 3 s + c, the
+    new state (3 rows), then the control rows (H, TIME, ...). A trial step runs
+    for all members of a block at once, each with its own step, clipped so it
+    lands exactly on the next saved time; members already there take no step.
+    """
+    S, a, e, alpha, beta, safety, min_factor, max_factor = _adaptive_constants(method)
+    a_array = np.array(a)  # indexed by a loop variable: a constant array, not a tuple
+    K = 6
+    NEW = K + 3 * S
+    C0 = NEW + 3
+    rows = C0 + CONTROL_ROWS
+
+    @njit(parallel=True, cache=True, **FAST)
+    def kernel(state0, rate, control, save_dt, samples, counts):
+        """state0, rate (3, M); control (3, M): first step (s; <= 0: estimate it), rtol, atol;
+        -> samples (n_save, 3, M), counts (3, M): accepted, rejected, right-hand-side evaluations."""
+        n_save = samples.shape[0]
+        B = BLOCK
+        for block in prange(state0.shape[1] // B):
+            j0 = block * B
+            work = np.zeros(rows * B)
+            for c in range(3):
+                work[c * B:(c + 1) * B] = state0[c, j0:j0 + B]
+                work[(3 + c) * B:(4 + c) * B] = rate[c, j0:j0 + B]
+                samples[0, c, j0:j0 + B] = state0[c, j0:j0 + B]
+            for j in range(B):
+                y1, y2, y3 = work[j], work[B + j], work[2 * B + j]
+                d1, d2, d3 = top.rhs(y1, y2, y3, work[3 * B + j], work[4 * B + j], work[5 * B + j])
+                work[K * B + j], work[(K + 1) * B + j], work[(K + 2) * B + j] = d1, d2, d3
+                rtol, atol = control[1, j0 + j], control[2, j0 + j]
+                work[(C0 + RTOL) * B + j], work[(C0 + ATOL) * B + j] = rtol, atol
+                work[(C0 + ERR_PREVIOUS) * B + j] = 1e-4
+                h = control[0, j0 + j]
+                if h <= 0.0:
+                    scale = atol + rtol * max(abs(y1), abs(y2), abs(y3))
+                    h = _first_step(max(abs(y1), abs(y2), abs(y3)) / scale, max(abs(d1), abs(d2), abs(d3)) / scale,
+                                    save_dt)
+                work[(C0 + H) * B + j] = h
+                counts[RHS_EVALS, j0 + j] = 1.0
+            for i in range(1, n_save):
+                target = i * save_dt
+                while _trial_steps(work, C0, B, target):
+                    for s in range(1, S):  # stages outside, members inside, as in the chain kernels
+                        for j in range(B):
+                            h = work[(C0 + STEP) * B + j]
+                            z1, z2, z3 = work[j], work[B + j], work[2 * B + j]
+                            for r in range(S):  # a is zero from column s on
+                                ha = h * a_array[s * S + r]
+                                z1 += ha * work[(K + 3 * r) * B + j]
+                                z2 += ha * work[(K + 3 * r + 1) * B + j]
+                                z3 += ha * work[(K + 3 * r + 2) * B + j]
+                            d1, d2, d3 = top.rhs(z1, z2, z3, work[3 * B + j], work[4 * B + j], work[5 * B + j])
+                            work[(K + 3 * s) * B + j] = d1
+                            work[(K + 3 * s + 1) * B + j] = d2
+                            work[(K + 3 * s + 2) * B + j] = d3
+                            work[NEW * B + j], work[(NEW + 1) * B + j], work[(NEW + 2) * B + j] = z1, z2, z3
+                    for j in range(B):
+                        # FSAL: the last stage was evaluated at the new state NEW
+                        h = work[(C0 + STEP) * B + j]
+                        y1, y2, y3 = work[j], work[B + j], work[2 * B + j]
+                        z1, z2, z3 = work[NEW * B + j], work[(NEW + 1) * B + j], work[(NEW + 2) * B + j]
+                        e1, e2, e3 = 0.0, 0.0, 0.0
+                        for s in range(S):
+                            e1 += e[s] * work[(K + 3 * s) * B + j]
+                            e2 += e[s] * work[(K + 3 * s + 1) * B + j]
+                            e3 += e[s] * work[(K + 3 * s + 2) * B + j]
+                        rtol, atol = work[(C0 + RTOL) * B + j], work[(C0 + ATOL) * B + j]
+                        q1 = h * e1 / (atol + rtol * max(abs(y1), abs(z1)))
+                        q2 = h * e2 / (atol + rtol * max(abs(y2), abs(z2)))
+                        q3 = h * e3 / (atol + rtol * max(abs(y3), abs(z3)))
+                        work[(C0 + ERR) * B + j] = math.sqrt((q1 * q1 + q2 * q2 + q3 * q3) / 3.0)
+                    _control_step(work, C0, B, target, counts, j0, alpha, beta, safety, min_factor, max_factor)
+                    for j in range(B):
+                        if work[(C0 + REJECTED_LAST) * B + j] == 0.0 and work[(C0 + ERR) * B + j] >= 0.0:
+                            for c in range(3):
+                                work[c * B + j] = work[(NEW + c) * B + j]
+                                work[(K + c) * B + j] = work[(K + 3 * (S - 1) + c) * B + j]
+                        elif work[(C0 + ERR) * B + j] == -2.0:
+                            for c in range(3):
+                                work[c * B + j] = np.nan
+                for c in range(3):
+                    samples[i, c, j0:j0 + B] = work[c * B:(c + 1) * B]
+
+    return kernel
+
+
 def chain_block(n: int) -> int:
     """Members per block for a chain of n masses.
 
@@ -128,28 +288,17 @@ def chain_block(n: int) -> int:
     return 64 if n < 16 else 8
 
 
-def _chain_kernel(method: Method, n: int, periodic: bool):
-    """Chain kernel for n masses: a kick/drift splitting or an explicit Runge-Kutta tableau.
+def _chain_block_io(n: int, periodic: bool, rows: int):
+    """Helpers shared by the chain kernels, for work arrays of `rows` rows laid out X (n + 2), V, CL, CR, ...
 
-    Work rows (B = chain_block(n) members each): X (n + 2: ghost, masses
-    1..n, ghost), V (n), then CL and CR (n each: the springs' constants left
-    and right of each mass over its mass, see chain.inputs); Runge-Kutta adds
-    the stage state ZX (n + 2), ZV (n) and slopes KX, KV (stages x n each).
-    Forces come from neighbours only: O(n) per step.
+    set_ghosts(work, x) fills the ghost sites of the positions at row x (a
+    ring's ends; walls and free ends keep 0), load_block starts a block and
+    store_sample saves its state.
     """
     B = chain_block(n)
     X, V = 0, n + 2
     CL = V + n
     CR = CL + n
-    runge_kutta, S, a, b, E, pieces, fractions = _method_constants(method)
-    # A splitting that starts and ends with the same piece (verlet: kick) merges
-    # the end of one step with the start of the next inside a save interval.
-    merge = E > 1 and pieces[0] == pieces[E - 1]
-    ZX = CR + n
-    ZV = ZX + n + 2
-    KX = ZV + n
-    KV = KX + S * n
-    rows = KV + S * n if runge_kutta else CR + n
 
     @njit(inline="always", **FAST)
     def set_ghosts(work, x):
@@ -178,6 +327,34 @@ def _chain_kernel(method: Method, n: int, periodic: bool):
         for i in range(n):
             samples[save, i, j0:j0 + B] = work[(X + 1 + i) * B:(X + 2 + i) * B]
             samples[save, n + i, j0:j0 + B] = work[(V + i) * B:(V + 1 + i) * B]
+
+    return set_ghosts, load_block, store_sample
+
+
+def _chain_kernel(method: Method, n: int, periodic: bool):
+    """Chain kernel for n masses: a kick/drift splitting or an explicit Runge-Kutta tableau.
+
+    Work rows (B = chain_block(n) members each): X (n + 2: ghost, masses
+    1..n, ghost), V (n), then CL and CR (n each: the springs' constants left
+    and right of each mass over its mass, see chain.inputs); Runge-Kutta adds
+    the stage state ZX (n + 2), ZV (n) and slopes KX, KV (stages x n each).
+    Forces come from neighbours only: O(n) per step.
+    """
+    B = chain_block(n)
+    X, V = 0, n + 2
+    CL = V + n
+    CR = CL + n
+    runge_kutta, S, a, b, E, pieces, fractions = _method_constants(method)
+    # A splitting that starts and ends with the same piece (verlet: kick) merges
+    # the end of one step with the start of the next inside a save interval.
+    merge = E > 1 and pieces[0] == pieces[E - 1]
+    ZX = CR + n
+    ZV = ZX + n + 2
+    KX = ZV + n
+    KV = KX + S * n
+    rows = KV + S * n if runge_kutta else CR + n
+
+    set_ghosts, load_block, store_sample = _chain_block_io(n, periodic, rows)
 
     @njit(parallel=True, cache=True, **FAST)
     def splitting_kernel(state0, rate, h, steps_per_save, samples):
@@ -248,13 +425,116 @@ def _chain_kernel(method: Method, n: int, periodic: bool):
     return runge_kutta_kernel if runge_kutta else splitting_kernel
 
 
+def _chain_adaptive_kernel(method: Method, n: int, periodic: bool):
+    """Chain kernel for an adaptive embedded pair; rows as in _chain_kernel's Runge-Kutta kernel, then control rows.
+
+    As for the top, every member of a block takes its own trial step at once,
+    clipped to land on the next saved time.
+    """
+    B = chain_block(n)
+    X, V = 0, n + 2
+    CL = V + n
+    CR = CL + n
+    ZX = CR + n
+    ZV = ZX + n + 2
+    S, a, e, alpha, beta, safety, min_factor, max_factor = _adaptive_constants(method)
+    KX = ZV + n
+    KV = KX + S * n
+    C0 = KV + S * n
+    rows = C0 + CONTROL_ROWS
+    set_ghosts, load_block, store_sample = _chain_block_io(n, periodic, rows)
+
+    @njit(inline="always", **FAST)
+    def slopes(work, zx, zv, s):
+        """Stage s's slopes from the stage state at rows zx (with ghosts) and zv."""
+        for i in range(n):
+            for j in range(B):
+                work[(KX + s * n + i) * B + j] = work[(zv + i) * B + j]
+                work[(KV + s * n + i) * B + j] = chain.acceleration(
+                    work[(zx + i) * B + j], work[(zx + 1 + i) * B + j], work[(zx + 2 + i) * B + j],
+                    work[(CL + i) * B + j], work[(CR + i) * B + j])
+
+    @njit(parallel=True, cache=True, **FAST)
+    def kernel(state0, rate, control, save_dt, samples, counts):
+        """state0, rate (2n, M); control (3, M): first step (s; <= 0: estimate it), rtol, atol;
+        -> samples (n_save, 2n, M), counts (3, M): accepted, rejected, right-hand-side evaluations."""
+        for block in prange(state0.shape[1] // B):
+            j0 = block * B
+            work = load_block(state0, rate, j0, samples)
+            slopes(work, X, V, 0)
+            for j in range(B):
+                rtol, atol = control[1, j0 + j], control[2, j0 + j]
+                work[(C0 + RTOL) * B + j], work[(C0 + ATOL) * B + j] = rtol, atol
+                work[(C0 + ERR_PREVIOUS) * B + j] = 1e-4
+                counts[RHS_EVALS, j0 + j] = 1.0
+                h = control[0, j0 + j]
+                if h <= 0.0:
+                    size = 0.0
+                    slope = 0.0
+                    for i in range(n):
+                        x, v = work[(X + 1 + i) * B + j], work[(V + i) * B + j]
+                        size = max(size, abs(x) / (atol + rtol * abs(x)), abs(v) / (atol + rtol * abs(v)))
+                        slope = max(slope, abs(v) / (atol + rtol * abs(x)),
+                                    abs(work[(KV + i) * B + j]) / (atol + rtol * abs(v)))
+                    h = _first_step(size, slope, save_dt)
+                work[(C0 + H) * B + j] = h
+            for save in range(1, samples.shape[0]):
+                target = save * save_dt
+                while _trial_steps(work, C0, B, target):
+                    for s in range(1, S):
+                        for i in range(n):
+                            for j in range(B):
+                                h = work[(C0 + STEP) * B + j]
+                                zx = work[(X + 1 + i) * B + j]
+                                zv = work[(V + i) * B + j]
+                                for r in range(S):  # a is zero from column s on; a constant trip count unrolls
+                                    ha = h * a[s * S + r]
+                                    zx += ha * work[(KX + r * n + i) * B + j]
+                                    zv += ha * work[(KV + r * n + i) * B + j]
+                                work[(ZX + 1 + i) * B + j] = zx
+                                work[(ZV + i) * B + j] = zv
+                        set_ghosts(work, ZX)
+                        slopes(work, ZX, ZV, s)
+                    # FSAL: the last stage state ZX, ZV is the new state; estimate its error
+                    for i in range(n):
+                        for j in range(B):
+                            ex = 0.0
+                            ev = 0.0
+                            for s in range(S):
+                                ex += e[s] * work[(KX + s * n + i) * B + j]
+                                ev += e[s] * work[(KV + s * n + i) * B + j]
+                            h = work[(C0 + STEP) * B + j]
+                            rtol, atol = work[(C0 + RTOL) * B + j], work[(C0 + ATOL) * B + j]
+                            qx = h * ex / (atol + rtol * max(abs(work[(X + 1 + i) * B + j]),
+                                                             abs(work[(ZX + 1 + i) * B + j])))
+                            qv = h * ev / (atol + rtol * max(abs(work[(V + i) * B + j]), abs(work[(ZV + i) * B + j])))
+                            work[(C0 + ERR) * B + j] += qx * qx + qv * qv
+                    for j in range(B):
+                        work[(C0 + ERR) * B + j] = math.sqrt(work[(C0 + ERR) * B + j] / (2 * n))
+                    _control_step(work, C0, B, target, counts, j0, alpha, beta, safety, min_factor, max_factor)
+                    for i in range(n):
+                        for j in range(B):
+                            if work[(C0 + REJECTED_LAST) * B + j] == 0.0 and work[(C0 + ERR) * B + j] >= 0.0:
+                                work[(X + 1 + i) * B + j] = work[(ZX + 1 + i) * B + j]
+                                work[(V + i) * B + j] = work[(ZV + i) * B + j]
+                                work[(KX + i) * B + j] = work[(KX + (S - 1) * n + i) * B + j]
+                                work[(KV + i) * B + j] = work[(KV + (S - 1) * n + i) * B + j]
+                            elif work[(C0 + ERR) * B + j] == -2.0:
+                                work[(X + 1 + i) * B + j] = np.nan
+                                work[(V + i) * B + j] = np.nan
+                    set_ghosts(work, X)
+                store_sample(work, samples, save, j0)
+
+    return kernel
+
+
 @cache
 def kernel_for(scene: str, method: str, key: tuple = ()):
     """The compiled (or cache-loaded) kernel of a stepping method; `key` from the scene's kernel_key."""
     m = METHODS[method]
     if scene == "top":
-        return _top_kernel(m)
-    return _chain_kernel(m, *key)
+        return _top_adaptive_kernel(m) if m.adaptive else _top_kernel(m)
+    return _chain_adaptive_kernel(m, *key) if m.adaptive else _chain_kernel(m, *key)
 
 
 def block_size(scene: str, key: tuple) -> int:
@@ -263,7 +543,7 @@ def block_size(scene: str, key: tuple) -> int:
 
 def integrate(scene, method: str, values: dict[str, np.ndarray], constants: dict, dt: float,
               steps_per_save: int, n_save: int) -> np.ndarray:
-    """Integrate the members described by `values`; returns samples (n_save, state, members).
+    """Integrate the members described by `values` with a fixed step; returns samples (n_save, state, members).
 
     A member's result depends only on its own values: never on how many
     members run with it, the chunking or the thread count.
@@ -273,17 +553,42 @@ def integrate(scene, method: str, values: dict[str, np.ndarray], constants: dict
         return scene.exact(values, constants, t)
     state0, rate = scene.inputs(values, constants)
     key = scene.kernel_key(constants)
-    block = block_size(scene.NAME, key)
     n = state0.shape[1]
-    padded = -(-n // block) * block
-    if padded != n:  # pad with copies of the last member; trimmed below
-        state0 = np.concatenate([state0, np.repeat(state0[:, -1:], padded - n, axis=1)], axis=1)
-        rate = np.concatenate([rate, np.repeat(rate[:, -1:], padded - n, axis=1)], axis=1)
-    samples = np.empty((n_save, state0.shape[0], padded))
-    kernel_for(scene.NAME, method, key)(
-        np.ascontiguousarray(state0), np.ascontiguousarray(rate), float(dt), int(steps_per_save), samples
-    )
+    state0, rate = _padded((state0, rate), block_size(scene.NAME, key))
+    samples = np.empty((n_save, state0.shape[0], state0.shape[1]))
+    kernel_for(scene.NAME, method, key)(state0, rate, float(dt), int(steps_per_save), samples)
     return samples[:, :, :n]
+
+
+def integrate_adaptive(scene, method: str, values: dict[str, np.ndarray], constants: dict, first_step: np.ndarray,
+                       rtol: np.ndarray, atol: np.ndarray, save_dt: float, n_save: int
+                       ) -> tuple[np.ndarray, np.ndarray]:
+    """Integrate with an adaptive method, each member to its own rtol and atol (arrays over members).
+
+    first_step (s, per member; NaN or <= 0: estimated) is only the first
+    trial step. Returns samples (n_save, state, members), exactly at the saved
+    times, and counts (3, members): steps accepted, steps rejected and
+    right-hand-side evaluations. A member whose step underflows is NaN from
+    then on.
+    """
+    state0, rate = scene.inputs(values, constants)
+    key = scene.kernel_key(constants)
+    n = state0.shape[1]
+    control = np.stack([np.nan_to_num(np.broadcast_to(x, (n,)).astype(float), nan=0.0)
+                        for x in (first_step, rtol, atol)])
+    state0, rate, control = _padded((state0, rate, control), block_size(scene.NAME, key))
+    samples = np.empty((n_save, state0.shape[0], state0.shape[1]))
+    counts = np.zeros((3, state0.shape[1]))
+    kernel_for(scene.NAME, method, key)(state0, rate, control, float(save_dt), samples, counts)
+    return samples[:, :, :n], counts[:, :n].astype(np.int64)
+
+
+def _padded(arrays, block: int) -> tuple[np.ndarray, ...]:
+    """(rows, members) arrays padded to a whole number of blocks with copies of the last member."""
+    n = arrays[0].shape[1]
+    extra = -(-n // block) * block - n
+    return tuple(np.ascontiguousarray(np.concatenate([x, np.repeat(x[:, -1:], extra, axis=1)], axis=1) if extra else x)
+                 for x in arrays)
 
 
 def prepare(scene: str, method: str, constants: dict) -> None:
@@ -294,5 +599,9 @@ def prepare(scene: str, method: str, constants: dict) -> None:
     key = module.kernel_key(constants)
     state_rows, rate_rows = module.kernel_rows(constants)
     block = block_size(scene, key)
-    kernel_for(scene, method, key)(np.zeros((state_rows, block)), np.zeros((rate_rows, block)), 1.0, 1,
-                                   np.empty((1, state_rows, block)))
+    state0, rate = np.zeros((state_rows, block)), np.zeros((rate_rows, block))
+    samples = np.empty((1, state_rows, block))
+    if METHODS[method].adaptive:
+        kernel_for(scene, method, key)(state0, rate, np.ones((3, block)), 1.0, samples, np.zeros((3, block)))
+    else:
+        kernel_for(scene, method, key)(state0, rate, 1.0, 1, samples)

@@ -22,6 +22,12 @@ class Tableau:
     a: tuple[tuple[float, ...], ...]
     b: tuple[float, ...]
     c: tuple[float, ...]
+    error: tuple[float, ...] | None = None  # b - b_hat of an embedded pair: h sum(error_s k_s) estimates the local error
+
+    @property
+    def fsal(self) -> bool:
+        """First stage of the next step is the last of this one (the last row of a is b, at c = 1)."""
+        return self.c[-1] == 1.0 and tuple(self.square_a()[-self.stages:]) == tuple(float(x) for x in self.b)
 
     @property
     def stages(self) -> int:
@@ -75,6 +81,37 @@ RK4 = Tableau(
     b=(1 / 6, 1 / 3, 1 / 3, 1 / 6),
     c=(0.0, 0.5, 0.5, 1.0),
 )
+#: Dormand and Prince (1980): fifth-order solution, fourth-order embedded estimate, first same as last.
+DOPRI5 = Tableau(
+    a=((),
+       (1 / 5,),
+       (3 / 40, 9 / 40),
+       (44 / 45, -56 / 15, 32 / 9),
+       (19372 / 6561, -25360 / 2187, 64448 / 6561, -212 / 729),
+       (9017 / 3168, -355 / 33, 46732 / 5247, 49 / 176, -5103 / 18656),
+       (35 / 384, 0.0, 500 / 1113, 125 / 192, -2187 / 6784, 11 / 84)),
+    b=(35 / 384, 0.0, 500 / 1113, 125 / 192, -2187 / 6784, 11 / 84, 0.0),
+    c=(0.0, 1 / 5, 3 / 10, 4 / 5, 8 / 9, 1.0, 1.0),
+    error=(71 / 57600, 0.0, -71 / 16695, 71 / 1920, -17253 / 339200, 22 / 525, -1 / 40),
+)
+
+
+@dataclass(frozen=True)
+class StepControl:
+    """The PI step-size controller of an adaptive method (Hairer, Norsett and Wanner, II.4).
+
+    After a step with error norm err (1 = at tolerance), the next step is
+    h * clip(safety * err^-alpha * err_previous^beta, min_factor, max_factor);
+    after a rejection the factor is at most 1.
+    """
+
+    alpha: float
+    beta: float
+    safety: float = 0.9
+    min_factor: float = 0.2
+    max_factor: float = 10.0
+
+
 KICK, DRIFT = 0, 1  # chain pieces
 DRAG, ROTATE = 0, 1  # top pieces
 VERLET = Splitting(((KICK, 0.5), (DRIFT, 1.0), (KICK, 0.5)))
@@ -93,6 +130,24 @@ class Method:
     tableau: Tableau | None = None  # explicit Runge-Kutta methods
     splitting: Splitting | None = None  # splitting and composition methods
     closed_form: bool = False  # evaluates the scene's exact solution
+    control: StepControl | None = None  # adaptive methods: each member controls its own step
+
+    @property
+    def adaptive(self) -> bool:
+        return self.control is not None
+
+    def evaluations_per_step(self, scene: str) -> int:
+        """Right-hand-side (force) evaluations of a fixed step: the stages, or a splitting's kicks.
+
+        A splitting that starts and ends with a kick shares it with the next
+        step; the top's splitting pieces are solved exactly, without the rhs.
+        """
+        if self.tableau is not None:
+            return self.tableau.stages
+        if self.splitting is None or scene != "chain":
+            return 0
+        pieces = [p for p, _ in self.splitting.sequence]
+        return pieces.count(KICK) - (len(pieces) > 1 and pieces[0] == pieces[-1] == KICK)
 
 
 METHODS: dict[str, Method] = {
@@ -110,6 +165,8 @@ METHODS: dict[str, Method] = {
                splitting=STRANG_TOP),
         Method("split4", 4, False, ("top",), "Yoshida's fourth-order composition of split2",
                splitting=STRANG_TOP.composed(YOSHIDA4)),
+        Method("dopri5", 5, False, ("top", "chain"), "Dormand-Prince 5(4), adaptive: each member controls its "
+               "step to rtol and atol", tableau=DOPRI5, control=StepControl(alpha=0.7 / 5 - 0.75 * 0.04, beta=0.04)),
         Method("exact", None, False, ("top", "chain"), "closed-form solution at the saved times (no stepping)",
                closed_form=True),
     )

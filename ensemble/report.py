@@ -130,23 +130,15 @@ def run_script(args, fit_function, *, name: str, value: str, units: str, title: 
     draw(plt, ds, fits, rows, stem) returns the paths of the script's own charts;
     the z histogram is added here. Bad input prints one line and returns 2.
     """
-    try:
-        import matplotlib
-    except ImportError:
-        print('error: the charts need matplotlib: pip install "ensemble[plot]"', file=sys.stderr)
+    loaded = load_result(args.result, fit_function, validate)
+    if loaded is None:
         return 2
-    try:
-        ds = xr.load_dataset(args.result, engine="netcdf4")
-        if validate:
-            validate(ds)
-        fits = fit_function(ds)
-    except (OSError, ValueError) as e:
-        print(f"error: {args.result}: {str(e).splitlines()[0]}", file=sys.stderr)
-        return 2
+    ds, fits = loaded
+    import matplotlib
     for axis in ds.attrs.get("sweep_axes", "").split():
         fits[axis] = ds[axis]
     table = rows(fits, value, label, args.against)
-    print_table(f"{title} of {args.result} ({ds.attrs['method']}, dt = {ds.attrs['dt']} s)", table, units)
+    print_table(f"{title} of {args.result} ({ds.attrs['method']}, dt = {ds.attrs.get('dt', 'per member')} s)", table, units)
     if fits.attrs["members_failed"]:
         print(f"{fits.attrs['members_failed']} members could not be fitted and are left out")
     out, stem = outputs(args.result, name)
@@ -164,6 +156,24 @@ def run_script(args, fit_function, *, name: str, value: str, units: str, title: 
     paths.append(save(plt, fig, stem, "z"))
     print("charts:", *paths)
     return 1 if args.check and not all(r.passed for r in table if r.members) else 0
+
+
+def load_result(path: Path, fit_function, validate=None):
+    """(dataset, fit_function(dataset)) of a result file; None after one line on stderr for bad input
+    or when matplotlib (the `plot` extra) is missing."""
+    try:
+        import matplotlib  # noqa: F401
+    except ImportError:
+        print('error: the charts need matplotlib: pip install "ensemble[plot]"', file=sys.stderr)
+        return None
+    try:
+        ds = xr.load_dataset(path, engine="netcdf4")
+        if validate:
+            validate(ds)
+        return ds, fit_function(ds)
+    except (OSError, ValueError) as e:
+        print(f"error: {path}: {str(e).splitlines()[0]}", file=sys.stderr)
+        return None
 
 
 def save(plt, fig, stem: Path, chart: str) -> Path:

@@ -8,9 +8,11 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
 from tqdm import tqdm
 
 from . import kernels
+from .methods import METHODS
 from .scenes import SCENES
 from .spec import Spec, members_table, observation_noise
 from .store import Writer
@@ -21,13 +23,17 @@ CHUNK_BYTES = 32 * 2**20  # saved data held in memory per chunk
 @dataclass(frozen=True)
 class Summary:
     members: int
-    steps: int
+    member_steps: int
     seconds: float
+    steps_each: int | None = None  # when every member took the same number of steps
 
     def __str__(self) -> str:
-        rate = self.members * self.steps / self.seconds if self.seconds > 0 else float("inf")
-        return (f"{self.members} members x {self.steps} steps in {self.seconds:.3g} s: "
-                f"{rate:.3g} member-steps/s")
+        if self.member_steps == 0:
+            return f"{self.members} members (closed form) in {self.seconds:.3g} s"
+        rate = self.member_steps / self.seconds if self.seconds > 0 else float("inf")
+        steps = (f"{self.members} members x {self.steps_each} steps" if self.steps_each is not None
+                 else f"{self.members} members, {self.member_steps} member-steps")
+        return f"{steps} in {self.seconds:.3g} s: {rate:.3g} member-steps/s"
 
 
 def default_chunk(spec: Spec) -> int:
@@ -42,28 +48,84 @@ def default_chunk(spec: Spec) -> int:
     return min(max(chunk, block), spec.n_members)  # at least one kernel block
 
 
+def _same_settings(table: dict[str, np.ndarray], j0: int, j1: int):
+    """Ranges [k0, k1) within [j0, j1) of consecutive members that one kernel call can run (same method and dt)."""
+    key = [(m, d) for m, d in zip(table["method"][j0:j1], table["dt"][j0:j1])]
+    k0 = j0
+    for k in range(j0 + 1, j1 + 1):
+        if k == j1 or key[k - j0] != key[k0 - j0]:
+            yield k0, k
+            k0 = k
+
+
+def integrate(spec: Spec, values: dict[str, np.ndarray], repeats: int = 1):
+    """Integrate members that share one method and dt: samples (n_save, state, members), counts (3, members)
+    (steps accepted, rejected, rhs evaluations) and the best kernel seconds per member-step over `repeats` calls.
+    """
+    scene = SCENES[spec.scene]
+    method = METHODS[str(values["method"][0])]
+    n = len(values["method"])
+    best = np.inf
+    for _ in range(repeats):
+        start = time.perf_counter()
+        if method.adaptive:
+            samples, counts = kernels.integrate_adaptive(scene, method.name, values, spec.constants, values["dt"],
+                                                         values["rtol"], values["atol"], spec.save_dt, spec.n_save)
+        else:
+            dt = float(values["dt"][0]) if np.isfinite(values["dt"][0]) else spec.save_dt
+            steps_per_save = round(spec.save_dt / dt)
+            samples = kernels.integrate(scene, method.name, values, spec.constants, dt, steps_per_save, spec.n_save)
+            steps = 0 if method.closed_form else steps_per_save * (spec.n_save - 1)
+            counts = np.array([[steps], [0], [steps * method.evaluations_per_step(spec.scene)]]).repeat(n, axis=1)
+        best = min(best, time.perf_counter() - start)
+    taken = counts[0].sum() + counts[1].sum()
+    return samples, counts, best / taken if taken else np.nan
+
+
+def measured_error(samples: np.ndarray, exact: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per member: max over saved samples, and at the last one, of max |y - y_exact| / max |y_exact| over the state.
+
+    samples and exact: (n_save, state, members). A member with non-finite values has an infinite error.
+    """
+    with np.errstate(invalid="ignore", divide="ignore"):
+        relative = np.abs(samples - exact).max(axis=1) / np.abs(exact).max(axis=1)
+    relative[~np.isfinite(relative) & np.isfinite(exact).all(axis=1)] = np.inf
+    return relative[1:].max(axis=0) if len(relative) > 1 else relative[0], relative[-1]
+
+
 def run(spec: Spec, out: str | Path, *, chunk: int | None = None, progress: bool = True) -> Summary:
     """Integrate every member of `spec` and write the dataset to `out` (NetCDF)."""
     scene = SCENES[spec.scene]
     table = members_table(spec)
     n = spec.n_members
     chunk = chunk or default_chunk(spec)
-    kernels.prepare(spec.scene, spec.method, spec.constants)  # compile or load before the clock starts
+    for method in spec.methods:  # compile or load before the clock starts
+        kernels.prepare(spec.scene, method, spec.constants)
+    repeats = spec.measure["repeats"] if spec.measure["timing"] else 1
+    member_steps = 0
+    step_counts = set()
     start = time.perf_counter()
     with Writer(out, spec, table, chunk) as writer, tqdm(
         total=n, unit="member", file=sys.stderr, disable=not progress, leave=False
     ) as bar:
         for j0 in range(0, n, chunk):
-            j1 = min(j0 + chunk, n)
-            values = {name: v[j0:j1] for name, v in table.items()}
-            samples = kernels.integrate(scene, spec.method, values, spec.constants,
-                                        spec.dt, spec.steps_per_save, spec.n_save)
-            data = scene.observe(samples, spec.save, values, spec.constants)
-            for name in spec.noise:
-                data[name] = data[name] + observation_noise(spec, name, j0, data[name].shape)
-            writer.write(j0, data)
-            bar.update(j1 - j0)
-    return Summary(n, spec.steps, time.perf_counter() - start)
+            for k0, k1 in _same_settings(table, j0, min(j0 + chunk, n)):
+                values = {name: v[k0:k1] for name, v in table.items()}
+                samples, counts, seconds_per_step = integrate(spec, values, repeats)
+                member_steps += int(counts[0].sum() + counts[1].sum())
+                step_counts.update(np.unique(counts[0] + counts[1]).tolist())
+                data = scene.observe(samples, spec.save, values, spec.constants)
+                for name in spec.noise:
+                    data[name] = data[name] + observation_noise(spec, name, k0, data[name].shape)
+                data.update(steps_accepted=counts[0], steps_rejected=counts[1], rhs_evals=counts[2])
+                if spec.measure["error"]:
+                    data["error_max"], data["error_final"] = measured_error(
+                        samples, scene.exact(values, spec.constants, spec.times()))
+                if spec.measure["timing"]:
+                    data["seconds_per_step"] = np.full(k1 - k0, seconds_per_step)
+                writer.write(k0, data)
+                bar.update(k1 - k0)
+    return Summary(n, member_steps, time.perf_counter() - start, step_counts.pop() if len(step_counts) == 1 else None)
 
 
 def simulate(spec: Spec, *, chunk: int | None = None):

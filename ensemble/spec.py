@@ -37,11 +37,16 @@ class SpecError(ValueError):
 
 
 TOP_LEVEL = {
-    "scene": str, "method": str, "dt": float, "t_end": float, "save_dt": float,
-    "members": int, "seed": int, "save": list, "parameters": dict, "sweep": dict, "observe": dict,
+    "scene": str, "method": str, "dt": float, "rtol": float, "atol": float, "t_end": float, "save_dt": float,
+    "members": int, "seed": int, "save": list, "parameters": dict, "sweep": (dict, list), "observe": dict,
+    "measure": dict,
 }
 OBSERVE_KEYS = ("noise",)
-REQUIRED = ("scene", "method", "dt", "t_end", "save_dt", "members", "seed")
+MEASURE_KEYS = {"error": bool, "timing": bool, "repeats": int}
+REQUIRED = ("scene", "t_end", "save_dt", "members", "seed")
+# How each member integrates; each may be a top-level value or a sweep axis.
+SETTINGS = ("method", "dt", "rtol", "atol")
+DEFAULT_TOLERANCES = {"rtol": 1e-6, "atol": 1e-9}  # for adaptive methods
 DISTRIBUTIONS = ("uniform", "normal", "loguniform")
 _STEP_RTOL = 1e-9  # how close save_dt / dt and t_end / save_dt must be to whole numbers
 
@@ -67,23 +72,22 @@ class Spec:
     path: str
     text: str
     scene: str
-    method: str
-    dt: float
+    method: str | None  # None when swept
+    dt: float | None  # None when swept or not needed (adaptive and exact methods)
     t_end: float
     save_dt: float
     members: int  # replicas per sweep point
     seed: int
     save: tuple[str, ...]
     parameters: dict[str, float | list | Distribution | Mode] = field(repr=False)
-    sweep: dict[str, tuple[float, ...]] = field(repr=False)
+    grids: tuple[dict[str, tuple], ...] = field(repr=False)  # sweep grids: axis -> values; the run is their union
     constants: dict[str, int | str] = field(default_factory=dict)  # run constants, e.g. n, boundary
     declared: dict[str, Parameter] = field(default_factory=dict, repr=False)  # every per-member parameter
     noise: dict[str, float] = field(default_factory=dict)  # Gaussian observation noise: variable -> stddev
+    rtol: float | None = None  # top-level tolerances of adaptive methods
+    atol: float | None = None
+    measure: dict[str, object] = field(default_factory=dict)  # [measure]: error, timing, repeats
     table: dict[str, np.ndarray] | None = field(default=None, repr=False, compare=False)  # see members_table
-
-    @property
-    def steps_per_save(self) -> int:
-        return round(self.save_dt / self.dt)
 
     @property
     def n_save(self) -> int:
@@ -91,29 +95,42 @@ class Spec:
         return round(self.t_end / self.save_dt) + 1
 
     @property
-    def steps(self) -> int:
-        return (self.n_save - 1) * self.steps_per_save
+    def sweep(self) -> dict[str, tuple]:
+        """Every sweep axis and the values it takes in any grid."""
+        out: dict[str, tuple] = {}
+        for grid in self.grids:
+            for name, values in grid.items():
+                out[name] = tuple(dict.fromkeys(out.get(name, ()) + values))
+        return out
 
     @property
     def sweep_points(self) -> int:
-        return math.prod(len(v) for v in self.sweep.values())
+        return sum(math.prod(len(v) for v in grid.values()) for grid in self.grids) or 1
 
     @property
     def n_members(self) -> int:
         return self.sweep_points * self.members
 
+    @property
+    def methods(self) -> tuple[str, ...]:
+        """The methods the run uses, in order of first use."""
+        return tuple(dict.fromkeys(members_table(self)["method"]))
+
     def times(self) -> np.ndarray:
         """Saved sample times (s)."""
-        return np.arange(self.n_save) * (self.steps_per_save * self.dt)
+        return np.arange(self.n_save) * self.save_dt
 
 
 def _type_name(kind) -> str:
-    return {float: "a number", int: "an integer", str: "a string", list: "a list", dict: "a table"}[kind]
+    if isinstance(kind, tuple):
+        return " or ".join(map(_type_name, kind))
+    return {float: "a number", int: "an integer", str: "a string", list: "a list", dict: "a table",
+            bool: "true or false"}[kind]
 
 
 def _expect(key: str, value, kind):
     """Check the TOML type of a value; ints count as numbers, bools as nothing else."""
-    ok = isinstance(value, kind) and not isinstance(value, bool)
+    ok = isinstance(value, kind) and (kind is bool or not isinstance(value, bool))
     if kind is float:
         ok = isinstance(value, (int, float)) and not isinstance(value, bool)
     if not ok:
@@ -195,17 +212,12 @@ def parse(text: str, path: str = "<string>") -> Spec:
     if scene not in SCENES:
         raise SpecError("scene", f"unknown scene {scene!r}; scenes: {', '.join(SCENES)}")
     module = SCENES[scene]
-    method = values["method"]
-    if method not in METHODS:
-        raise SpecError("method", f"unknown method {method!r}; methods for {scene}: {', '.join(methods_for(scene))}")
-    if scene not in METHODS[method].scenes:
-        raise SpecError("method", f"{method!r} does not apply to scene {scene!r}; "
-                                  f"use one of: {', '.join(methods_for(scene))}")
 
-    dt = _positive("dt", values["dt"])
     t_end = _positive("t_end", values["t_end"])
     save_dt = _positive("save_dt", values["save_dt"])
-    _whole_ratio("save_dt", save_dt, dt, "dt")
+    method = values.get("method")
+    if "dt" in values and method in METHODS and not METHODS[method].adaptive:
+        _whole_ratio("save_dt", save_dt, _positive("dt", values["dt"]), "dt")
     _whole_ratio("t_end", t_end, save_dt, "save_dt")
     if values["members"] < 1:
         raise SpecError("members", f"must be >= 1, got {values['members']}")
@@ -220,89 +232,180 @@ def parse(text: str, path: str = "<string>") -> Spec:
         raise SpecError("save", "must name at least one variable")
 
     noise = _noise(values.get("observe", {}), save, module)
+    measure = _measure(values.get("measure", {}), module)
 
-    parameters, sweep, constants, declared = _parameters(values.get("parameters", {}), values.get("sweep", {}), module)
+    sweep = values.get("sweep", {})
+    if isinstance(sweep, list):  # [[sweep]] tables: the run is the union of their grids
+        grids = [_expect(f"sweep[{g}]", grid, dict) for g, grid in enumerate(sweep)]
+        labels = [f"sweep[{g}]" for g in range(len(grids))]
+    else:
+        grids, labels = ([sweep], ["sweep"]) if sweep else ([], [])
+    settings = {key: values[key] for key in SETTINGS if key in values}
+    setting_axes = [{k: v for k, v in grid.items() if k in SETTINGS} for grid in grids]
+    parameters, grids, constants, declared = _parameters(
+        values.get("parameters", {}), [{k: v for k, v in grid.items() if k not in SETTINGS} for grid in grids],
+        labels, module)
+    for grid, axes, label in zip(grids, setting_axes, labels):
+        grid.update(_settings(settings, axes, label, scene, save_dt))
+    if not grids:
+        _settings(settings, {}, "sweep", scene, save_dt)
 
-    spec = Spec(path=str(path), text=text, scene=scene, method=method, dt=dt, t_end=t_end,
-                save_dt=save_dt, members=values["members"], seed=values["seed"], save=save,
-                parameters=parameters, sweep=sweep, constants=constants, noise=noise, declared=declared)
+    spec = Spec(path=str(path), text=text, scene=scene, method=settings.get("method"), dt=settings.get("dt"),
+                t_end=t_end, save_dt=save_dt, members=values["members"], seed=values["seed"], save=save,
+                parameters=parameters, grids=tuple(grids), constants=constants, noise=noise,
+                declared=declared, rtol=settings.get("rtol"), atol=settings.get("atol"), measure=measure)
     # Drawing every member's values checks them; keep them, as mode starts may cost an eigensolve each.
     return replace(spec, table=_build_table(spec))
 
 
-def _parameters(given: dict, axes: dict, module):
-    """[parameters] and [sweep] checked against the scene's declarations.
+def _parameters(given: dict, grids: list[dict], labels: list[str], module):
+    """[parameters] and the parameter axes of each sweep grid, checked against the scene's declarations.
 
-    Returns per-member parameters (name -> value), sweep axes (name -> values),
-    run constants and the declarations of every per-member parameter the
-    dataset records. A parameter that `derives` others (the top's `body`) is
-    a shape table: its shape becomes the constant `<name>_shape`, its mass and
-    lengths become parameters `<name>_<dimension>` (sweep them as
-    `<name>.<dimension>` under [sweep]), and the parameters it derives are
+    Returns per-member parameters (name -> value), each grid's axes (name ->
+    values), run constants and the declarations of every per-member
+    parameter the dataset records. A parameter that `derives` others (the
+    top's `body`) is a shape table: its shape becomes the constant
+    `<name>_shape`, its mass and lengths become parameters `<name>_<dimension>`
+    (swept as `<name>.<dimension>`), and the parameters it derives are
     computed from it when the members table is built.
     """
-    given, axes = dict(given), dict(axes)
+    given, grids = dict(given), [dict(grid) for grid in grids]
     declared = dict(module.PARAMETERS)
-    keys = {name: (f"parameters.{name}", f"sweep.{name}") for name in declared}
+    keys = {name: f"parameters.{name}" for name in declared}  # where each parameter's value is written
     constants = {}
     for name, parameter in module.PARAMETERS.items():
         if not parameter.derives:
             continue
         del declared[name]
         if name not in given:
-            if name in axes:
-                raise SpecError(f"sweep.{name}", f"needs parameters.{name} with its shape")
+            for grid, label in zip(grids, labels):
+                if name in grid:
+                    raise SpecError(f"{label}.{name}", f"needs parameters.{name} with its shape")
             continue
         for other in parameter.derives:
-            if other in given or other in axes:
+            if other in given or any(other in grid for grid in grids):
                 raise SpecError(f"parameters.{other}", f"is given by parameters.{name}; give "
                                                        f"{' and '.join(parameter.derives)}, or {name}, not both")
         shape, dimensions = _shape(f"parameters.{name}", given.pop(name))
-        swept = _expect(f"sweep.{name}", axes.pop(name, {}), dict)
         constants[f"{name}_shape"] = shape
-        for dim in ("mass", *SHAPES[shape].lengths):
+        lengths = ("mass", *SHAPES[shape].lengths)
+        for dim in lengths:
             flat = f"{name}_{dim}"
-            if flat in given or flat in axes:
+            if flat in given or any(flat in grid for grid in grids):
                 raise SpecError(f"{'parameters' if flat in given else 'sweep'}.{flat}",
                                 f"give it as {dim} in parameters.{name} (or as {name}.{dim} under [sweep])")
-            keys[flat] = (f"parameters.{name}.{dim}", f"sweep.{name}.{dim}")
+            keys[flat] = f"parameters.{name}.{dim}"
             declared[flat] = Parameter("kg" if dim == "mass" else "m", f"{dim.replace('_', ' ')} of the {shape} body")
             if dim in dimensions:
                 given[flat] = dimensions.pop(dim)
-            if dim in swept:
-                axes[flat] = swept.pop(dim)
-        for dim in (*dimensions, *swept):
-            where = f"parameters.{name}" if dim in dimensions else f"sweep.{name}"
-            raise _unknown(f"{where}.{dim}", dim, ("shape", "mass", *SHAPES[shape].lengths))
+        for dim in dimensions:
+            raise _unknown(f"parameters.{name}.{dim}", dim, ("shape", *lengths))
+        for grid, label in zip(grids, labels):
+            swept = _expect(f"{label}.{name}", grid.pop(name, {}), dict)
+            for dim, axis in swept.items():
+                if dim not in lengths:
+                    raise _unknown(f"{label}.{name}.{dim}", dim, lengths)
+                grid[f"{name}_{dim}"] = axis
 
     parameters = {}
     for name, value in given.items():
         if name not in declared:
-            raise _unknown(f"parameters.{name}", name, module.PARAMETERS)
-        parameters[name] = _parameter(keys[name][0], value, declared[name])
-    sweep = {}
-    for name, axis in axes.items():
-        if name not in declared:
-            raise _unknown(f"sweep.{name}", name, module.PARAMETERS)
-        key = keys[name][1]
-        if declared[name].constant:
-            raise SpecError(key, "is a run constant and cannot be swept; use one run file per value")
-        if name in parameters:
-            raise SpecError(key, "is both a parameter and a sweep axis; give it in one place only")
-        if not isinstance(axis, list) or not axis:
-            raise SpecError(key, f"a sweep axis must be a non-empty list of numbers, got {axis!r}")
-        sweep[name] = tuple(_expect(key, x, float) for x in axis)
+            raise _unknown(f"parameters.{name}", name, (*module.PARAMETERS, *SETTINGS))
+        parameters[name] = _parameter(keys[name], value, declared[name])
+    axes = []
+    for grid, label in zip(grids, labels):
+        checked = {}
+        for name, axis in grid.items():
+            key = f"{label}.{keys[name].removeprefix('parameters.')}" if name in keys else f"{label}.{name}"
+            if name not in declared:
+                raise _unknown(key, name, (*module.PARAMETERS, *SETTINGS))
+            if declared[name].constant:
+                raise SpecError(key, "is a run constant and cannot be swept; use one run file per value")
+            if name in parameters:
+                raise SpecError(key, "is both a parameter and a sweep axis; give it in one place only")
+            checked[name] = _axis(key, axis, float)
+        if axes and set(checked) != set(axes[0]):
+            raise SpecError(label, f"sweeps parameters {sorted(checked)}, but {labels[0]} sweeps {sorted(axes[0])}: "
+                                   f"every grid must sweep the same parameters (methods and steps may differ)")
+        axes.append(checked)
+    swept = set(axes[0]) if axes else set()
     for name, parameter in declared.items():
-        if name not in parameters and name not in sweep and not _derived(name, module, constants):
+        if name not in parameters and name not in swept and not _derived(name, module, constants):
             if parameter.default is None:
                 sources = [source for source, p in module.PARAMETERS.items() if name in p.derives]
-                raise SpecError(keys[name][0], "missing (required" + "".join(
+                raise SpecError(keys[name], "missing (required" + "".join(
                     f"; or give parameters.{source} as a shape" for source in sources) + ")")
             parameters[name] = parameter.default
     constants.update({name: parameters.pop(name) for name, p in declared.items() if p.constant})
     for name, problem in module.check_constants(constants):
         raise SpecError(f"parameters.{name}", problem)
-    return parameters, sweep, constants, {name: p for name, p in declared.items() if not p.constant}
+    return parameters, axes, constants, {name: p for name, p in declared.items() if not p.constant}
+
+
+def _axis(key: str, axis, kind) -> tuple:
+    if not isinstance(axis, list) or not axis:
+        raise SpecError(key, f"a sweep axis must be a non-empty list, got {axis!r}")
+    return tuple(_expect(key, x, kind) for x in axis)
+
+
+def _settings(top: dict, axes: dict, label: str, scene: str, save_dt: float) -> dict[str, tuple]:
+    """Check how one grid's members integrate: its method, dt, rtol and atol axes against the top-level values.
+
+    Returns the grid's setting axes (the swept ones).
+    """
+    out = {}
+    for key, axis in axes.items():
+        if key in top:
+            raise SpecError(f"{label}.{key}", f"is both a top-level value and a sweep axis; give it in one place only")
+        out[key] = _axis(f"{label}.{key}", axis, str if key == "method" else float)
+    where = {key: f"{label}.{key}" if key in out else key for key in SETTINGS}
+    if "method" not in top and "method" not in out:
+        raise SpecError("method", "missing (required)")
+    tolerances = [key for key in ("rtol", "atol") if key in top or key in out]
+    for key in tolerances:
+        for value in out.get(key, (top.get(key),)):
+            if not value > 0 or not math.isfinite(value):
+                raise SpecError(where[key], f"must be > 0 and finite, got {value!r}")
+    for value in out.get("dt", (top["dt"],) if "dt" in top else ()):
+        _positive(where["dt"], value)
+    adaptive = [name for name, m in METHODS.items() if m.adaptive and scene in m.scenes]
+    for method in out.get("method", (top.get("method"),)):
+        if method not in METHODS:
+            raise SpecError(where["method"], f"unknown method {method!r}; methods for {scene}: "
+                                             f"{', '.join(methods_for(scene))}")
+        if scene not in METHODS[method].scenes:
+            raise SpecError(where["method"], f"{method!r} does not apply to scene {scene!r}; "
+                                             f"use one of: {', '.join(methods_for(scene))}")
+        m = METHODS[method]
+        if m.adaptive:
+            if "dt" in out:
+                raise SpecError(where["dt"], f"is swept, but {method!r} is adaptive: dt is only its first trial step; "
+                                             f"sweep rtol instead")
+            continue
+        if tolerances:
+            raise SpecError(where[tolerances[0]], f"tolerances apply only to adaptive methods "
+                                                  f"({', '.join(adaptive)}); {method!r} takes a fixed step dt")
+        if "dt" not in top and "dt" not in out:
+            if m.closed_form:
+                continue
+            raise SpecError("dt", f"missing (required by the fixed-step method {method!r})")
+        for value in out.get("dt", (top.get("dt"),)):
+            _whole_ratio("save_dt", save_dt, value, "dt")
+    return out
+
+
+def _measure(measure: dict, module) -> dict[str, object]:
+    """The [measure] table: error = true, timing = true, repeats = N (best of N timed kernel calls)."""
+    out = {"error": False, "timing": False, "repeats": 3}
+    for key, value in measure.items():
+        if key not in MEASURE_KEYS:
+            raise _unknown(f"measure.{key}", key, MEASURE_KEYS)
+        out[key] = _expect(f"measure.{key}", value, MEASURE_KEYS[key])
+    if out["repeats"] < 1:
+        raise SpecError("measure.repeats", f"must be >= 1, got {out['repeats']}")
+    if out["error"] and getattr(module, "exact", None) is None:
+        raise SpecError("measure.error", f"scene {module.NAME!r} has no exact solution to measure errors against")
+    return out
 
 
 def _derived(name: str, module, constants: dict) -> bool:
@@ -363,11 +466,21 @@ def members_table(spec: Spec) -> dict[str, np.ndarray]:
 
 def _build_table(spec: Spec) -> dict[str, np.ndarray]:
     n = spec.n_members
-    grid = list(itertools.product(*spec.sweep.values())) or [()]
-    point = np.repeat(np.arange(len(grid)), spec.members)
+    points = [dict(zip(grid, combination)) for grid in spec.grids
+              for combination in itertools.product(*grid.values())] or [{}]
+    point = np.repeat(np.arange(len(points)), spec.members)
     table = {"sweep_point": point}
-    for i, name in enumerate(spec.sweep):
-        table[name] = np.array([g[i] for g in grid], dtype=float)[point]
+    for name in spec.sweep:
+        if name not in SETTINGS:
+            table[name] = np.array([p[name] for p in points], dtype=float)[point]
+    top_level = {"method": spec.method, "dt": spec.dt, "rtol": spec.rtol, "atol": spec.atol}
+    settings = [{key: p.get(key, top_level[key]) for key in SETTINGS} for p in points]
+    for s in settings:
+        if METHODS[s["method"]].adaptive:
+            s.update({key: value for key, value in DEFAULT_TOLERANCES.items() if s[key] is None})
+    table["method"] = np.array([s["method"] for s in settings])[point]
+    for key in ("dt", "rtol", "atol"):
+        table[key] = np.array([np.nan if s[key] is None else s[key] for s in settings], dtype=float)[point]
     scene = SCENES[spec.scene]
     sizes = scene.sizes(spec.constants)
     modes = {}
@@ -387,7 +500,7 @@ def _build_table(spec: Spec) -> dict[str, np.ndarray]:
         else:
             table[name] = np.full(shape, value, dtype=float)
     for name in spec.sweep:
-        per = spec.declared[name].per
+        per = spec.declared[name].per if name in spec.declared else None
         if per:
             table[name] = np.repeat(table[name][:, None], sizes[per], axis=1)
     for source, parameter in scene.PARAMETERS.items():

@@ -24,18 +24,41 @@ def part_path(path: Path) -> Path:
     return path.with_name(path.name + ".part")
 
 
-def global_attributes(spec: Spec) -> dict[str, object]:
+# Per-member records of how each member ran: name -> (type, units, long_name).
+RUN_RECORDS = {
+    "steps_accepted": ("i4", "1", "integration steps taken (accepted)"),
+    "steps_rejected": ("i4", "1", "trial steps rejected by the step-size control"),
+    "rhs_evals": ("i4", "1", "right-hand-side (force) evaluations"),
+    "error_max": ("f8", "1", "largest relative error against the exact solution over the saved samples: "
+                             "max |y - y_exact| / max |y_exact| over the state"),
+    "error_final": ("f8", "1", "relative error against the exact solution at t_end: "
+                               "max |y - y_exact| / max |y_exact| over the state"),
+    "seconds_per_step": ("f8", "s", "kernel wall time per member-step, best of the timed repeats"),
+}
+SETTING_UNITS = {"dt": ("s", "integration step (for adaptive methods: the first trial step)"),
+                 "rtol": ("1", "relative tolerance of the step-size control"),
+                 "atol": ("1", "absolute tolerance of the step-size control, in the SI units of each state variable")}
+
+
+def global_attributes(spec: Spec, table: dict[str, np.ndarray]) -> dict[str, object]:
+    """The run's provenance; a setting (method, dt, rtol, atol) is an attribute when every member shares it."""
     now = datetime.datetime.now(datetime.timezone.utc).replace(microsecond=0).isoformat()
+    methods = " ".join(dict.fromkeys(table["method"]))
+    shared = {}
+    for key in SETTING_UNITS:
+        values = np.unique(table[key][np.isfinite(table[key])])
+        if len(values) == 1 and key not in spec.sweep:
+            shared[key] = float(values[0])
     return {
         **spec.constants,
         "Conventions": "CF-1.8",
-        "title": f"ensemble {spec.scene} run {Path(spec.path).stem} ({spec.method})",
+        "title": f"ensemble {spec.scene} run {Path(spec.path).stem} ({methods})",
         "history": f"{now} ensemble {__version__}: ensemble run {spec.path}",
         "source": f"ensemble {__version__}",
         "comment": "Each member's parameters are variables over member; `spec` holds the run file.",
         "scene": spec.scene,
-        "method": spec.method,
-        "dt": spec.dt,
+        "method": methods,
+        **shared,
         "save_dt": spec.save_dt,
         "t_end": spec.t_end,
         "seed": spec.seed,
@@ -59,7 +82,7 @@ class Writer:
         self.spec = spec
         n = spec.n_members
         self.nc = nc = netCDF4.Dataset(self.part, "w", format="NETCDF4")
-        nc.setncatts(global_attributes(spec))
+        nc.setncatts(global_attributes(spec, table))
         nc.setncattr("members_written", 0)
         sizes = {"member": n, "t": spec.n_save, "axis": 3, **self.scene.sizes(spec.constants)}
         for dim, size in sizes.items():
@@ -85,6 +108,24 @@ class Writer:
                 var.setncattr("comment", f"from the principal moments of the {derived[name]} "
                                          f"({spec.constants[derived[name] + '_shape']}) about its centre of mass")
             var[:] = table[name]
+        if "method" in spec.sweep:
+            methods = list(dict.fromkeys(table["method"]))
+            var = nc.createVariable("method", "i1", ("member",))
+            var.setncatts({"long_name": "integration method", "flag_values": np.arange(len(methods), dtype=np.int8),
+                           "flag_meanings": " ".join(methods)})
+            var[:] = np.array([methods.index(m) for m in table["method"]], dtype=np.int8)
+        for key, (units, long_name) in SETTING_UNITS.items():
+            if key in spec.sweep:
+                var = nc.createVariable(key, "f8", ("member",), fill_value=np.nan)
+                var.setncatts({"units": units, "long_name": long_name})
+                var[:] = table[key]
+        records = ["steps_accepted", "steps_rejected", "rhs_evals"]
+        records += ["error_max", "error_final"] if spec.measure["error"] else []
+        records += ["seconds_per_step"] if spec.measure["timing"] else []
+        for name in records:
+            kind, units, long_name = RUN_RECORDS[name]
+            var = nc.createVariable(name, kind, ("member",))
+            var.setncatts({"units": units, "long_name": long_name})
         for name in spec.save:
             dims, units, long_name = self.scene.OBSERVABLES[name]
             chunks = {**sizes, "member": min(chunk, n)}

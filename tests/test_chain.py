@@ -15,7 +15,7 @@ from ensemble.methods import METHODS
 from ensemble.scenes import chain
 from ensemble.spec import SpecError, load, parse
 
-CHAIN_METHODS = [name for name, m in METHODS.items() if "chain" in m.scenes and not m.closed_form]
+CHAIN_METHODS = [name for name, m in METHODS.items() if "chain" in m.scenes and not (m.closed_form or m.adaptive)]
 
 
 def chain_runfile(parameters=None, **top_level) -> str:

@@ -57,7 +57,7 @@ def test_unknown_key_suggests_the_close_one():
 
 
 def test_method_mismatch_names_the_methods_that_apply():
-    with pytest.raises(SpecError, match="euler, rk4, split2, split4, exact"):
+    with pytest.raises(SpecError, match="euler, rk4, split2, split4, dopri5, exact"):
         parse(top_runfile(method="verlet"))
 
 

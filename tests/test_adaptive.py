@@ -1,0 +1,178 @@
+"""Adaptive Dormand-Prince, [measure], sweeps over methods and steps, and the work-precision runs."""
+import re
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from ensemble import fit, kernels, runner
+from ensemble.methods import DOPRI5, METHODS
+from ensemble.scenes import top
+from ensemble.spec import SpecError, members_table, parse
+from tests.conftest import top_runfile
+
+RUNS = Path(__file__).resolve().parent.parent / "runs"
+FAST_TOP = {"spin0": 200.0, "c": 1e-3, "tilt0": 0.3, "azimuth0": 0.5}  # precession ~ 0.8 x 200 cos 0.3 rad/s
+
+
+def test_dopri5_tableau_has_order_5_and_an_order_4_embedded_pair():
+    a = np.array(DOPRI5.square_a()).reshape(7, 7)
+    c = np.array(DOPRI5.c)
+    for weights, order in ((np.array(DOPRI5.b), 5), (np.array(DOPRI5.b) - np.array(DOPRI5.error), 4)):
+        assert weights.sum() == pytest.approx(1.0, abs=1e-15)
+        for k in range(1, order):  # the bushy-tree conditions b . c^k = 1 / (k + 1)
+            assert weights @ c**k == pytest.approx(1 / (k + 1), abs=1e-14)
+        assert weights @ a @ c == pytest.approx(1 / 6, abs=1e-14)
+    assert sum(DOPRI5.error) == pytest.approx(0.0, abs=1e-16) and DOPRI5.fsal
+
+
+def top_members(members=16, **parameters):
+    return members_table(parse(top_runfile(members=members, t_end=2.0, save_dt=0.25,
+                                           parameters={**FAST_TOP, **parameters})))
+
+
+def error_against_exact(samples, values, t):
+    return runner.measured_error(samples, top.exact(values, {}, t))[0]
+
+
+def test_dopri5_error_follows_rtol_over_six_decades():
+    values = top_members()
+    t = np.arange(9) * 0.25
+    rtols = 10.0 ** -np.arange(4, 11)
+    errors = []
+    for rtol in rtols:
+        samples, counts = kernels.integrate_adaptive(top, "dopri5", values, {}, np.nan, rtol, 1e-14, 0.25, 9)
+        errors.append(np.median(error_against_exact(samples, values, t)))
+        evaluations = 1 + 6 * (counts[0] + counts[1])
+        assert np.array_equal(counts[2], evaluations)  # FSAL: six new stages per trial step
+    errors = np.array(errors)
+    slope = np.polyfit(np.log(rtols), np.log(errors), 1)[0]
+    assert slope == pytest.approx(1.0, abs=0.15)
+    assert np.all((errors > rtols / 30) & (errors < rtols * 30))
+
+
+def test_dopri5_beats_rk4_on_rhs_evaluations_at_1e_10():
+    values = top_members(members=4)
+    t = np.arange(9) * 0.25
+    rk4 = None
+    for steps_per_save in (1600, 3200, 6400, 12800, 25600):  # rk4: the first dt reaching 1e-10
+        samples = kernels.integrate(top, "rk4", values, {}, 0.25 / steps_per_save, steps_per_save, 9)
+        if error_against_exact(samples, values, t).max() <= 1e-10:
+            rk4 = 4 * steps_per_save * 8
+            break
+    dopri5 = None
+    for rtol in 10.0 ** -np.arange(8, 14):
+        samples, counts = kernels.integrate_adaptive(top, "dopri5", values, {}, np.nan, rtol, 1e-14, 0.25, 9)
+        if error_against_exact(samples, values, t).max() <= 1e-10:
+            dopri5 = counts[2].max()
+            break
+    assert rk4 is not None and dopri5 is not None
+    assert dopri5 < rk4 / 2, (dopri5, rk4)
+
+
+def test_dopri5_lands_on_the_save_grid_and_counts_its_steps():
+    ds = runner.simulate(parse(top_runfile(method="dopri5", dt=None, rtol=1e-10, atol=1e-14, members=3,
+                                           t_end=1.0, save_dt=0.1, parameters=FAST_TOP) + "[measure]\nerror = true\n"))
+    assert ds.attrs["method"] == "dopri5" and ds.attrs["rtol"] == 1e-10
+    assert np.all(ds.error_max < 1e-8)  # every saved time exactly on the grid, else the fast precession shows
+    assert np.all(ds.steps_accepted > 10) and np.all(ds.rhs_evals == 1 + 6 * (ds.steps_accepted + ds.steps_rejected))
+
+
+def test_tolerances_and_methods_sweep_in_grids_and_are_recorded():
+    text = top_runfile(method=None, dt=None, members=2, t_end=0.5, save_dt=0.1, parameters=FAST_TOP).replace(
+        "[parameters]", '[measure]\nerror = true\ntiming = true\nrepeats = 2\n[parameters]') + (
+        '[[sweep]]\nmethod = ["rk4", "split4"]\ndt = [1e-3, 5e-4]\n'
+        '[[sweep]]\nmethod = ["dopri5"]\nrtol = [1e-6, 1e-9]\natol = [1e-12]\n')
+    spec = parse(text)
+    assert spec.sweep_points == 6 and spec.n_members == 12
+    ds = runner.simulate(spec)
+    names = ds.method.attrs["flag_meanings"].split()
+    assert names == ["rk4", "split4", "dopri5"]
+    methods = np.array(names)[ds.method.values]
+    assert list(methods) == ["rk4"] * 4 + ["split4"] * 4 + ["dopri5"] * 4
+    np.testing.assert_array_equal(ds.dt.values[:8], [1e-3, 1e-3, 5e-4, 5e-4] * 2)
+    assert np.all(np.isnan(ds.dt.values[8:])) and np.all(np.isnan(ds.rtol.values[:8]))
+    np.testing.assert_array_equal(ds.rtol.values[8:], [1e-6, 1e-6, 1e-9, 1e-9])
+    np.testing.assert_array_equal(ds.steps_accepted.values[:8], [500, 500, 1000, 1000] * 2)
+    assert np.all(ds.seconds_per_step > 0) and np.all(np.isfinite(ds.error_max))
+    # members of one kernel call share its timing
+    assert ds.seconds_per_step.values[0] == ds.seconds_per_step.values[1]
+    # fits know each member's method: rk4's prediction differs from split4's (which is the physics)
+    rates = fit.tilt_decay(ds)
+    assert np.all(rates.rate_method.values[4:] == rates.rate_theory.values[4:])
+
+
+@pytest.mark.parametrize("name", ["work_precision_top.toml", "work_precision_chain.toml"])
+def test_work_precision_runs_show_each_fixed_step_methods_order(name):
+    text = (RUNS / name).read_text().replace("timing = true", "timing = false")
+    ds = runner.simulate(parse(text, name))
+    table = fit.work_precision(ds)
+    for method in dict.fromkeys(table["method"].values):
+        m = METHODS[method]
+        chosen = table["method"].values == method
+        assert table["error"].values[chosen].max() / table["error"].values[chosen].min() > 500  # at least 2.7 decades each
+        if m.adaptive:
+            continue
+        order, used = fit.convergence_order(table, method)
+        assert used >= 4 and order == pytest.approx(m.order, abs=0.15), (method, order)
+    errors = table["error"].values
+    assert np.log10(errors.max() / errors.min()) >= 8
+
+
+BAD = {
+    "rtol <= 0": (dict(method="dopri5", rtol=0.0), "rtol", "> 0"),
+    "atol < 0": (dict(method="dopri5", atol=-1e-9), "atol", "> 0"),
+    "tolerance to a fixed-step method": (dict(method="rk4", rtol=1e-6), "rtol", "adaptive"),
+    "fixed step without dt": (dict(method="rk4", dt=None), "dt", "missing"),
+    "unknown method": (dict(method="dopri8"), "method", "unknown method"),
+}
+
+
+@pytest.mark.parametrize("case", BAD)
+def test_bad_settings_name_their_key(case):
+    top_level, key, words = BAD[case]
+    with pytest.raises(SpecError) as error:
+        parse(top_runfile(**top_level))
+    assert error.value.key == key and words in str(error.value)
+
+
+ADAPTIVE = top_runfile(method="dopri5", dt=None)
+SWEPT_METHOD = top_runfile(method=None, dt=None)
+
+
+@pytest.mark.parametrize("text, key, words", [
+    (ADAPTIVE + '[sweep]\ndt = [1e-3, 1e-4]\n', "sweep.dt", "adaptive"),
+    (ADAPTIVE + '[sweep]\nrtol = [1e-6, -1.0]\n', "sweep.rtol", "> 0"),
+    (SWEPT_METHOD + '[[sweep]]\nmethod = ["rk4"]\ndt = [1e-3]\nrtol = [1e-6]\n', "sweep[0].rtol", "adaptive"),
+    (SWEPT_METHOD + '[[sweep]]\nmethod = ["rk4"]\ndt = [1e-3]\nspin0 = [50.0]\n'
+                    '[[sweep]]\nmethod = ["dopri5"]\nrtol = [1e-6]\n', "sweep[1]", "same parameters"),
+    (top_runfile() + '[sweep]\ndt = [1e-3]\n', "sweep.dt", "top-level value and a sweep axis"),
+], ids=["dt swept for dopri5", "bad rtol axis", "rtol for rk4", "grids sweep different parameters",
+        "dt twice"])
+def test_bad_sweeps_name_their_key(text, key, words):
+    with pytest.raises(SpecError) as error:
+        parse(text.replace("spin0 = 60.0\n", "") if "spin0 = [" in text else text)
+    assert error.value.key == key and words in str(error.value)
+
+
+def test_measuring_errors_needs_an_exact_solution(monkeypatch):
+    monkeypatch.setattr(top, "exact", None)
+    with pytest.raises(SpecError, match=r"measure.error: scene 'top' has no exact solution"):
+        parse(top_runfile() + "[measure]\nerror = true\n")
+
+
+def test_work_precision_script_prints_orders_and_draws(tmp_path):
+    import subprocess
+    import sys
+
+    out = tmp_path / "wp.nc"
+    runner.run(parse((RUNS / "work_precision_top.toml").read_text(), "wp.toml"), out, progress=False)
+    done = subprocess.run([sys.executable, str(RUNS.parent / "analysis" / "work_precision.py"), str(out)],
+                          capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
+    assert re.search(r"^rk4: nominal order 4, measured 3\.9\d|^rk4: nominal order 4, measured 4\.0\d", done.stdout,
+                     flags=re.M), done.stdout
+    assert (tmp_path / "wp_work_precision_work_precision.png").stat().st_size > 20_000
+    bad = subprocess.run([sys.executable, str(RUNS.parent / "analysis" / "work_precision.py"), str(tmp_path / "x.nc")],
+                         capture_output=True, text=True)
+    assert bad.returncode == 2 and len(bad.stderr.strip().splitlines()) == 1
