@@ -288,47 +288,59 @@ def chain_block(n: int) -> int:
     return 64 if n < 16 else 8
 
 
-def _chain_block_io(n: int, periodic: bool, rows: int):
-    """Helpers shared by the chain kernels, for work arrays of `rows` rows laid out X (n + 2), V, CL, CR, ...
+# Chain work arrays (B members a row) start with the rows X (n + 2: ghost, masses 1..n, ghost), V (n),
+# CL and CR (n each). The helpers below take n, B and the rows as arguments instead of closing over them:
+# a kernel closure that holds other compiled functions pickles differently in every process, so Numba's
+# disk cache never matches it. Inlined into a kernel, the arguments are the kernel's constants again.
 
-    set_ghosts(work, x) fills the ghost sites of the positions at row x (a
-    ring's ends; walls and free ends keep 0), load_block starts a block and
-    store_sample saves its state.
-    """
-    B = chain_block(n)
-    X, V = 0, n + 2
-    CL = V + n
-    CR = CL + n
+@njit(inline="always", **FAST)
+def _set_ghosts(work, x, n, B, periodic):
+    """Ring: the ghost sites of the positions at row x copy masses n and 1; walls and free ends keep 0."""
+    if periodic:
+        for j in range(B):
+            work[x * B + j] = work[(x + n) * B + j]
+            work[(x + n + 1) * B + j] = work[(x + 1) * B + j]
 
-    @njit(inline="always", **FAST)
-    def set_ghosts(work, x):
-        """Ring: ghost sites copy masses n and 1; walls and free ends keep ghosts at 0."""
-        if periodic:
-            for j in range(B):
-                work[x * B + j] = work[(x + n) * B + j]
-                work[(x + n + 1) * B + j] = work[(x + 1) * B + j]
 
-    @njit(inline="always", **FAST)
-    def load_block(state0, rate, j0, samples):
-        """A block's work array with its state and parameters; also its first sample."""
-        work = np.zeros(rows * B)
-        for i in range(n):
-            work[(X + 1 + i) * B:(X + 2 + i) * B] = state0[i, j0:j0 + B]
-            work[(V + i) * B:(V + 1 + i) * B] = state0[n + i, j0:j0 + B]
-            work[(CL + i) * B:(CL + 1 + i) * B] = rate[i, j0:j0 + B]
-            work[(CR + i) * B:(CR + 1 + i) * B] = rate[n + i, j0:j0 + B]
-            samples[0, i, j0:j0 + B] = state0[i, j0:j0 + B]
-            samples[0, n + i, j0:j0 + B] = state0[n + i, j0:j0 + B]
-        set_ghosts(work, X)
-        return work
+@njit(inline="always", **FAST)
+def _load_chain_block(state0, rate, j0, samples, n, B, rows, periodic):
+    """A block's work array (rows x B) with its state and parameters; also its first sample."""
+    V, CL, CR = n + 2, 2 * n + 2, 3 * n + 2
+    work = np.zeros(rows * B)
+    for i in range(n):
+        work[(1 + i) * B:(2 + i) * B] = state0[i, j0:j0 + B]
+        work[(V + i) * B:(V + 1 + i) * B] = state0[n + i, j0:j0 + B]
+        work[(CL + i) * B:(CL + 1 + i) * B] = rate[i, j0:j0 + B]
+        work[(CR + i) * B:(CR + 1 + i) * B] = rate[n + i, j0:j0 + B]
+        samples[0, i, j0:j0 + B] = state0[i, j0:j0 + B]
+        samples[0, n + i, j0:j0 + B] = state0[n + i, j0:j0 + B]
+    _set_ghosts(work, 0, n, B, periodic)
+    return work
 
-    @njit(inline="always", **FAST)
-    def store_sample(work, samples, save, j0):
-        for i in range(n):
-            samples[save, i, j0:j0 + B] = work[(X + 1 + i) * B:(X + 2 + i) * B]
-            samples[save, n + i, j0:j0 + B] = work[(V + i) * B:(V + 1 + i) * B]
 
-    return set_ghosts, load_block, store_sample
+@njit(inline="always", **FAST)
+def _store_chain_sample(work, samples, save, j0, n, B):
+    V = n + 2
+    for i in range(n):
+        samples[save, i, j0:j0 + B] = work[(1 + i) * B:(2 + i) * B]
+        samples[save, n + i, j0:j0 + B] = work[(V + i) * B:(V + 1 + i) * B]
+
+
+@njit(inline="always", **FAST)
+def _chain_acceleration(work, x, i, j, n, B):
+    """Acceleration (m s-2) of mass i + 1 of member j, from the positions at row x (with ghosts)."""
+    CL, CR = 2 * n + 2, 3 * n + 2
+    return chain.acceleration(work[(x + i) * B + j], work[(x + 1 + i) * B + j], work[(x + 2 + i) * B + j],
+                              work[(CL + i) * B + j], work[(CR + i) * B + j])
+
+
+@njit(inline="always", **FAST)
+def _chain_slopes(work, zx, zv, kx, kv, n, B):
+    """A stage's slopes: velocities from row zv into row kx, accelerations from row zx into row kv."""
+    for i in range(n):
+        for j in range(B):
+            work[(kx + i) * B + j] = work[(zv + i) * B + j]
+            work[(kv + i) * B + j] = _chain_acceleration(work, zx, i, j, n, B)
 
 
 def _chain_kernel(method: Method, n: int, periodic: bool):
@@ -354,14 +366,12 @@ def _chain_kernel(method: Method, n: int, periodic: bool):
     KV = KX + S * n
     rows = KV + S * n if runge_kutta else CR + n
 
-    set_ghosts, load_block, store_sample = _chain_block_io(n, periodic, rows)
-
     @njit(parallel=True, cache=True, **FAST)
     def splitting_kernel(state0, rate, h, steps_per_save, samples):
         """state0 (2n, M), rate (2n, M) -> samples (n_save, 2n, M); M a multiple of B."""
         for block in prange(state0.shape[1] // B):
             j0 = block * B
-            work = load_block(state0, rate, j0, samples)
+            work = _load_chain_block(state0, rate, j0, samples, n, B, rows, periodic)
             for save in range(1, samples.shape[0]):
                 for step in range(steps_per_save):
                     for e in range(E):
@@ -373,23 +383,20 @@ def _chain_kernel(method: Method, n: int, periodic: bool):
                         if pieces[e] == KICK:
                             for i in range(n):
                                 for j in range(B):
-                                    work[(V + i) * B + j] += tau * chain.acceleration(
-                                        work[(X + i) * B + j], work[(X + 1 + i) * B + j],
-                                        work[(X + 2 + i) * B + j], work[(CL + i) * B + j],
-                                        work[(CR + i) * B + j])
+                                    work[(V + i) * B + j] += tau * _chain_acceleration(work, X, i, j, n, B)
                         else:
                             for i in range(n):
                                 for j in range(B):
                                     work[(X + 1 + i) * B + j] += tau * work[(V + i) * B + j]
-                            set_ghosts(work, X)
-                store_sample(work, samples, save, j0)
+                            _set_ghosts(work, X, n, B, periodic)
+                _store_chain_sample(work, samples, save, j0, n, B)
 
     @njit(parallel=True, cache=True, **FAST)
     def runge_kutta_kernel(state0, rate, h, steps_per_save, samples):
         """state0 (2n, M), rate (2n, M) -> samples (n_save, 2n, M); M a multiple of B."""
         for block in prange(state0.shape[1] // B):
             j0 = block * B
-            work = load_block(state0, rate, j0, samples)
+            work = _load_chain_block(state0, rate, j0, samples, n, B, rows, periodic)
             for save in range(1, samples.shape[0]):
                 for _ in range(steps_per_save):
                     for s in range(S):
@@ -403,14 +410,8 @@ def _chain_kernel(method: Method, n: int, periodic: bool):
                                     zv += ha * work[(KV + r * n + i) * B + j]
                                 work[(ZX + 1 + i) * B + j] = zx
                                 work[(ZV + i) * B + j] = zv
-                        set_ghosts(work, ZX)
-                        for i in range(n):
-                            for j in range(B):
-                                work[(KX + s * n + i) * B + j] = work[(ZV + i) * B + j]
-                                work[(KV + s * n + i) * B + j] = chain.acceleration(
-                                    work[(ZX + i) * B + j], work[(ZX + 1 + i) * B + j],
-                                    work[(ZX + 2 + i) * B + j], work[(CL + i) * B + j],
-                                    work[(CR + i) * B + j])
+                        _set_ghosts(work, ZX, n, B, periodic)
+                        _chain_slopes(work, ZX, ZV, KX + s * n, KV + s * n, n, B)
                     for i in range(n):
                         for j in range(B):
                             dx = 0.0
@@ -420,7 +421,7 @@ def _chain_kernel(method: Method, n: int, periodic: bool):
                                 dv += b[s] * work[(KV + s * n + i) * B + j]
                             work[(X + 1 + i) * B + j] += h * dx
                             work[(V + i) * B + j] += h * dv
-                store_sample(work, samples, save, j0)
+                _store_chain_sample(work, samples, save, j0, n, B)
 
     return runge_kutta_kernel if runge_kutta else splitting_kernel
 
@@ -442,26 +443,14 @@ def _chain_adaptive_kernel(method: Method, n: int, periodic: bool):
     KV = KX + S * n
     C0 = KV + S * n
     rows = C0 + CONTROL_ROWS
-    set_ghosts, load_block, store_sample = _chain_block_io(n, periodic, rows)
-
-    @njit(inline="always", **FAST)
-    def slopes(work, zx, zv, s):
-        """Stage s's slopes from the stage state at rows zx (with ghosts) and zv."""
-        for i in range(n):
-            for j in range(B):
-                work[(KX + s * n + i) * B + j] = work[(zv + i) * B + j]
-                work[(KV + s * n + i) * B + j] = chain.acceleration(
-                    work[(zx + i) * B + j], work[(zx + 1 + i) * B + j], work[(zx + 2 + i) * B + j],
-                    work[(CL + i) * B + j], work[(CR + i) * B + j])
-
     @njit(parallel=True, cache=True, **FAST)
     def kernel(state0, rate, control, save_dt, samples, counts):
         """state0, rate (2n, M); control (3, M): first step (s; <= 0: estimate it), rtol, atol;
         -> samples (n_save, 2n, M), counts (3, M): accepted, rejected, right-hand-side evaluations."""
         for block in prange(state0.shape[1] // B):
             j0 = block * B
-            work = load_block(state0, rate, j0, samples)
-            slopes(work, X, V, 0)
+            work = _load_chain_block(state0, rate, j0, samples, n, B, rows, periodic)
+            _chain_slopes(work, X, V, KX, KV, n, B)
             for j in range(B):
                 rtol, atol = control[1, j0 + j], control[2, j0 + j]
                 work[(C0 + RTOL) * B + j], work[(C0 + ATOL) * B + j] = rtol, atol
@@ -493,8 +482,8 @@ def _chain_adaptive_kernel(method: Method, n: int, periodic: bool):
                                     zv += ha * work[(KV + r * n + i) * B + j]
                                 work[(ZX + 1 + i) * B + j] = zx
                                 work[(ZV + i) * B + j] = zv
-                        set_ghosts(work, ZX)
-                        slopes(work, ZX, ZV, s)
+                        _set_ghosts(work, ZX, n, B, periodic)
+                        _chain_slopes(work, ZX, ZV, KX + s * n, KV + s * n, n, B)
                     # FSAL: the last stage state ZX, ZV is the new state; estimate its error
                     for i in range(n):
                         for j in range(B):
@@ -522,8 +511,8 @@ def _chain_adaptive_kernel(method: Method, n: int, periodic: bool):
                             elif work[(C0 + ERR) * B + j] == -2.0:
                                 work[(X + 1 + i) * B + j] = np.nan
                                 work[(V + i) * B + j] = np.nan
-                    set_ghosts(work, X)
-                store_sample(work, samples, save, j0)
+                    _set_ghosts(work, X, n, B, periodic)
+                _store_chain_sample(work, samples, save, j0, n, B)
 
     return kernel
 
