@@ -215,9 +215,15 @@ def parse(text: str, path: str = "<string>") -> Spec:
 
     t_end = _positive("t_end", values["t_end"])
     save_dt = _positive("save_dt", values["save_dt"])
-    method = values.get("method")
-    if "dt" in values and method in METHODS and not METHODS[method].adaptive:
-        _whole_ratio("save_dt", save_dt, _positive("dt", values["dt"]), "dt")
+    sweep = values.get("sweep", {})
+    if isinstance(sweep, list):  # [[sweep]] tables: the run is the union of their grids
+        grids = [_expect(f"sweep[{g}]", grid, dict) for g, grid in enumerate(sweep)]
+        labels = [f"sweep[{g}]" for g in range(len(grids))]
+    else:
+        grids, labels = ([sweep], ["sweep"]) if sweep else ([], [])
+    settings = {key: values[key] for key in SETTINGS if key in values}
+    setting_axes = [_settings(settings, {k: v for k, v in grid.items() if k in SETTINGS}, label, scene, save_dt)
+                    for grid, label in zip(grids, labels)] or [_settings(settings, {}, "sweep", scene, save_dt)]
     _whole_ratio("t_end", t_end, save_dt, "save_dt")
     if values["members"] < 1:
         raise SpecError("members", f"must be >= 1, got {values['members']}")
@@ -234,21 +240,11 @@ def parse(text: str, path: str = "<string>") -> Spec:
     noise = _noise(values.get("observe", {}), save, module)
     measure = _measure(values.get("measure", {}), module)
 
-    sweep = values.get("sweep", {})
-    if isinstance(sweep, list):  # [[sweep]] tables: the run is the union of their grids
-        grids = [_expect(f"sweep[{g}]", grid, dict) for g, grid in enumerate(sweep)]
-        labels = [f"sweep[{g}]" for g in range(len(grids))]
-    else:
-        grids, labels = ([sweep], ["sweep"]) if sweep else ([], [])
-    settings = {key: values[key] for key in SETTINGS if key in values}
-    setting_axes = [{k: v for k, v in grid.items() if k in SETTINGS} for grid in grids]
     parameters, grids, constants, declared = _parameters(
         values.get("parameters", {}), [{k: v for k, v in grid.items() if k not in SETTINGS} for grid in grids],
         labels, module)
-    for grid, axes, label in zip(grids, setting_axes, labels):
-        grid.update(_settings(settings, axes, label, scene, save_dt))
-    if not grids:
-        _settings(settings, {}, "sweep", scene, save_dt)
+    for grid, axes in zip(grids, setting_axes):
+        grid.update(axes)
 
     spec = Spec(path=str(path), text=text, scene=scene, method=settings.get("method"), dt=settings.get("dt"),
                 t_end=t_end, save_dt=save_dt, members=values["members"], seed=values["seed"], save=save,
@@ -459,7 +455,9 @@ def members_table(spec: Spec) -> dict[str, np.ndarray]:
     """Every member's parameter values, each an array over members (built once, by parse).
 
     Members are ordered sweep point major, replica minor; the table also holds
-    `sweep_point`, the index of each member's point on the sweep grid.
+    `sweep_point`, the index of each member's point on the sweep grids, and how
+    each member integrates: `method` (names), `dt`, `rtol`, `atol` (NaN where
+    the method takes none).
     """
     return spec.table if spec.table is not None else _build_table(spec)
 
