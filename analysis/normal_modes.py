@@ -19,10 +19,8 @@ from ensemble import fit, report
 
 
 def label(sel, point, mode) -> str:
-    axes = [a for a in sel.attrs.get("sweep_axes", "").split() if a in sel]
-    if point is None or not axes:
-        return f"mode {mode}"
-    return ", ".join([f"{a} = {float(sel[a].values[0]):.4g}" for a in axes] + [f"mode {mode}"])
+    where = report.point_label(sel) if point is not None else ""
+    return f"{where}, mode {mode}" if where else f"mode {mode}"
 
 
 def draw(plt, ds, fits, rows, stem, member):

@@ -18,10 +18,7 @@ from ensemble import fit, report
 
 
 def label(sel, point, mode) -> str:
-    axes = [a for a in sel.attrs.get("sweep_axes", "").split() if a in sel]
-    if point is None or not axes:
-        return "all members"
-    return ", ".join(f"{a} = {float(sel[a].values[0]):.4g}" for a in axes)
+    return (report.point_label(sel) if point is not None else "") or "all members"
 
 
 def draw(plt, ds, fits, rows, stem, sample):

@@ -21,6 +21,7 @@ import numpy as np
 import xarray as xr
 
 from ensemble import fit, report
+from ensemble.cli import OneLineParser
 from ensemble.methods import METHODS
 
 
@@ -74,7 +75,7 @@ def draw(table: xr.Dataset, stem: Path, title: str) -> Path:
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = OneLineParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("result", type=Path, help="a result of a run with [measure] error = true")
     args = parser.parse_args(argv)
     loaded = report.load_result(args.result, fit.work_precision)

@@ -11,17 +11,17 @@ EXIT_BAD_INPUT = 2
 EXIT_INTERRUPTED = 130
 
 
-class _Parser(argparse.ArgumentParser):
-    """argparse with one-line errors (no usage block), exit status 2."""
+class OneLineParser(argparse.ArgumentParser):
+    """argparse with one-line errors (no usage block), exit status 2; also used by the analysis scripts."""
 
     def error(self, message):
-        where = self.prog.removeprefix("ensemble").strip()
-        self.exit(EXIT_BAD_INPUT, f"ensemble: error: {where + ': ' if where else ''}{message} "
+        program, _, where = self.prog.partition(" ")
+        self.exit(EXIT_BAD_INPUT, f"{program}: error: {where + ': ' if where else ''}{message} "
                                   f"(see {self.prog} --help)\n")
 
 
 def _parser() -> argparse.ArgumentParser:
-    parser = _Parser(
+    parser = OneLineParser(
         prog="ensemble", description="Integrate ensembles of tops and spring chains; write NetCDF.")
     parser.add_argument("--version", action="version", version=f"ensemble {__version__}")
     commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")

@@ -12,6 +12,8 @@ from pathlib import Path
 import numpy as np
 import xarray as xr
 
+from .cli import OneLineParser
+
 Z_TOLERANCE = 5.0  # a sweep point passes when its mean is within this many standard errors of theory...
 RTOL = 1e-6  # ...or within this relative difference (noise-free runs have tiny standard errors)
 
@@ -85,6 +87,23 @@ def rows(fits: xr.Dataset, value: str, label_of, against: str = "theory") -> lis
     return out
 
 
+def point_label(sel) -> str:
+    """The sweep point of a selection of members, as "axis = value, ..." ("" without sweep axes).
+
+    A swept method is named (the dataset stores it as flags).
+    """
+    parts = []
+    for axis in sel.attrs.get("sweep_axes", "").split():
+        if axis not in sel:
+            continue
+        value = sel[axis].values[0]
+        meanings = sel[axis].attrs.get("flag_meanings")
+        if not meanings and np.isnan(value):
+            continue  # a setting this point's method does not take (dt of dopri5, rtol of rk4)
+        parts.append(f"{axis} = {meanings.split()[int(value)]}" if meanings else f"{axis} = {float(value):.4g}")
+    return ", ".join(parts)
+
+
 def print_table(title: str, rows_: list[Row], units: str) -> None:
     against = rows_[0].against if rows_ else "theory"
     print(title)
@@ -115,7 +134,7 @@ def positive_int(text: str) -> int:
 
 def parser(doc: str) -> argparse.ArgumentParser:
     """The options every analysis script takes: RESULT, --check and --against."""
-    out = argparse.ArgumentParser(description=doc, formatter_class=argparse.RawDescriptionHelpFormatter)
+    out = OneLineParser(description=doc, formatter_class=argparse.RawDescriptionHelpFormatter)
     out.add_argument("result", type=Path, help="a result file written by `ensemble run`")
     out.add_argument("--check", action="store_true", help="exit 1 when a fitted sweep point disagrees")
     out.add_argument("--against", choices=("theory", "method"), default="theory",
@@ -138,7 +157,8 @@ def run_script(args, fit_function, *, name: str, value: str, units: str, title: 
     for axis in ds.attrs.get("sweep_axes", "").split():
         fits[axis] = ds[axis]
     table = rows(fits, value, label, args.against)
-    print_table(f"{title} of {args.result} ({ds.attrs['method']}, dt = {ds.attrs.get('dt', 'per member')} s)", table, units)
+    step = f"dt = {ds.attrs['dt']} s" if "dt" in ds.attrs else "dt per member"
+    print_table(f"{title} of {args.result} ({ds.attrs['method']}, {step})", table, units)
     if fits.attrs["members_failed"]:
         print(f"{fits.attrs['members_failed']} members could not be fitted and are left out")
     out, stem = outputs(args.result, name)

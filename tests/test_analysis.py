@@ -79,6 +79,7 @@ def test_bad_options_are_one_line_and_exit_2(tmp_path):
     assert not (tmp_path / "two_mass_normal_modes.nc").exists()
     sample = script("tilt_decay.py", result, "--sample", "0")
     assert sample.returncode == 2 and "--sample: must be >= 1" in sample.stderr
+    assert len(sample.stderr.strip().splitlines()) == 1
     not_netcdf = tmp_path / "notes.nc"
     not_netcdf.write_text("not a result\n")
     refused = script("normal_modes.py", not_netcdf)
