@@ -133,8 +133,10 @@ ACCEPTED, REJECTED, RHS_EVALS = range(3)
 
 
 @njit(inline="always", **FAST)
-def _control_step(work, c0, B, target, counts, j0, alpha, beta, safety, min_factor, max_factor):
+def _control_step(work, c0, B, target, counts, j0, new_stages, alpha, beta, safety, min_factor, max_factor):
     """After a trial step of every member in a block: accept or reject each and choose its next step.
+
+    A trial step costs `new_stages` right-hand-side evaluations (an FSAL pair reuses its last stage).
 
     Afterwards ERR is -1 for members that had no step to take, -2 for members
     whose step underflowed (they stop: H = 0), and REJECTED_LAST is 0 for
@@ -146,7 +148,7 @@ def _control_step(work, c0, B, target, counts, j0, alpha, beta, safety, min_fact
             work[(c0 + ERR) * B + j] = -1.0  # nothing to do: mark as not accepted
             continue
         err = work[(c0 + ERR) * B + j]
-        counts[RHS_EVALS, j0 + j] += 6.0
+        counts[RHS_EVALS, j0 + j] += new_stages
         if err <= 1.0:
             factor = safety * max(err, 1e-10) ** -alpha * work[(c0 + ERR_PREVIOUS) * B + j] ** beta
             if work[(c0 + REJECTED_LAST) * B + j] > 0.0:
@@ -262,7 +264,7 @@ def _top_adaptive_kernel(method: Method):
                         q2 = h * e2 / (atol + rtol * max(abs(y2), abs(z2)))
                         q3 = h * e3 / (atol + rtol * max(abs(y3), abs(z3)))
                         work[(C0 + ERR) * B + j] = math.sqrt((q1 * q1 + q2 * q2 + q3 * q3) / 3.0)
-                    _control_step(work, C0, B, target, counts, j0, alpha, beta, safety, min_factor, max_factor)
+                    _control_step(work, C0, B, target, counts, j0, S - 1, alpha, beta, safety, min_factor, max_factor)
                     for j in range(B):
                         if work[(C0 + REJECTED_LAST) * B + j] == 0.0 and work[(C0 + ERR) * B + j] >= 0.0:
                             for c in range(3):
@@ -439,6 +441,7 @@ def _chain_adaptive_kernel(method: Method, n: int, periodic: bool):
     ZX = CR + n
     ZV = ZX + n + 2
     S, a, e, alpha, beta, safety, min_factor, max_factor = _adaptive_constants(method)
+    a_array = np.array(a)  # indexed by a loop variable: a constant array, not a tuple
     KX = ZV + n
     KV = KX + S * n
     C0 = KV + S * n
@@ -476,8 +479,8 @@ def _chain_adaptive_kernel(method: Method, n: int, periodic: bool):
                                 h = work[(C0 + STEP) * B + j]
                                 zx = work[(X + 1 + i) * B + j]
                                 zv = work[(V + i) * B + j]
-                                for r in range(S):  # a is zero from column s on; a constant trip count unrolls
-                                    ha = h * a[s * S + r]
+                                for r in range(S):  # a is zero from column s on
+                                    ha = h * a_array[s * S + r]
                                     zx += ha * work[(KX + r * n + i) * B + j]
                                     zv += ha * work[(KV + r * n + i) * B + j]
                                 work[(ZX + 1 + i) * B + j] = zx
@@ -500,7 +503,7 @@ def _chain_adaptive_kernel(method: Method, n: int, periodic: bool):
                             work[(C0 + ERR) * B + j] += qx * qx + qv * qv
                     for j in range(B):
                         work[(C0 + ERR) * B + j] = math.sqrt(work[(C0 + ERR) * B + j] / (2 * n))
-                    _control_step(work, C0, B, target, counts, j0, alpha, beta, safety, min_factor, max_factor)
+                    _control_step(work, C0, B, target, counts, j0, S - 1, alpha, beta, safety, min_factor, max_factor)
                     for i in range(n):
                         for j in range(B):
                             if work[(C0 + REJECTED_LAST) * B + j] == 0.0 and work[(C0 + ERR) * B + j] >= 0.0:
