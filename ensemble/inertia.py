@@ -286,8 +286,9 @@ def _simple_polygon(vertices) -> np.ndarray:
         raise ShapeError("vertices", "must be finite")
     repeated = np.all(points == np.roll(points, 1, axis=0), axis=1)  # a vertex equal to the one before it
     points = points[~repeated] if not repeated.all() else points[:1]  # also drops a closed ring's last vertex
-    if len(np.unique(points, axis=0)) < 3:
-        raise ShapeError("vertices", f"a polygon needs at least 3 distinct vertices, got {len(np.unique(points, axis=0))}")
+    distinct = len(np.unique(points, axis=0))
+    if distinct < 3:
+        raise ShapeError("vertices", f"a polygon needs at least 3 distinct vertices, got {distinct}")
     spread = points - points.mean(axis=0)
     if np.linalg.svd(spread, compute_uv=False)[1] <= 1e-12 * np.abs(spread).max():
         raise ShapeError("vertices", "the polygon has zero area (its vertices are collinear)")
