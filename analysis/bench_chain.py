@@ -65,9 +65,10 @@ def main():
         state, rate = chain.inputs(values, constants)
         kernel = kernels.kernel_for("chain", "verlet", chain.kernel_key(constants))
         samples = np.empty((2, 2 * n, members))
+        failure = (np.full(members, np.inf), samples, np.zeros(members), np.full(members, np.nan))
         steps = 200
-        kernel(state, rate, h, 1, samples)  # compile or load
-        fast = members * n * steps / median_seconds(lambda: kernel(state, rate, h, steps, samples), args.repeats)
+        kernel(state, rate, h, 1, *failure)  # compile or load; failure: limit, samples, status, time
+        fast = members * n * steps / median_seconds(lambda: kernel(state, rate, h, steps, *failure), args.repeats)
         numpy_steps = 10
         slow = members * n * numpy_steps / median_seconds(
             lambda: numpy_verlet(state[:n], state[n:], rate[:n], rate[n:], h, numpy_steps), args.repeats)

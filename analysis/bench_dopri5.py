@@ -52,7 +52,8 @@ def per_step(scene, values, constants, dt, save_dt, n_save, repeats):
         kernels.integrate(scene, "rk4", values, constants, dt, steps_per_save, n_save)
         rk4.append((time.perf_counter() - start) / (members * steps_per_save * (n_save - 1)))
         start = time.perf_counter()
-        _, counts = kernels.integrate_adaptive(scene, "dopri5", values, constants, np.nan, 1e-8, 1e-12, save_dt, n_save)
+        counts = kernels.integrate_adaptive(scene, "dopri5", values, constants, np.nan, 1e-8, 1e-12, save_dt,
+                                            n_save).counts
         dopri5.append((time.perf_counter() - start) / (counts[0].sum() + counts[1].sum()))
     return statistics.median(rk4), statistics.median(dopri5)
 
@@ -67,12 +68,12 @@ def evaluations_for(target: float):
     exact = top.exact(values, {}, t)
     rk4 = dopri5 = None
     for steps_per_save in 100 * 2 ** np.arange(10):
-        samples = kernels.integrate(top, "rk4", values, {}, 0.25 / steps_per_save, int(steps_per_save), 9)
+        samples = kernels.integrate(top, "rk4", values, {}, 0.25 / steps_per_save, int(steps_per_save), 9).samples
         if measured_error(samples, exact)[0].max() <= target:
             rk4 = (4 * steps_per_save * 8, 0.25 / steps_per_save)
             break
     for rtol in 10.0 ** -np.arange(6, 15):
-        samples, counts = kernels.integrate_adaptive(top, "dopri5", values, {}, np.nan, rtol, 1e-14, 0.25, 9)
+        samples, counts = kernels.integrate_adaptive(top, "dopri5", values, {}, np.nan, rtol, 1e-14, 0.25, 9)[:2]
         if measured_error(samples, exact)[0].max() <= target:
             dopri5 = (int(counts[2].max()), rtol)
             break

@@ -70,9 +70,10 @@ def main():
     print(f"{'method':<8} {'numba member-steps/s':>21} {'numpy member-steps/s':>21} {'ratio':>7}")
     for name in ("euler", "rk4"):
         samples = np.empty((2, 3, n))
+        failure = (np.full(n, np.inf), samples, np.zeros(n), np.full(n, np.nan))  # limit, samples, status, time
         kernel = kernels.kernel_for("top", name)
-        kernel(state, rate, h, 1, samples)  # compile or load
-        fast = median_rate(lambda: kernel(state, rate, h, args.steps, samples), n, args.steps, args.repeats)
+        kernel(state, rate, h, 1, *failure)  # compile or load
+        fast = median_rate(lambda: kernel(state, rate, h, args.steps, *failure), n, args.steps, args.repeats)
         slow = median_rate(lambda: numpy_rk(METHODS[name].tableau, state, rate, h, args.numpy_steps),
                            n, args.numpy_steps, args.repeats)
         print(f"{name:<8} {fast:>21.3g} {slow:>21.3g} {fast / slow:>7.1f}")

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import math
 from functools import cache
+from typing import NamedTuple
 
 import numpy as np
 from numba import njit, prange
@@ -23,6 +24,40 @@ from .scenes import SCENES, chain, top
 
 BLOCK = 128  # members per block of the top kernels
 FAST = dict(fastmath=True, error_model="numpy", boundscheck=False)
+# Code that tests for NaN and infinity must not assume there are none, as fastmath's nnan and ninf flags let
+# LLVM do; such functions are compiled on their own (not inlined at Numba level) so they keep these flags.
+CAREFUL = dict(error_model="numpy", boundscheck=False)
+
+OK, BLEW_UP, UNDERFLOW = 0, 1, 2  # a member's status
+DEFAULT_BLOWUP_FACTOR = 1e6  # a member fails when its state outgrows its start by this factor
+
+
+@njit(**CAREFUL)
+def _check_members(work, first, count, B, j0, limit, status, failure_time, t):
+    """Fail, at time t (s), each running member of a block whose state rows [first, first + count) hold a value
+    that is not finite or exceeds its limit: status BLEW_UP, state NaN. Returns how many members still run."""
+    running = 0
+    for j in range(B):
+        if status[j0 + j] != OK:
+            continue
+        bounded = True
+        for r in range(first, first + count):
+            if not abs(work[r * B + j]) <= limit[j0 + j]:  # false for NaN
+                bounded = False
+        if bounded:
+            running += 1
+        else:
+            status[j0 + j] = BLEW_UP
+            failure_time[j0 + j] = t
+            for r in range(first, first + count):
+                work[r * B + j] = np.nan
+    return running
+
+
+@njit(inline="always", **FAST)
+def _fill_failed(samples, first_save, j0, B):
+    """NaN for the samples from first_save on of a block whose members have all failed."""
+    samples[first_save:, :, j0:j0 + B] = np.nan
 
 
 def _method_constants(method: Method):
@@ -51,8 +86,9 @@ def _top_kernel(method: Method):
     rows = 6 + (3 * S if runge_kutta else 2 * E)
 
     @njit(parallel=True, cache=True, **FAST)
-    def kernel(state0, rate, h, steps_per_save, samples):
-        """state0 (3, M), rate (3, M) -> samples (n_save, 3, M); M a multiple of BLOCK."""
+    def kernel(state0, rate, h, steps_per_save, limit, samples, status, failure_time):
+        """state0 (3, M), rate (3, M), limit (M,) -> samples (n_save, 3, M), status (M,), failure_time (M,)
+        (s; set only where a member fails); M a multiple of BLOCK."""
         n_save = samples.shape[0]
         for block in prange(state0.shape[1] // BLOCK):
             j0 = block * BLOCK
@@ -112,8 +148,12 @@ def _top_kernel(method: Method):
                         work[j] = y1
                         work[BLOCK + j] = y2
                         work[2 * BLOCK + j] = y3
+                running = _check_members(work, 0, 3, BLOCK, j0, limit, status, failure_time, i * steps_per_save * h)
                 for c in range(3):
                     samples[i, c, j0:j1] = work[c * BLOCK:(c + 1) * BLOCK]
+                if running == 0:
+                    _fill_failed(samples, i + 1, j0, BLOCK)
+                    break
 
     return kernel
 
@@ -132,15 +172,18 @@ CONTROL_ROWS = 8
 ACCEPTED, REJECTED, RHS_EVALS = range(3)
 
 
-@njit(inline="always", **FAST)
-def _control_step(work, c0, B, target, counts, j0, new_stages, alpha, beta, safety, min_factor, max_factor):
+@njit(**CAREFUL)
+def _control_step(work, c0, B, target, counts, j0, status, failure_time, new_stages, alpha, beta, safety,
+                  min_factor, max_factor):
     """After a trial step of every member in a block: accept or reject each and choose its next step.
 
     A trial step costs `new_stages` right-hand-side evaluations (an FSAL pair reuses its last stage).
+    A trial step whose error is not a number is rejected like one with a large error.
 
     Afterwards ERR is -1 for members that had no step to take, -2 for members
-    whose step underflowed (they stop: H = 0), and REJECTED_LAST is 0 for
-    members whose step was accepted; the caller moves those to their new state.
+    whose step underflowed (they stop: H = 0, status UNDERFLOW at their
+    time), and REJECTED_LAST is 0 for members whose step was accepted; the
+    caller moves those to their new state.
     """
     for j in range(B):
         step = work[(c0 + STEP) * B + j]
@@ -163,9 +206,11 @@ def _control_step(work, c0, B, target, counts, j0, new_stages, alpha, beta, safe
             counts[ACCEPTED, j0 + j] += 1.0
         else:
             h = step * max(min_factor, safety * err ** -alpha) if err < np.inf else step * min_factor
-            if not h > 1e-14 * target:  # the step underflowed (or the error is not a number): give up
+            if not h > 1e-14 * target:  # the step underflowed: give up
                 h = 0.0
                 work[(c0 + ERR) * B + j] = -2.0
+                status[j0 + j] = UNDERFLOW
+                failure_time[j0 + j] = work[(c0 + TIME) * B + j]
             work[(c0 + H) * B + j] = h
             work[(c0 + REJECTED_LAST) * B + j] = 1.0
             counts[REJECTED, j0 + j] += 1.0
@@ -206,9 +251,10 @@ def _top_adaptive_kernel(method: Method):
     rows = C0 + CONTROL_ROWS
 
     @njit(parallel=True, cache=True, **FAST)
-    def kernel(state0, rate, control, save_dt, samples, counts):
-        """state0, rate (3, M); control (3, M): first step (s; <= 0: estimate it), rtol, atol;
-        -> samples (n_save, 3, M), counts (3, M): accepted, rejected, right-hand-side evaluations."""
+    def kernel(state0, rate, control, save_dt, limit, samples, counts, status, failure_time):
+        """state0, rate (3, M); control (3, M): first step (s; <= 0: estimate it), rtol, atol; limit (M,)
+        -> samples (n_save, 3, M), counts (3, M): accepted, rejected, right-hand-side evaluations;
+        status (M,) and failure_time (M,; s, set only where a member fails)."""
         n_save = samples.shape[0]
         B = BLOCK
         for block in prange(state0.shape[1] // B):
@@ -264,7 +310,7 @@ def _top_adaptive_kernel(method: Method):
                         q2 = h * e2 / (atol + rtol * max(abs(y2), abs(z2)))
                         q3 = h * e3 / (atol + rtol * max(abs(y3), abs(z3)))
                         work[(C0 + ERR) * B + j] = math.sqrt((q1 * q1 + q2 * q2 + q3 * q3) / 3.0)
-                    _control_step(work, C0, B, target, counts, j0, S - 1, alpha, beta, safety, min_factor, max_factor)
+                    _control_step(work, C0, B, target, counts, j0, status, failure_time, S - 1, alpha, beta, safety, min_factor, max_factor)
                     for j in range(B):
                         if work[(C0 + REJECTED_LAST) * B + j] == 0.0 and work[(C0 + ERR) * B + j] >= 0.0:
                             for c in range(3):
@@ -273,8 +319,15 @@ def _top_adaptive_kernel(method: Method):
                         elif work[(C0 + ERR) * B + j] == -2.0:
                             for c in range(3):
                                 work[c * B + j] = np.nan
+                running = _check_members(work, 0, 3, B, j0, limit, status, failure_time, target)
+                for j in range(B):
+                    if status[j0 + j] != OK:
+                        work[(C0 + H) * B + j] = 0.0  # a failed member takes no more steps
                 for c in range(3):
                     samples[i, c, j0:j0 + B] = work[c * B:(c + 1) * B]
+                if running == 0:
+                    _fill_failed(samples, i + 1, j0, B)
+                    break
 
     return kernel
 
@@ -369,8 +422,9 @@ def _chain_kernel(method: Method, n: int, periodic: bool):
     rows = KV + S * n if runge_kutta else CR + n
 
     @njit(parallel=True, cache=True, **FAST)
-    def splitting_kernel(state0, rate, h, steps_per_save, samples):
-        """state0 (2n, M), rate (2n, M) -> samples (n_save, 2n, M); M a multiple of B."""
+    def splitting_kernel(state0, rate, h, steps_per_save, limit, samples, status, failure_time):
+        """state0 (2n, M), rate (2n, M), limit (M,) -> samples (n_save, 2n, M), status (M,), failure_time (M,)
+        (s; set only where a member fails); M a multiple of B."""
         for block in prange(state0.shape[1] // B):
             j0 = block * B
             work = _load_chain_block(state0, rate, j0, samples, n, B, rows, periodic)
@@ -391,11 +445,16 @@ def _chain_kernel(method: Method, n: int, periodic: bool):
                                 for j in range(B):
                                     work[(X + 1 + i) * B + j] += tau * work[(V + i) * B + j]
                             _set_ghosts(work, X, n, B, periodic)
+                running = _check_members(work, X + 1, 2 * n + 1, B, j0, limit, status, failure_time,
+                                         save * steps_per_save * h)
                 _store_chain_sample(work, samples, save, j0, n, B)
+                if running == 0:
+                    _fill_failed(samples, save + 1, j0, B)
+                    break
 
     @njit(parallel=True, cache=True, **FAST)
-    def runge_kutta_kernel(state0, rate, h, steps_per_save, samples):
-        """state0 (2n, M), rate (2n, M) -> samples (n_save, 2n, M); M a multiple of B."""
+    def runge_kutta_kernel(state0, rate, h, steps_per_save, limit, samples, status, failure_time):
+        """As splitting_kernel."""
         for block in prange(state0.shape[1] // B):
             j0 = block * B
             work = _load_chain_block(state0, rate, j0, samples, n, B, rows, periodic)
@@ -423,7 +482,12 @@ def _chain_kernel(method: Method, n: int, periodic: bool):
                                 dv += b[s] * work[(KV + s * n + i) * B + j]
                             work[(X + 1 + i) * B + j] += h * dx
                             work[(V + i) * B + j] += h * dv
+                running = _check_members(work, X + 1, 2 * n + 1, B, j0, limit, status, failure_time,
+                                         save * steps_per_save * h)
                 _store_chain_sample(work, samples, save, j0, n, B)
+                if running == 0:
+                    _fill_failed(samples, save + 1, j0, B)
+                    break
 
     return runge_kutta_kernel if runge_kutta else splitting_kernel
 
@@ -447,9 +511,10 @@ def _chain_adaptive_kernel(method: Method, n: int, periodic: bool):
     C0 = KV + S * n
     rows = C0 + CONTROL_ROWS
     @njit(parallel=True, cache=True, **FAST)
-    def kernel(state0, rate, control, save_dt, samples, counts):
-        """state0, rate (2n, M); control (3, M): first step (s; <= 0: estimate it), rtol, atol;
-        -> samples (n_save, 2n, M), counts (3, M): accepted, rejected, right-hand-side evaluations."""
+    def kernel(state0, rate, control, save_dt, limit, samples, counts, status, failure_time):
+        """state0, rate (2n, M); control (3, M): first step (s; <= 0: estimate it), rtol, atol; limit (M,)
+        -> samples (n_save, 2n, M), counts (3, M): accepted, rejected, right-hand-side evaluations;
+        status (M,) and failure_time (M,; s, set only where a member fails)."""
         for block in prange(state0.shape[1] // B):
             j0 = block * B
             work = _load_chain_block(state0, rate, j0, samples, n, B, rows, periodic)
@@ -503,7 +568,7 @@ def _chain_adaptive_kernel(method: Method, n: int, periodic: bool):
                             work[(C0 + ERR) * B + j] += qx * qx + qv * qv
                     for j in range(B):
                         work[(C0 + ERR) * B + j] = math.sqrt(work[(C0 + ERR) * B + j] / (2 * n))
-                    _control_step(work, C0, B, target, counts, j0, S - 1, alpha, beta, safety, min_factor, max_factor)
+                    _control_step(work, C0, B, target, counts, j0, status, failure_time, S - 1, alpha, beta, safety, min_factor, max_factor)
                     for i in range(n):
                         for j in range(B):
                             if work[(C0 + REJECTED_LAST) * B + j] == 0.0 and work[(C0 + ERR) * B + j] >= 0.0:
@@ -515,7 +580,14 @@ def _chain_adaptive_kernel(method: Method, n: int, periodic: bool):
                                 work[(X + 1 + i) * B + j] = np.nan
                                 work[(V + i) * B + j] = np.nan
                     _set_ghosts(work, X, n, B, periodic)
+                running = _check_members(work, X + 1, 2 * n + 1, B, j0, limit, status, failure_time, target)
+                for j in range(B):
+                    if status[j0 + j] != OK:
+                        work[(C0 + H) * B + j] = 0.0  # a failed member takes no more steps
                 _store_chain_sample(work, samples, save, j0, n, B)
+                if running == 0:
+                    _fill_failed(samples, save + 1, j0, B)
+                    break
 
     return kernel
 
@@ -533,46 +605,77 @@ def block_size(scene: str, key: tuple) -> int:
     return BLOCK if scene == "top" else chain_block(key[0])
 
 
-def integrate(scene, method: str, values: dict[str, np.ndarray], constants: dict, dt: float,
-              steps_per_save: int, n_save: int) -> np.ndarray:
-    """Integrate the members described by `values` with a fixed step; returns samples (n_save, state, members).
+class Outcome(NamedTuple):
+    """What a kernel call did, per member (the last axis)."""
 
+    samples: np.ndarray  # (n_save, state, members); NaN from the first saved time at which a member had failed
+    counts: np.ndarray  # (3, members) int64: steps accepted, steps rejected, right-hand-side evaluations
+    status: np.ndarray  # (members,) int8: OK, BLEW_UP or UNDERFLOW
+    failure_time: np.ndarray  # (members,) s: saved time at which a failure was seen (step time for UNDERFLOW); NaN if OK
+
+
+def _limits(state0: np.ndarray, blowup_factor: float) -> np.ndarray:
+    """Each member's largest allowed |state component|: blowup_factor times its largest at the start."""
+    if math.isinf(blowup_factor):  # only non-finite states fail (inf * 0 would be NaN)
+        return np.full(state0.shape[1], np.inf)
+    return np.ascontiguousarray(blowup_factor * np.abs(state0).max(axis=0))
+
+
+def integrate(scene, method: str, values: dict[str, np.ndarray], constants: dict, dt: float,
+              steps_per_save: int, n_save: int, blowup_factor: float = DEFAULT_BLOWUP_FACTOR) -> Outcome:
+    """Integrate the members described by `values` with a fixed step dt (s), saving every steps_per_save steps.
+
+    A member fails when its state is not finite or a component outgrows
+    blowup_factor times its largest component at the start (checked at
+    every saved sample); it stops there and its later samples are NaN.
     A member's result depends only on its own values: never on how many
     members run with it, the chunking or the thread count.
     """
+    m = METHODS[method]
     t = np.arange(n_save) * (steps_per_save * dt)
-    if METHODS[method].closed_form:
-        return scene.exact(values, constants, t)
+    if m.closed_form:
+        samples = scene.exact(values, constants, t)
+        n = samples.shape[2]
+        return Outcome(samples, np.zeros((3, n), dtype=np.int64), np.zeros(n, dtype=np.int8), np.full(n, np.nan))
     state0, rate = scene.inputs(values, constants)
     key = scene.kernel_key(constants)
     n = state0.shape[1]
-    state0, rate = _padded((state0, rate), block_size(scene.NAME, key))
+    limit = _limits(state0, blowup_factor)
+    state0, rate, limit = _padded((state0, rate, limit[None]), block_size(scene.NAME, key))
     samples = np.empty((n_save, state0.shape[0], state0.shape[1]))
-    kernel_for(scene.NAME, method, key)(state0, rate, float(dt), int(steps_per_save), samples)
-    return samples[:, :, :n]
+    status = np.zeros(state0.shape[1])
+    failure_time = np.full(state0.shape[1], np.nan)
+    kernel_for(scene.NAME, method, key)(state0, rate, float(dt), int(steps_per_save), limit[0], samples, status,
+                                        failure_time)
+    failure_time = failure_time[:n]
+    steps = np.where(np.isnan(failure_time), steps_per_save * (n_save - 1), np.rint(failure_time / dt))
+    counts = np.stack([steps, np.zeros(n), steps * m.evaluations_per_step(scene.NAME)]).astype(np.int64)
+    return Outcome(samples[:, :, :n], counts, status[:n].astype(np.int8), failure_time)
 
 
 def integrate_adaptive(scene, method: str, values: dict[str, np.ndarray], constants: dict, first_step: np.ndarray,
-                       rtol: np.ndarray, atol: np.ndarray, save_dt: float, n_save: int
-                       ) -> tuple[np.ndarray, np.ndarray]:
+                       rtol: np.ndarray, atol: np.ndarray, save_dt: float, n_save: int,
+                       blowup_factor: float = DEFAULT_BLOWUP_FACTOR) -> Outcome:
     """Integrate with an adaptive method, each member to its own rtol and atol (arrays over members).
 
     first_step (s, per member; NaN or <= 0: estimated) is only the first
-    trial step. Returns samples (n_save, state, members), exactly at the saved
-    times, and counts (3, members): steps accepted, steps rejected and
-    right-hand-side evaluations. A member whose step underflows is NaN from
-    then on.
+    trial step. Samples fall exactly at the saved times. A member fails as
+    in `integrate`, or with status UNDERFLOW when its step size underflows.
     """
     state0, rate = scene.inputs(values, constants)
     key = scene.kernel_key(constants)
     n = state0.shape[1]
     control = np.stack([np.nan_to_num(np.broadcast_to(x, (n,)).astype(float), nan=0.0)
                         for x in (first_step, rtol, atol)])
-    state0, rate, control = _padded((state0, rate, control), block_size(scene.NAME, key))
+    limit = _limits(state0, blowup_factor)
+    state0, rate, control, limit = _padded((state0, rate, control, limit[None]), block_size(scene.NAME, key))
     samples = np.empty((n_save, state0.shape[0], state0.shape[1]))
     counts = np.zeros((3, state0.shape[1]))
-    kernel_for(scene.NAME, method, key)(state0, rate, control, float(save_dt), samples, counts)
-    return samples[:, :, :n], counts[:, :n].astype(np.int64)
+    status = np.zeros(state0.shape[1])
+    failure_time = np.full(state0.shape[1], np.nan)
+    kernel_for(scene.NAME, method, key)(state0, rate, control, float(save_dt), limit[0], samples, counts, status,
+                                        failure_time)
+    return Outcome(samples[:, :, :n], counts[:, :n].astype(np.int64), status[:n].astype(np.int8), failure_time[:n])
 
 
 def _padded(arrays, block: int) -> tuple[np.ndarray, ...]:
@@ -593,7 +696,9 @@ def prepare(scene: str, method: str, constants: dict) -> None:
     block = block_size(scene, key)
     state0, rate = np.zeros((state_rows, block)), np.zeros((rate_rows, block))
     samples = np.empty((1, state_rows, block))
+    limit, status, failure_time = np.ones(block), np.zeros(block), np.zeros(block)
     if METHODS[method].adaptive:
-        kernel_for(scene, method, key)(state0, rate, np.ones((3, block)), 1.0, samples, np.zeros((3, block)))
+        kernel_for(scene, method, key)(state0, rate, np.ones((3, block)), 1.0, limit, samples, np.zeros((3, block)),
+                                       status, failure_time)
     else:
-        kernel_for(scene, method, key)(state0, rate, 1.0, 1, samples)
+        kernel_for(scene, method, key)(state0, rate, 1.0, 1, limit, samples, status, failure_time)

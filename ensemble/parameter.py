@@ -22,6 +22,7 @@ class Parameter:
     integer: bool = False  # an integer run constant
     mode: bool = False  # also accepts { mode = j, amplitude = A }
     derives: tuple[str, ...] = ()  # a shape table { shape = ..., mass = ..., lengths } that gives these parameters
+    optional: bool = False  # absent (not recorded) unless the run file gives it
 
     @property
     def constant(self) -> bool:

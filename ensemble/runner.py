@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from . import kernels
+from . import kernels, stability
 from .methods import METHODS
 from .scenes import SCENES
 from .spec import Spec, members_table, observation_noise
@@ -26,14 +26,19 @@ class Summary:
     member_steps: int
     seconds: float
     steps_each: int | None = None  # when every member took the same number of steps
+    blew_up: int = 0  # failed members (status 1)
+    underflowed: int = 0  # failed members (status 2)
 
     def __str__(self) -> str:
+        failed = self.blew_up + self.underflowed
+        failures = (f"; {failed} of {self.members} members failed ({self.blew_up} blew up, {self.underflowed} "
+                    f"step size underflow)" if failed else "")
         if self.member_steps == 0:
-            return f"{self.members} members (closed form) in {self.seconds:.3g} s"
+            return f"{self.members} members (closed form) in {self.seconds:.3g} s" + failures
         rate = self.member_steps / self.seconds if self.seconds > 0 else float("inf")
         steps = (f"{self.members} members x {self.steps_each} steps" if self.steps_each is not None
                  else f"{self.members} members, {self.member_steps} member-steps")
-        return f"{steps} in {self.seconds:.3g} s: {rate:.3g} member-steps/s"
+        return f"{steps} in {self.seconds:.3g} s: {rate:.3g} member-steps/s" + failures
 
 
 def default_chunk(spec: Spec) -> int:
@@ -58,28 +63,40 @@ def _same_settings(table: dict[str, np.ndarray], j0: int, j1: int):
             k0 = k
 
 
-def integrate(spec: Spec, values: dict[str, np.ndarray], repeats: int = 1):
-    """Integrate members that share one method and dt: samples (n_save, state, members), counts (3, members)
-    (steps accepted, rejected, rhs evaluations) and the best kernel seconds per member-step over `repeats` calls.
-    """
+def integrate(spec: Spec, values: dict[str, np.ndarray], repeats: int = 1) -> tuple[kernels.Outcome, float]:
+    """Integrate members that share one method and dt; returns what the kernel did and its best seconds per
+    member-step over `repeats` calls."""
     scene = SCENES[spec.scene]
     method = METHODS[str(values["method"][0])]
-    n = len(values["method"])
     best = np.inf
     for _ in range(repeats):
         start = time.perf_counter()
         if method.adaptive:
-            samples, counts = kernels.integrate_adaptive(scene, method.name, values, spec.constants, values["dt"],
-                                                         values["rtol"], values["atol"], spec.save_dt, spec.n_save)
+            outcome = kernels.integrate_adaptive(scene, method.name, values, spec.constants, values["dt"],
+                                                 values["rtol"], values["atol"], spec.save_dt, spec.n_save,
+                                                 spec.blowup_factor)
         else:
             dt = float(values["dt"][0]) if np.isfinite(values["dt"][0]) else spec.save_dt
-            steps_per_save = round(spec.save_dt / dt)
-            samples = kernels.integrate(scene, method.name, values, spec.constants, dt, steps_per_save, spec.n_save)
-            steps = 0 if method.closed_form else steps_per_save * (spec.n_save - 1)
-            counts = np.array([[steps], [0], [steps * method.evaluations_per_step(spec.scene)]]).repeat(n, axis=1)
+            outcome = kernels.integrate(scene, method.name, values, spec.constants, dt, round(spec.save_dt / dt),
+                                        spec.n_save, spec.blowup_factor)
         best = min(best, time.perf_counter() - start)
-    taken = counts[0].sum() + counts[1].sum()
-    return samples, counts, best / taken if taken else np.nan
+    taken = outcome.counts[0].sum() + outcome.counts[1].sum()
+    return outcome, best / taken if taken else np.nan
+
+
+def growth_per_step(spec: Spec, values: dict[str, np.ndarray], outcome: kernels.Outcome) -> np.ndarray:
+    """Each member's measured growth factor per step (see stability.measured_growth); per mean accepted step
+    for adaptive methods; NaN for the closed form."""
+    method = METHODS[str(values["method"][0])]
+    if method.closed_form:
+        return np.full(outcome.samples.shape[2], np.nan)
+    scene = SCENES[spec.scene]
+    step = values["dt"]
+    if method.adaptive:
+        reached = np.where(np.isnan(outcome.failure_time), spec.t_end, outcome.failure_time)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            step = reached / outcome.counts[0]
+    return stability.measured_growth(scene.amplitudes(outcome.samples, values, spec.constants), spec.times(), step)
 
 
 def measured_error(samples: np.ndarray, exact: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -104,6 +121,7 @@ def run(spec: Spec, out: str | Path, *, chunk: int | None = None, progress: bool
     repeats = spec.measure["repeats"] if spec.measure["timing"] else 1
     member_steps = 0
     step_counts = set()
+    failed = np.zeros(2, dtype=np.int64)  # members that blew up, whose step underflowed
     start = time.perf_counter()
     with Writer(out, spec, table, chunk) as writer, tqdm(
         total=n, unit="member", file=sys.stderr, disable=not progress, leave=False
@@ -111,21 +129,26 @@ def run(spec: Spec, out: str | Path, *, chunk: int | None = None, progress: bool
         for j0 in range(0, n, chunk):
             for k0, k1 in _same_settings(table, j0, min(j0 + chunk, n)):
                 values = {name: v[k0:k1] for name, v in table.items()}
-                samples, counts, seconds_per_step = integrate(spec, values, repeats)
+                outcome, seconds_per_step = integrate(spec, values, repeats)
+                counts = outcome.counts
                 member_steps += int(counts[0].sum() + counts[1].sum())
                 step_counts.update(np.unique(counts[0] + counts[1]).tolist())
-                data = scene.observe(samples, spec.save, values, spec.constants)
+                failed += np.bincount(outcome.status, minlength=3)[1:]
+                data = scene.observe(outcome.samples, spec.save, values, spec.constants)
                 for name in spec.noise:
                     data[name] = data[name] + observation_noise(spec, name, k0, data[name].shape)
-                data.update(steps_accepted=counts[0], steps_rejected=counts[1], rhs_evals=counts[2])
+                data.update(steps_accepted=counts[0], steps_rejected=counts[1], rhs_evals=counts[2],
+                            status=outcome.status, failure_time=outcome.failure_time,
+                            growth_per_step=growth_per_step(spec, values, outcome))
                 if spec.measure["error"]:
                     data["error_max"], data["error_final"] = measured_error(
-                        samples, scene.exact(values, spec.constants, spec.times()))
+                        outcome.samples, scene.exact(values, spec.constants, spec.times()))
                 if spec.measure["timing"]:
                     data["seconds_per_step"] = np.full(k1 - k0, seconds_per_step)
                 writer.write(k0, data)
                 bar.update(k1 - k0)
-    return Summary(n, member_steps, time.perf_counter() - start, step_counts.pop() if len(step_counts) == 1 else None)
+    return Summary(n, member_steps, time.perf_counter() - start, step_counts.pop() if len(step_counts) == 1 else None,
+                   blew_up=int(failed[0]), underflowed=int(failed[1]))
 
 
 def simulate(spec: Spec, *, chunk: int | None = None):

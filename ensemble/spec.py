@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from .inertia import SHAPES, ShapeError
+from .kernels import DEFAULT_BLOWUP_FACTOR
 from .methods import METHODS, methods_for
 from .parameter import Mode, Parameter
 from .scenes import SCENES
@@ -39,7 +40,7 @@ class SpecError(ValueError):
 TOP_LEVEL = {
     "scene": str, "method": str, "dt": float, "rtol": float, "atol": float, "t_end": float, "save_dt": float,
     "members": int, "seed": int, "save": list, "parameters": dict, "sweep": (dict, list), "observe": dict,
-    "measure": dict,
+    "measure": dict, "blowup_factor": float,
 }
 OBSERVE_KEYS = ("noise",)
 MEASURE_KEYS = {"error": bool, "timing": bool, "repeats": int}
@@ -87,6 +88,7 @@ class Spec:
     rtol: float | None = None  # top-level tolerances of adaptive methods
     atol: float | None = None
     measure: dict[str, object] = field(default_factory=dict)  # [measure]: error, timing, repeats
+    blowup_factor: float = DEFAULT_BLOWUP_FACTOR  # a member fails when its state outgrows its start this much
     table: dict[str, np.ndarray] | None = field(default=None, repr=False, compare=False)  # see members_table
 
     @property
@@ -237,6 +239,10 @@ def parse(text: str, path: str = "<string>") -> Spec:
     if not save:
         raise SpecError("save", "must name at least one variable")
 
+    blowup_factor = values.get("blowup_factor", DEFAULT_BLOWUP_FACTOR)
+    if not blowup_factor > 1:
+        raise SpecError("blowup_factor", f"must be > 1 (a member fails when its state grows this many times its "
+                                         f"size at the start), got {blowup_factor!r}")
     noise = _noise(values.get("observe", {}), save, module)
     measure = _measure(values.get("measure", {}), module)
 
@@ -249,7 +255,8 @@ def parse(text: str, path: str = "<string>") -> Spec:
     spec = Spec(path=str(path), text=text, scene=scene, method=settings.get("method"), dt=settings.get("dt"),
                 t_end=t_end, save_dt=save_dt, members=values["members"], seed=values["seed"], save=save,
                 parameters=parameters, grids=tuple(grids), constants=constants, noise=noise,
-                declared=declared, rtol=settings.get("rtol"), atol=settings.get("atol"), measure=measure)
+                declared=declared, rtol=settings.get("rtol"), atol=settings.get("atol"), measure=measure,
+                blowup_factor=blowup_factor)
     # Drawing every member's values checks them; keep them, as mode starts may cost an eigensolve each.
     return replace(spec, table=_build_table(spec))
 
@@ -327,6 +334,8 @@ def _parameters(given: dict, grids: list[dict], labels: list[str], module):
     swept = set(axes[0]) if axes else set()
     for name, parameter in declared.items():
         if name not in parameters and name not in swept and not _derived(name, module, constants):
+            if parameter.optional:
+                continue
             if parameter.default is None:
                 sources = [source for source, p in module.PARAMETERS.items() if name in p.derives]
                 raise SpecError(keys[name], "missing (required" + "".join(
@@ -335,7 +344,9 @@ def _parameters(given: dict, grids: list[dict], labels: list[str], module):
     constants.update({name: parameters.pop(name) for name, p in declared.items() if p.constant})
     for name, problem in module.check_constants(constants):
         raise SpecError(f"parameters.{name}", problem)
-    return parameters, axes, constants, {name: p for name, p in declared.items() if not p.constant}
+    given = set(parameters) | swept
+    return parameters, axes, constants, {name: p for name, p in declared.items()
+                                         if not p.constant and (name in given or not p.optional)}
 
 
 def _axis(key: str, axis, kind) -> tuple:
@@ -507,6 +518,11 @@ def _build_table(spec: Spec) -> dict[str, np.ndarray]:
     for name, problem in SCENES[spec.scene].check(table):
         where = "sweep" if name in spec.sweep else "parameters"
         raise SpecError(f"{where}.{name}", problem)
+    try:
+        table.update(scene.derive(table, spec.constants))
+    except ValueError as e:  # args: (parameter, problem)
+        name, problem = e.args
+        raise SpecError(f"{'sweep' if name in spec.sweep else 'parameters'}.{name}", problem) from None
     for name, mode in modes.items():
         if not 1 <= mode.number <= sizes["site"]:
             raise SpecError(f"parameters.{name}.mode", f"must be in 1..{sizes['site']}, got {mode.number}")

@@ -34,7 +34,15 @@ RUN_RECORDS = {
     "error_final": ("f8", "1", "relative error against the exact solution at t_end: "
                                "max |y - y_exact| / max |y_exact| over the state"),
     "seconds_per_step": ("f8", "s", "kernel wall time per member-step, best of the timed repeats"),
+    "status": ("i1", "1", "how the member ended"),
+    "failure_time": ("f8", "s", "first saved time at which the member had failed (for a step size underflow: the "
+                                "time it reached); NaN when it did not fail"),
+    "growth_per_step": ("f8", "1", "measured amplitude growth factor per step of the member's fastest-growing "
+                                   "motion, from the slope of log amplitude over the second half of its samples "
+                                   "before any failure (per mean accepted step for adaptive methods)"),
 }
+#: status values (see kernels.OK, BLEW_UP, UNDERFLOW)
+STATUS_MEANINGS = "ok blew_up step_size_underflow"
 SETTING_UNITS = {"dt": ("s", "integration step (for adaptive methods: the first trial step)"),
                  "rtol": ("1", "relative tolerance of the step-size control"),
                  "atol": ("1", "absolute tolerance of the step-size control, in the SI units of each state variable")}
@@ -62,6 +70,7 @@ def global_attributes(spec: Spec, table: dict[str, np.ndarray]) -> dict[str, obj
         "save_dt": spec.save_dt,
         "t_end": spec.t_end,
         "seed": spec.seed,
+        "blowup_factor": spec.blowup_factor,
         "members_per_sweep_point": spec.members,
         "sweep_axes": " ".join(spec.sweep),
         "spec": spec.text,
@@ -119,17 +128,22 @@ class Writer:
                 var = nc.createVariable(key, "f8", ("member",), fill_value=np.nan)
                 var.setncatts({"units": units, "long_name": long_name})
                 var[:] = table[key]
-        records = ["steps_accepted", "steps_rejected", "rhs_evals"]
+        records = ["steps_accepted", "steps_rejected", "rhs_evals", "status", "failure_time", "growth_per_step"]
         records += ["error_max", "error_final"] if spec.measure["error"] else []
         records += ["seconds_per_step"] if spec.measure["timing"] else []
         for name in records:
             kind, units, long_name = RUN_RECORDS[name]
-            var = nc.createVariable(name, kind, ("member",))
-            var.setncatts({"units": units, "long_name": long_name})
+            var = nc.createVariable(name, kind, ("member",), fill_value=np.nan if kind == "f8" else None)
+            if name == "status":
+                var.setncatts({"long_name": long_name, "flag_values": np.arange(3, dtype=np.int8),
+                               "flag_meanings": STATUS_MEANINGS})
+            else:
+                var.setncatts({"units": units, "long_name": long_name})
         for name in spec.save:
             dims, units, long_name = self.scene.OBSERVABLES[name]
             chunks = {**sizes, "member": min(chunk, n)}
-            var = nc.createVariable(name, "f8", dims, chunksizes=tuple(chunks[d] for d in dims))
+            # NaN marks the samples of a member after it failed
+            var = nc.createVariable(name, "f8", dims, chunksizes=tuple(chunks[d] for d in dims), fill_value=np.nan)
             var.setncatts({"units": units, "long_name": long_name})
             if name in spec.noise:
                 var.setncattr("observation_noise_stddev", spec.noise[name])

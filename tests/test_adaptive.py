@@ -41,7 +41,7 @@ def test_dopri5_error_follows_rtol_over_six_decades():
     rtols = 10.0 ** -np.arange(4, 11)
     errors = []
     for rtol in rtols:
-        samples, counts = kernels.integrate_adaptive(top, "dopri5", values, {}, np.nan, rtol, 1e-14, 0.25, 9)
+        samples, counts = kernels.integrate_adaptive(top, "dopri5", values, {}, np.nan, rtol, 1e-14, 0.25, 9)[:2]
         errors.append(np.median(error_against_exact(samples, values, t)))
         evaluations = 1 + 6 * (counts[0] + counts[1])
         assert np.array_equal(counts[2], evaluations)  # FSAL: six new stages per trial step
@@ -56,13 +56,13 @@ def test_dopri5_beats_rk4_on_rhs_evaluations_at_1e_10():
     t = np.arange(9) * 0.25
     rk4 = None
     for steps_per_save in (1600, 3200, 6400, 12800, 25600):  # rk4: the first dt reaching 1e-10
-        samples = kernels.integrate(top, "rk4", values, {}, 0.25 / steps_per_save, steps_per_save, 9)
+        samples = kernels.integrate(top, "rk4", values, {}, 0.25 / steps_per_save, steps_per_save, 9).samples
         if error_against_exact(samples, values, t).max() <= 1e-10:
             rk4 = 4 * steps_per_save * 8
             break
     dopri5 = None
     for rtol in 10.0 ** -np.arange(8, 14):
-        samples, counts = kernels.integrate_adaptive(top, "dopri5", values, {}, np.nan, rtol, 1e-14, 0.25, 9)
+        samples, counts = kernels.integrate_adaptive(top, "dopri5", values, {}, np.nan, rtol, 1e-14, 0.25, 9)[:2]
         if error_against_exact(samples, values, t).max() <= 1e-10:
             dopri5 = counts[2].max()
             break

@@ -66,7 +66,7 @@ def test_file_round_trips_the_kernel_output(cli_run, tmp_path):
     table = members_table(parse(SWEEP_RUN))
     for name in ("lambda1", "lambda3", "c", "spin0", "tilt0", "azimuth0"):
         np.testing.assert_array_equal(ds[name].values, table[name])
-    samples = kernels.integrate(top, "rk4", table, {}, 1e-3, 100, 11)
+    samples = kernels.integrate(top, "rk4", table, {}, 1e-3, 100, 11).samples
     np.testing.assert_array_equal(ds.omega.values, samples.transpose(2, 0, 1))
     np.testing.assert_allclose(ds.tilt.values, top.tilt(ds.omega.values, axis=2), rtol=1e-15)
     copy = tmp_path / "copy.nc"

@@ -61,7 +61,7 @@ def test_exact_tilt_follows_the_course_law():
 
 
 def run(method, table, dt, steps_per_save, n_save):
-    return kernels.integrate(top, method, table, {}, dt, steps_per_save, n_save)
+    return kernels.integrate(top, method, table, {}, dt, steps_per_save, n_save).samples
 
 
 def test_rk4_agrees_with_exact_to_1e_9_over_10_s():

@@ -26,6 +26,8 @@ PARAMETERS = {
     "k": Parameter("N m-1", "spring constant", per="spring"),
     "x0": Parameter("m", "displacement at t = 0", default=0.0, per="site", mode=True),
     "v0": Parameter("m s-1", "velocity at t = 0", default=0.0, per="site", mode=True),
+    "omega_max": Parameter("rad s-1", "highest normal frequency: each member's springs k are scaled by one factor "
+                                      "to give it", optional=True),
 }
 
 OBSERVABLES: dict[str, tuple[tuple[str, ...], str, str]] = {
@@ -64,7 +66,23 @@ def check_constants(constants: dict) -> list[tuple[str, str]]:
 def check(values: dict[str, np.ndarray]) -> list[tuple[str, str]]:
     """Physical constraints on per-member parameters: [(parameter, problem), ...]."""
     return [(name, f"must be > 0 (got {values[name].min():g})")
-            for name in ("m", "k") if values[name].size and np.any(values[name] <= 0)]
+            for name in ("m", "k", "omega_max") if name in values and values[name].size and np.any(values[name] <= 0)]
+
+
+def derive(values: dict[str, np.ndarray], constants: dict) -> dict[str, np.ndarray]:
+    """Parameters computed from others: with omega_max, the springs k scaled to give that highest frequency.
+
+    Raises ValueError(parameter, problem).
+
+    Scaling every spring of a member by one factor keeps its mode shapes and
+    multiplies every frequency by the factor's square root.
+    """
+    if "omega_max" not in values:
+        return {}
+    highest = normal_modes(values["m"], values["k"], constants["boundary"])[0][..., -1]
+    if np.any(highest <= 0):
+        raise ValueError("omega_max", "needs a chain with a moving mode; this one has only zero modes")
+    return {"k": values["k"] * ((values["omega_max"] / highest) ** 2)[:, None]}
 
 
 def incidence(n: int, boundary: str) -> np.ndarray:
@@ -123,7 +141,8 @@ def step_eigenvalue(method: str, omega, h: float) -> np.ndarray:
     Its angle over h is the frequency the method shows, its modulus the
     amplitude growth per step (1 for a stable symplectic step). Runge-Kutta:
     R(i omega h); splittings: the eigenvalue of the one-step map of
-    x'' = -omega^2 x with positive angle; exact: exp(i omega h).
+    x'' = -omega^2 x with positive angle, or past the stability limit, where
+    both are real, the larger one; exact: exp(i omega h).
     """
     omega = np.asarray(omega, dtype=float)
     m = METHODS[method]
@@ -141,7 +160,43 @@ def step_eigenvalue(method: str, omega, h: float) -> np.ndarray:
             one[..., 1, 0] = -omega**2 * tau  # v += tau a
         step = one @ step
     eigenvalues = np.linalg.eigvals(step)
-    return np.where(eigenvalues[..., 0].imag >= eigenvalues[..., 1].imag, eigenvalues[..., 0], eigenvalues[..., 1])
+    first, second = eigenvalues[..., 0], eigenvalues[..., 1]
+    # past the limit both are real: the one that grows
+    pick_first = (first.imag > second.imag) | ((first.imag == second.imag) & (np.abs(first) >= np.abs(second)))
+    return np.where(pick_first, first, second)
+
+
+#: The dimensionless steps a chain's stability is read against.
+STABILITY_AXES = ("h omega_max",)
+
+
+def axis_growth(method: str, axis: str, x: np.ndarray) -> np.ndarray:
+    """Growth factor per step of a normal mode at x = h omega on STABILITY_AXES[0]."""
+    return np.abs(step_eigenvalue(method, x, 1.0))
+
+
+
+def stability_axis(values: dict[str, np.ndarray], constants: dict, h: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Each member's stability axis and position on it: h omega_max, h (s) per member."""
+    highest = normal_modes(values["m"], values["k"], constants["boundary"])[0][..., -1]
+    return np.full(highest.shape, STABILITY_AXES[0]), h * highest
+
+
+def step_growth(method: str, values: dict[str, np.ndarray], constants: dict, h: np.ndarray) -> np.ndarray:
+    """Theory: the growth factor per step of a member's fastest-growing normal mode; h (s) per member.
+
+    A mode missing from the start still grows (or decays) from rounding, so
+    after long enough it dominates the energy, whatever the start.
+    """
+    omega = normal_modes(values["m"], values["k"], constants["boundary"])[0]
+    return axis_growth(method, STABILITY_AXES[0], np.asarray(h)[:, None] * omega).max(axis=-1)
+
+
+def amplitudes(samples: np.ndarray, values: dict[str, np.ndarray], constants: dict) -> np.ndarray:
+    """sqrt(energy) (sqrt(J)) of each member at each sample, shape (1, samples, members): the chain's one motion
+    whose growth is measured (its fastest-growing mode soon dominates the energy)."""
+    e = observe(samples, ("energy",), values, constants)["energy"]
+    return np.sqrt(e.T)[None]
 
 
 def mode_start(mode: Mode, m, k, boundary: str) -> np.ndarray:

@@ -208,6 +208,64 @@ def tilt_rate_method(method: str, values: dict[str, np.ndarray], h: float, t: np
     return -np.polyfit(t, log_tan.T, 1)[0]
 
 
+def derive(values: dict[str, np.ndarray], constants: dict) -> dict[str, np.ndarray]:
+    """The top computes no parameters from others (its body shape is handled by the run file)."""
+    return {}
+
+
+#: The dimensionless steps a top's stability is read against: the transverse rates' rotation, h Omega with
+#: Omega = (lambda3 - lambda1) w3 / lambda1 the body-frame precession rate, and their drag decay, h c / lambda1.
+STABILITY_AXES = ("h Omega", "h c/lambda1")
+
+
+def _amplification(method: str, z: np.ndarray) -> np.ndarray:
+    """|factor| per step on w' = (z / h) w: |R(z)| for a tableau; exact and split methods solve the rotation and
+    the decay exactly (each split piece has total fraction 1), so exp(Re z)."""
+    tableau = METHODS[method].tableau
+    return np.abs(tableau.stability(z)) if tableau is not None else np.exp(np.real(z))
+
+
+def axis_growth(method: str, axis: str, x: np.ndarray) -> np.ndarray:
+    """Growth factor per step of the fastest motion at x on a stability axis.
+
+    h Omega: no drag; (w1, w2) turns (z = i x) while w3 stays (factor 1), so
+    the fastest motion grows by max(|R(i x)|, 1). h c / lambda1: a top with
+    lambda3 = lambda1 (Omega = 0) whose three rates all decay (z = -x).
+    """
+    x = np.asarray(x, dtype=float)
+    if axis == STABILITY_AXES[0]:
+        return np.maximum(_amplification(method, 1j * x), 1.0)
+    return _amplification(method, -x + 0j)
+
+
+def stability_axis(values: dict[str, np.ndarray], constants: dict, h: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Each member's stability axis, the larger of h |Omega| and h c / lambda1, and its position on it; h (s)."""
+    p, r1, _ = rates(values)
+    omega = np.abs(p * initial_state(values)[2])
+    rotating = omega >= r1
+    return np.where(rotating, STABILITY_AXES[0], STABILITY_AXES[1]), h * np.where(rotating, omega, r1)
+
+
+def step_growth(method: str, values: dict[str, np.ndarray], constants: dict, h: np.ndarray) -> np.ndarray:
+    """Theory: the growth factor per step of a member's fastest-growing motion at the start, of the transverse
+    rates (w1 + i w2 times R(h (i Omega - r1))) and of w3 (R(-h r3)); motions at zero amplitude do not count."""
+    p, r1, r3 = rates(values)
+    w = initial_state(values)
+    transverse = np.where(np.hypot(w[0], w[1]) > 0, _amplification(method, h * (1j * p * w[2] - r1)), 0.0)
+    axial = np.where(w[2] != 0, _amplification(method, -h * r3 + 0j), 0.0)
+    return np.maximum(transverse, axial)
+
+
+def amplitudes(samples: np.ndarray, values: dict[str, np.ndarray], constants: dict) -> np.ndarray:
+    """Amplitudes of the top's two motions, |(w1, w2)| and |w3| (rad/s), shape (2, samples, members)."""
+    return np.stack((np.hypot(samples[:, 0], samples[:, 1]), np.abs(samples[:, 2])))
+
+
+def kinetic_energy(omega: np.ndarray, lambda1, lambda3) -> np.ndarray:
+    """1/2 (lambda1 (w1^2 + w2^2) + lambda3 w3^2) (J) of body rates omega (..., 3) rad/s; conserved when c = 0."""
+    return 0.5 * (lambda1 * (omega[..., 0] ** 2 + omega[..., 1] ** 2) + lambda3 * omega[..., 2] ** 2)
+
+
 def observe(samples: np.ndarray, names, values: dict[str, np.ndarray], constants: dict) -> dict[str, np.ndarray]:
     """Saved variables from kernel samples of shape (t, 3, members), member-major."""
     out = {}

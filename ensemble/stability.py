@@ -1,0 +1,199 @@
+"""Where methods fail: measured growth per step, and the limits that linear theory predicts.
+
+Each scene linearizes its equations into motions a method amplifies by a
+factor per step (see `axis_growth` and `step_growth` in the scene modules):
+a chain's normal modes (frequency omega), a top's transverse rotation at the
+body-frame precession rate Omega and its drag decays at rates c / lambda.
+A stability axis is one such dimensionless step, h omega or h r; a method's
+limit on it is the smallest step at which its factor exceeds 1.
+"""
+from __future__ import annotations
+
+import numpy as np
+import xarray as xr
+from scipy.optimize import brentq
+
+from . import fit
+from .methods import METHODS
+from .scenes import SCENES
+
+#: A member counts as growing when its measured factor per step exceeds 1 by more than this.
+GROWTH_TOLERANCE = 1e-3
+#: A decaying amplitude is used while above this fraction of its start (and above SUBNORMAL): in subnormal
+#: numbers rounding stalls a decay (a last unit times 0.6 rounds back to itself).
+DECAY_FLOOR = 1e-200
+SUBNORMAL = 1e-290
+_THEORY_SLACK = 1e-9  # a factor this close to 1 is neutral (rounding in the one-step map)
+
+
+def measured_growth(amplitudes: np.ndarray, t: np.ndarray, step: np.ndarray) -> np.ndarray:
+    """Amplitude growth factor per step of each member's fastest-growing motion; shape (members,).
+
+    amplitudes (motions, samples, members) at times t (s); step (members,) s,
+    the step each member took (an adaptive method's mean accepted step). Per
+    motion, the slope of log amplitude against time is fitted by least
+    squares over the second half of the samples taken before the member
+    failed (the first ones mix in the motions a step damps), so a transient
+    or the last values alone do not decide it. Motions that start at zero
+    amplitude are skipped, and samples below DECAY_FLOOR times the start end
+    a motion's record; NaN where fewer than two samples remain.
+    """
+    a = np.asarray(amplitudes, dtype=float)
+    floor = np.maximum(DECAY_FLOOR * a[:, :1], SUBNORMAL)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        log_a = np.where(a > floor, np.log(a), np.nan)
+    count = np.cumprod(np.isfinite(log_a), axis=1).sum(axis=1, keepdims=True)  # samples before the first unusable
+    start = np.maximum(np.minimum(count // 2, count - 2), 0)
+    index = np.arange(a.shape[1])[None, :, None]
+    window = (index >= start) & (index < count)
+    weight = window.astype(float)
+    total = weight.sum(axis=1)
+    tt = np.broadcast_to(np.asarray(t, dtype=float)[None, :, None], a.shape)
+    y = np.where(window, log_a, 0.0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t_mean = (weight * tt).sum(axis=1) / total
+        y_mean = y.sum(axis=1) / total
+        dt = np.where(window, tt - t_mean[:, None], 0.0)
+        slope = (dt * (y - y_mean[:, None])).sum(axis=1) / (dt * dt).sum(axis=1)
+    slope = np.where(total >= 2, slope, np.nan)
+    growth = np.exp(slope * np.asarray(step, dtype=float)[None, :])
+    fastest = np.where(np.isnan(growth), -np.inf, growth).max(axis=0)
+    return np.where(np.isfinite(fastest), fastest, np.nan)
+
+
+def theoretical_limit(growth, upper: float = 10.0, points: int = 20001) -> float:
+    """Smallest x in (0, upper] with growth(x) > 1: 0 if growing from the start, inf if never.
+
+    growth: vectorized factor per step along a stability axis. The first
+    crossing is bracketed on a grid of `points` and refined with brentq.
+    """
+    x = np.linspace(0.0, upper, points)[1:]
+    over = growth(x) > 1.0 + _THEORY_SLACK
+    if not over.any():
+        return np.inf
+    first = int(np.argmax(over))
+    if first == 0:
+        return 0.0
+    return brentq(lambda s: float(growth(np.array([s]))[0]) - 1.0 - _THEORY_SLACK / 2, x[first - 1], x[first],
+                  xtol=1e-14)
+
+
+def measured_limit(x: np.ndarray, growth: np.ndarray, failed: np.ndarray) -> tuple[float, float, float]:
+    """Where measured growth first exceeds 1 + GROWTH_TOLERANCE along increasing x.
+
+    Returns (limit, last stable x, first growing x): the limit interpolates
+    linearly in growth between the two; (0, nan, x_min) when the smallest x
+    already grows, (inf, x_max, nan) when none does. Members without a
+    measured growth (NaN) count as growing if they failed, and are left out
+    if not (a motion that a step takes exactly to zero).
+    """
+    x, growth, failed = (np.asarray(v)[np.isfinite(growth) | failed] for v in (x, growth, failed))
+    order = np.argsort(x, kind="stable")
+    x, growth = x[order].astype(float), growth[order].astype(float)
+    grows = ~(growth <= 1.0 + GROWTH_TOLERANCE)
+    if not grows.any():
+        return np.inf, float(x[-1]), np.nan
+    first = int(np.argmax(grows))
+    if first == 0:
+        return 0.0, np.nan, float(x[0])
+    x0, x1, g0, g1 = x[first - 1], x[first], growth[first - 1], growth[first]
+    target = 1.0 + GROWTH_TOLERANCE
+    limit = x1 if not np.isfinite(g1) else x0 + (x1 - x0) * (target - g0) / (g1 - g0)
+    return float(limit), float(x0), float(x1)
+
+
+def member_steps(ds: xr.Dataset) -> np.ndarray:
+    """The step h (s) of each member: dt for fixed-step methods, the mean accepted step for adaptive ones
+    (time reached / steps accepted), NaN for the closed form."""
+    methods, dt = fit.member_settings(ds)
+    reached = np.where(np.isnan(ds["failure_time"].values), float(ds.attrs["t_end"]), ds["failure_time"].values)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mean_step = reached / ds["steps_accepted"].values
+    adaptive = np.array([METHODS[m].adaptive for m in methods])
+    closed = np.array([METHODS[m].closed_form for m in methods])
+    return np.where(closed, np.nan, np.where(adaptive, mean_step, dt))
+
+
+def stability_map(ds: xr.Dataset) -> xr.Dataset:
+    """Each member of a result on its stability axis, with its measured and predicted growth per step.
+
+    Returns over member: method, axis (the scene's STABILITY_AXES: which
+    dimensionless step dominates the member), x (its value: h times the
+    rate), growth (growth_per_step, measured), growth_theory (the scene's
+    step_growth at the member's h) and status. Closed-form members are left
+    out.
+    """
+    scene = SCENES.get(ds.attrs.get("scene"))
+    if scene is None:
+        raise fit.FitError("stability_map needs a result of `ensemble run`")
+    if "growth_per_step" not in ds:
+        raise fit.FitError("stability_map: the result has no growth_per_step (it predates failure detection; "
+                           "run it again)")
+    methods, _ = fit.member_settings(ds)
+    h = member_steps(ds)
+    keep = np.isfinite(h)
+    values = {name: ds[name].values[keep] for name in scene.PARAMETERS if name in ds}
+    constants = {name: ds.attrs[name] for name in ("n", "boundary") if name in ds.attrs}
+    axis, x = scene.stability_axis(values, constants, h[keep])
+    theory = np.full(keep.sum(), np.nan)
+    for method in dict.fromkeys(methods[keep]):
+        chosen = methods[keep] == method
+        theory[chosen] = scene.step_growth(method, {k: v[chosen] for k, v in values.items()}, constants,
+                                           h[keep][chosen])
+    out = xr.Dataset(coords={"member": ds["member"].values[keep]})
+    for name, data, units, long_name in (
+            ("method", methods[keep], "", "integration method"),
+            ("axis", axis, "", "stability axis: the dimensionless step that dominates the member"),
+            ("x", x, "1", "the member's dimensionless step on its axis"),
+            ("growth", ds["growth_per_step"].values[keep], "1", "measured growth factor per step"),
+            ("growth_theory", theory, "1", "growth factor per step that linear theory predicts"),
+            ("status", ds["status"].values[keep], "", "0 ok, 1 blew up, 2 step size underflow")):
+        out[name] = ("member", data, {"units": units, "long_name": long_name} if units else {"long_name": long_name})
+    out.attrs["scene"] = ds.attrs["scene"]
+    return out
+
+
+def stability_limits(points: xr.Dataset) -> list[dict]:
+    """Per method and stability axis of a stability_map: the theoretical and the measured limit.
+
+    Each row: method, axis, theory (first x where the factor exceeds 1),
+    measured, last_stable, first_growing (see measured_limit), members.
+    Adaptive methods are left out: their step control chooses x.
+    """
+    scene = SCENES[points.attrs["scene"]]
+    rows = []
+    for method in dict.fromkeys(points["method"].values):
+        if METHODS[method].adaptive:
+            continue
+        for axis in scene.STABILITY_AXES:
+            chosen = (points["method"].values == method) & (points["axis"].values == axis)
+            if not chosen.any():
+                continue
+            measured, stable, growing = measured_limit(points["x"].values[chosen], points["growth"].values[chosen],
+                                                       points["status"].values[chosen] != 0)
+            rows.append(dict(method=method, axis=axis, members=int(chosen.sum()), measured=measured,
+                             last_stable=stable, first_growing=growing,
+                             theory=theoretical_limit(lambda s: scene.axis_growth(method, axis, s))))
+    return rows
+
+
+def energy_drift(ds: xr.Dataset) -> xr.DataArray:
+    """|E(t) / E(0) - 1| over (member, t) for members whose energy the physics conserves; NaN elsewhere.
+
+    Chains: the saved `energy`. Tops: the kinetic energy (see top.kinetic_energy) of members without
+    drag (c = 0), from the saved `omega`.
+    """
+    if ds.attrs.get("scene") == "chain":
+        if "energy" not in ds:
+            raise fit.FitError("energy_drift: the result lacks energy (save it in the run file)")
+        energy = ds["energy"].values
+    else:
+        if "omega" not in ds:
+            raise fit.FitError("energy_drift: the result lacks omega (save it in the run file)")
+        energy = SCENES["top"].kinetic_energy(ds["omega"].values, ds["lambda1"].values[:, None],
+                                              ds["lambda3"].values[:, None])
+        energy[ds["c"].values != 0] = np.nan
+    with np.errstate(invalid="ignore", divide="ignore"):
+        drift = np.abs(energy / energy[:, :1] - 1)
+    return xr.DataArray(drift, dims=("member", "t"), coords={"member": ds["member"], "t": ds["t"]},
+                        attrs={"units": "1", "long_name": "relative energy error |E / E(0) - 1|"})
