@@ -24,9 +24,18 @@ from .scenes import SCENES, chain, top
 
 BLOCK = 128  # members per block of the top kernels
 FAST = dict(fastmath=True, error_model="numpy", boundscheck=False)
-# Code that tests for NaN and infinity must not assume there are none, as fastmath's nnan and ninf flags let
-# LLVM do; such functions are compiled on their own (not inlined at Numba level) so they keep these flags.
+# Code that tests for NaN and infinity is compiled without fastmath, on its own (not inlined at Numba level),
+# and tests the exponent bits: once LLVM inlines it into a fastmath kernel, it may assume that values made
+# by fastmath arithmetic are never NaN and fold a floating-point test away (measured: a NaN chain state passed
+# `not abs(x) <= limit`).
 CAREFUL = dict(error_model="numpy", boundscheck=False)
+_EXPONENT = 0x7FF0000000000000  # all ones in a float64's exponent: inf or NaN
+
+
+@njit(inline="always", **CAREFUL)
+def _finite(bits, i):
+    """Whether the float64 whose int64 view is bits[i] is finite."""
+    return (bits[i] & _EXPONENT) != _EXPONENT
 
 OK, BLEW_UP, UNDERFLOW = 0, 1, 2  # a member's status
 DEFAULT_BLOWUP_FACTOR = 1e6  # a member fails when its state outgrows its start by this factor
@@ -36,13 +45,14 @@ DEFAULT_BLOWUP_FACTOR = 1e6  # a member fails when its state outgrows its start 
 def _check_members(work, first, count, B, j0, limit, status, failure_time, t):
     """Fail, at time t (s), each running member of a block whose state rows [first, first + count) hold a value
     that is not finite or exceeds its limit: status BLEW_UP, state NaN. Returns how many members still run."""
+    bits = work.view(np.int64)
     running = 0
     for j in range(B):
         if status[j0 + j] != OK:
             continue
         bounded = True
         for r in range(first, first + count):
-            if not abs(work[r * B + j]) <= limit[j0 + j]:  # false for NaN
+            if not _finite(bits, r * B + j) or abs(work[r * B + j]) > limit[j0 + j]:
                 bounded = False
         if bounded:
             running += 1
@@ -98,6 +108,7 @@ def _top_kernel(method: Method):
                 work[c * BLOCK:(c + 1) * BLOCK] = state0[c, j0:j1]
                 work[(3 + c) * BLOCK:(4 + c) * BLOCK] = rate[c, j0:j1]
                 samples[0, c, j0:j1] = state0[c, j0:j1]
+            _check_members(work, 0, 3, BLOCK, j0, limit, status, failure_time, 0.0)  # a non-finite start
             if not runge_kutta:
                 for e in range(E):
                     if pieces[e] == DRAG:
@@ -185,14 +196,16 @@ def _control_step(work, c0, B, target, counts, j0, status, failure_time, new_sta
     time), and REJECTED_LAST is 0 for members whose step was accepted; the
     caller moves those to their new state.
     """
+    bits = work.view(np.int64)
     for j in range(B):
         step = work[(c0 + STEP) * B + j]
         if step <= 0.0:
             work[(c0 + ERR) * B + j] = -1.0  # nothing to do: mark as not accepted
             continue
+        finite = _finite(bits, (c0 + ERR) * B + j)
         err = work[(c0 + ERR) * B + j]
         counts[RHS_EVALS, j0 + j] += new_stages
-        if err <= 1.0:
+        if finite and err <= 1.0:
             factor = safety * max(err, 1e-10) ** -alpha * work[(c0 + ERR_PREVIOUS) * B + j] ** beta
             if work[(c0 + REJECTED_LAST) * B + j] > 0.0:
                 factor = min(factor, 1.0)
@@ -205,8 +218,8 @@ def _control_step(work, c0, B, target, counts, j0, status, failure_time, new_sta
             work[(c0 + REJECTED_LAST) * B + j] = 0.0
             counts[ACCEPTED, j0 + j] += 1.0
         else:
-            h = step * max(min_factor, safety * err ** -alpha) if err < np.inf else step * min_factor
-            if not h > 1e-14 * target:  # the step underflowed: give up
+            h = step * max(min_factor, safety * err ** -alpha) if finite else step * min_factor
+            if h <= 1e-14 * target:  # the step underflowed: give up
                 h = 0.0
                 work[(c0 + ERR) * B + j] = -2.0
                 status[j0 + j] = UNDERFLOW
@@ -264,6 +277,7 @@ def _top_adaptive_kernel(method: Method):
                 work[c * B:(c + 1) * B] = state0[c, j0:j0 + B]
                 work[(3 + c) * B:(4 + c) * B] = rate[c, j0:j0 + B]
                 samples[0, c, j0:j0 + B] = state0[c, j0:j0 + B]
+            _check_members(work, 0, 3, B, j0, limit, status, failure_time, 0.0)  # a non-finite start
             for j in range(B):
                 y1, y2, y3 = work[j], work[B + j], work[2 * B + j]
                 d1, d2, d3 = top.rhs(y1, y2, y3, work[3 * B + j], work[4 * B + j], work[5 * B + j])
@@ -276,7 +290,7 @@ def _top_adaptive_kernel(method: Method):
                     scale = atol + rtol * max(abs(y1), abs(y2), abs(y3))
                     h = _first_step(max(abs(y1), abs(y2), abs(y3)) / scale, max(abs(d1), abs(d2), abs(d3)) / scale,
                                     save_dt)
-                work[(C0 + H) * B + j] = h
+                work[(C0 + H) * B + j] = h if status[j0 + j] == OK else 0.0
                 counts[RHS_EVALS, j0 + j] = 1.0
             for i in range(1, n_save):
                 target = i * save_dt
@@ -428,6 +442,7 @@ def _chain_kernel(method: Method, n: int, periodic: bool):
         for block in prange(state0.shape[1] // B):
             j0 = block * B
             work = _load_chain_block(state0, rate, j0, samples, n, B, rows, periodic)
+            _check_members(work, X + 1, 2 * n + 1, B, j0, limit, status, failure_time, 0.0)  # a non-finite start
             for save in range(1, samples.shape[0]):
                 for step in range(steps_per_save):
                     for e in range(E):
@@ -458,6 +473,7 @@ def _chain_kernel(method: Method, n: int, periodic: bool):
         for block in prange(state0.shape[1] // B):
             j0 = block * B
             work = _load_chain_block(state0, rate, j0, samples, n, B, rows, periodic)
+            _check_members(work, X + 1, 2 * n + 1, B, j0, limit, status, failure_time, 0.0)  # a non-finite start
             for save in range(1, samples.shape[0]):
                 for _ in range(steps_per_save):
                     for s in range(S):
@@ -518,6 +534,7 @@ def _chain_adaptive_kernel(method: Method, n: int, periodic: bool):
         for block in prange(state0.shape[1] // B):
             j0 = block * B
             work = _load_chain_block(state0, rate, j0, samples, n, B, rows, periodic)
+            _check_members(work, X + 1, 2 * n + 1, B, j0, limit, status, failure_time, 0.0)  # a non-finite start
             _chain_slopes(work, X, V, KX, KV, n, B)
             for j in range(B):
                 rtol, atol = control[1, j0 + j], control[2, j0 + j]
@@ -534,7 +551,7 @@ def _chain_adaptive_kernel(method: Method, n: int, periodic: bool):
                         slope = max(slope, abs(v) / (atol + rtol * abs(x)),
                                     abs(work[(KV + i) * B + j]) / (atol + rtol * abs(v)))
                     h = _first_step(size, slope, save_dt)
-                work[(C0 + H) * B + j] = h
+                work[(C0 + H) * B + j] = h if status[j0 + j] == OK else 0.0
             for save in range(1, samples.shape[0]):
                 target = save * save_dt
                 while _trial_steps(work, C0, B, target):
