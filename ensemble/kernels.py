@@ -42,9 +42,10 @@ DEFAULT_BLOWUP_FACTOR = 1e6  # a member fails when its state outgrows its start 
 
 
 @njit(**CAREFUL)
-def _check_members(work, first, count, B, j0, limit, status, failure_time, t):
+def _check_members(work, first, count, B, j0, limit, status, failure_time, t, step_row=-1):
     """Fail, at time t (s), each running member of a block whose state rows [first, first + count) hold a value
-    that is not finite or exceeds its limit: status BLEW_UP, state NaN. Returns how many members still run."""
+    that is not finite or exceeds its limit: status BLEW_UP, state NaN, and (adaptive kernels) step 0 in row
+    step_row, so it takes no more steps. Returns how many members still run."""
     bits = work.view(np.int64)
     running = 0
     for j in range(B):
@@ -61,6 +62,8 @@ def _check_members(work, first, count, B, j0, limit, status, failure_time, t):
             failure_time[j0 + j] = t
             for r in range(first, first + count):
                 work[r * B + j] = np.nan
+            if step_row >= 0:
+                work[step_row * B + j] = 0.0
     return running
 
 
@@ -277,7 +280,6 @@ def _top_adaptive_kernel(method: Method):
                 work[c * B:(c + 1) * B] = state0[c, j0:j0 + B]
                 work[(3 + c) * B:(4 + c) * B] = rate[c, j0:j0 + B]
                 samples[0, c, j0:j0 + B] = state0[c, j0:j0 + B]
-            _check_members(work, 0, 3, B, j0, limit, status, failure_time, 0.0)  # a non-finite start
             for j in range(B):
                 y1, y2, y3 = work[j], work[B + j], work[2 * B + j]
                 d1, d2, d3 = top.rhs(y1, y2, y3, work[3 * B + j], work[4 * B + j], work[5 * B + j])
@@ -290,8 +292,9 @@ def _top_adaptive_kernel(method: Method):
                     scale = atol + rtol * max(abs(y1), abs(y2), abs(y3))
                     h = _first_step(max(abs(y1), abs(y2), abs(y3)) / scale, max(abs(d1), abs(d2), abs(d3)) / scale,
                                     save_dt)
-                work[(C0 + H) * B + j] = h if status[j0 + j] == OK else 0.0
+                work[(C0 + H) * B + j] = h
                 counts[RHS_EVALS, j0 + j] = 1.0
+            _check_members(work, 0, 3, B, j0, limit, status, failure_time, 0.0, C0 + H)  # a non-finite start
             for i in range(1, n_save):
                 target = i * save_dt
                 while _trial_steps(work, C0, B, target):
@@ -333,10 +336,7 @@ def _top_adaptive_kernel(method: Method):
                         elif work[(C0 + ERR) * B + j] == -2.0:
                             for c in range(3):
                                 work[c * B + j] = np.nan
-                running = _check_members(work, 0, 3, B, j0, limit, status, failure_time, target)
-                for j in range(B):
-                    if status[j0 + j] != OK:
-                        work[(C0 + H) * B + j] = 0.0  # a failed member takes no more steps
+                running = _check_members(work, 0, 3, B, j0, limit, status, failure_time, target, C0 + H)
                 for c in range(3):
                     samples[i, c, j0:j0 + B] = work[c * B:(c + 1) * B]
                 if running == 0:
@@ -412,6 +412,28 @@ def _chain_slopes(work, zx, zv, kx, kv, n, B):
             work[(kv + i) * B + j] = _chain_acceleration(work, zx, i, j, n, B)
 
 
+@njit(inline="always", **FAST)
+def _chain_stage(work, s, S, a, h, step_row, rows, n, B, periodic):
+    """Runge-Kutta stage s: its state Z = Y + sum_r h a[s, r] K_r into rows ZX, ZV, then its slopes into KX_s,
+    KV_s. rows = (X, V, ZX, ZV, KX, KV) as in _chain_kernel; the step is h, or each member's own from row
+    step_row when step_row >= 0 (adaptive kernels); a is the flat stages x stages tableau, zero from column s.
+    """
+    X, V, ZX, ZV, KX, KV = rows
+    for i in range(n):
+        for j in range(B):
+            hj = work[step_row * B + j] if step_row >= 0 else h
+            zx = work[(X + 1 + i) * B + j]
+            zv = work[(V + i) * B + j]
+            for r in range(S):
+                ha = hj * a[s * S + r]
+                zx += ha * work[(KX + r * n + i) * B + j]
+                zv += ha * work[(KV + r * n + i) * B + j]
+            work[(ZX + 1 + i) * B + j] = zx
+            work[(ZV + i) * B + j] = zv
+    _set_ghosts(work, ZX, n, B, periodic)
+    _chain_slopes(work, ZX, ZV, KX + s * n, KV + s * n, n, B)
+
+
 def _chain_kernel(method: Method, n: int, periodic: bool):
     """Chain kernel for n masses: a kick/drift splitting or an explicit Runge-Kutta tableau.
 
@@ -434,6 +456,7 @@ def _chain_kernel(method: Method, n: int, periodic: bool):
     KX = ZV + n
     KV = KX + S * n
     rows = KV + S * n if runge_kutta else CR + n
+    stage_rows = (X, V, ZX, ZV, KX, KV)
 
     @njit(parallel=True, cache=True, **FAST)
     def splitting_kernel(state0, rate, h, steps_per_save, limit, samples, status, failure_time):
@@ -477,18 +500,7 @@ def _chain_kernel(method: Method, n: int, periodic: bool):
             for save in range(1, samples.shape[0]):
                 for _ in range(steps_per_save):
                     for s in range(S):
-                        for i in range(n):
-                            for j in range(B):
-                                zx = work[(X + 1 + i) * B + j]
-                                zv = work[(V + i) * B + j]
-                                for r in range(S):
-                                    ha = h * a[s * S + r]
-                                    zx += ha * work[(KX + r * n + i) * B + j]
-                                    zv += ha * work[(KV + r * n + i) * B + j]
-                                work[(ZX + 1 + i) * B + j] = zx
-                                work[(ZV + i) * B + j] = zv
-                        _set_ghosts(work, ZX, n, B, periodic)
-                        _chain_slopes(work, ZX, ZV, KX + s * n, KV + s * n, n, B)
+                        _chain_stage(work, s, S, a, h, -1, stage_rows, n, B, periodic)
                     for i in range(n):
                         for j in range(B):
                             dx = 0.0
@@ -526,6 +538,7 @@ def _chain_adaptive_kernel(method: Method, n: int, periodic: bool):
     KV = KX + S * n
     C0 = KV + S * n
     rows = C0 + CONTROL_ROWS
+    stage_rows = (X, V, ZX, ZV, KX, KV)
     @njit(parallel=True, cache=True, **FAST)
     def kernel(state0, rate, control, save_dt, limit, samples, counts, status, failure_time):
         """state0, rate (2n, M); control (3, M): first step (s; <= 0: estimate it), rtol, atol; limit (M,)
@@ -534,7 +547,6 @@ def _chain_adaptive_kernel(method: Method, n: int, periodic: bool):
         for block in prange(state0.shape[1] // B):
             j0 = block * B
             work = _load_chain_block(state0, rate, j0, samples, n, B, rows, periodic)
-            _check_members(work, X + 1, 2 * n + 1, B, j0, limit, status, failure_time, 0.0)  # a non-finite start
             _chain_slopes(work, X, V, KX, KV, n, B)
             for j in range(B):
                 rtol, atol = control[1, j0 + j], control[2, j0 + j]
@@ -551,24 +563,14 @@ def _chain_adaptive_kernel(method: Method, n: int, periodic: bool):
                         slope = max(slope, abs(v) / (atol + rtol * abs(x)),
                                     abs(work[(KV + i) * B + j]) / (atol + rtol * abs(v)))
                     h = _first_step(size, slope, save_dt)
-                work[(C0 + H) * B + j] = h if status[j0 + j] == OK else 0.0
+                work[(C0 + H) * B + j] = h
+            # a non-finite start
+            _check_members(work, X + 1, 2 * n + 1, B, j0, limit, status, failure_time, 0.0, C0 + H)
             for save in range(1, samples.shape[0]):
                 target = save * save_dt
                 while _trial_steps(work, C0, B, target):
-                    for s in range(1, S):
-                        for i in range(n):
-                            for j in range(B):
-                                h = work[(C0 + STEP) * B + j]
-                                zx = work[(X + 1 + i) * B + j]
-                                zv = work[(V + i) * B + j]
-                                for r in range(S):  # a is zero from column s on
-                                    ha = h * a_array[s * S + r]
-                                    zx += ha * work[(KX + r * n + i) * B + j]
-                                    zv += ha * work[(KV + r * n + i) * B + j]
-                                work[(ZX + 1 + i) * B + j] = zx
-                                work[(ZV + i) * B + j] = zv
-                        _set_ghosts(work, ZX, n, B, periodic)
-                        _chain_slopes(work, ZX, ZV, KX + s * n, KV + s * n, n, B)
+                    for s in range(1, S):  # FSAL: stage 0 is the last step's final stage
+                        _chain_stage(work, s, S, a_array, 0.0, C0 + STEP, stage_rows, n, B, periodic)
                     # FSAL: the last stage state ZX, ZV is the new state; estimate its error
                     for i in range(n):
                         for j in range(B):
@@ -597,10 +599,8 @@ def _chain_adaptive_kernel(method: Method, n: int, periodic: bool):
                                 work[(X + 1 + i) * B + j] = np.nan
                                 work[(V + i) * B + j] = np.nan
                     _set_ghosts(work, X, n, B, periodic)
-                running = _check_members(work, X + 1, 2 * n + 1, B, j0, limit, status, failure_time, target)
-                for j in range(B):
-                    if status[j0 + j] != OK:
-                        work[(C0 + H) * B + j] = 0.0  # a failed member takes no more steps
+                running = _check_members(work, X + 1, 2 * n + 1, B, j0, limit, status, failure_time, target,
+                                         C0 + H)
                 _store_chain_sample(work, samples, save, j0, n, B)
                 if running == 0:
                     _fill_failed(samples, save + 1, j0, B)
