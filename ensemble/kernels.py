@@ -396,6 +396,17 @@ def _store_chain_sample(work, samples, save, j0, n, B):
 
 
 @njit(inline="always", **FAST)
+def _chain_saved(work, samples, save, j0, limit, status, failure_time, t, step_row, n, B):
+    """End of a save interval at time t (s): fail the members that blew up, store sample `save`; when no member
+    of the block runs any more, fill its later samples with NaN and return True (the block is done)."""
+    running = _check_members(work, 1, 2 * n + 1, B, j0, limit, status, failure_time, t, step_row)
+    _store_chain_sample(work, samples, save, j0, n, B)
+    if running == 0:
+        _fill_failed(samples, save + 1, j0, B)
+    return running == 0
+
+
+@njit(inline="always", **FAST)
 def _chain_acceleration(work, x, i, j, n, B):
     """Acceleration (m s-2) of mass i + 1 of member j, from the positions at row x (with ghosts)."""
     CL, CR = 2 * n + 2, 3 * n + 2
@@ -483,11 +494,8 @@ def _chain_kernel(method: Method, n: int, periodic: bool):
                                 for j in range(B):
                                     work[(X + 1 + i) * B + j] += tau * work[(V + i) * B + j]
                             _set_ghosts(work, X, n, B, periodic)
-                running = _check_members(work, X + 1, 2 * n + 1, B, j0, limit, status, failure_time,
-                                         save * steps_per_save * h)
-                _store_chain_sample(work, samples, save, j0, n, B)
-                if running == 0:
-                    _fill_failed(samples, save + 1, j0, B)
+                if _chain_saved(work, samples, save, j0, limit, status, failure_time, save * steps_per_save * h, -1,
+                                n, B):
                     break
 
     @njit(parallel=True, cache=True, **FAST)
@@ -510,11 +518,8 @@ def _chain_kernel(method: Method, n: int, periodic: bool):
                                 dv += b[s] * work[(KV + s * n + i) * B + j]
                             work[(X + 1 + i) * B + j] += h * dx
                             work[(V + i) * B + j] += h * dv
-                running = _check_members(work, X + 1, 2 * n + 1, B, j0, limit, status, failure_time,
-                                         save * steps_per_save * h)
-                _store_chain_sample(work, samples, save, j0, n, B)
-                if running == 0:
-                    _fill_failed(samples, save + 1, j0, B)
+                if _chain_saved(work, samples, save, j0, limit, status, failure_time, save * steps_per_save * h, -1,
+                                n, B):
                     break
 
     return runge_kutta_kernel if runge_kutta else splitting_kernel
@@ -599,11 +604,7 @@ def _chain_adaptive_kernel(method: Method, n: int, periodic: bool):
                                 work[(X + 1 + i) * B + j] = np.nan
                                 work[(V + i) * B + j] = np.nan
                     _set_ghosts(work, X, n, B, periodic)
-                running = _check_members(work, X + 1, 2 * n + 1, B, j0, limit, status, failure_time, target,
-                                         C0 + H)
-                _store_chain_sample(work, samples, save, j0, n, B)
-                if running == 0:
-                    _fill_failed(samples, save + 1, j0, B)
+                if _chain_saved(work, samples, save, j0, limit, status, failure_time, target, C0 + H, n, B):
                     break
 
     return kernel
