@@ -30,6 +30,7 @@ FAST = dict(fastmath=True, error_model="numpy", boundscheck=False)
 # `not abs(x) <= limit`).
 CAREFUL = dict(error_model="numpy", boundscheck=False)
 _EXPONENT = 0x7FF0000000000000  # all ones in a float64's exponent: inf or NaN
+_MAGNITUDE = 0x7FFFFFFFFFFFFFFF  # a float64's bits but its sign
 
 
 @njit(inline="always", **CAREFUL)
@@ -47,15 +48,15 @@ def _check_members(work, first, count, B, j0, limit, status, failure_time, t, st
     that is not finite or exceeds its limit: status BLEW_UP, state NaN, and (adaptive kernels) step 0 in row
     step_row, so it takes no more steps. Returns how many members still run."""
     bits = work.view(np.int64)
+    limit_bits = limit.view(np.int64)
     running = 0
     for j in range(B):
         if status[j0 + j] != OK:
             continue
-        bounded = True
+        largest = 0  # bits of the largest |value|: for floats >= 0 bits order as values do, inf and NaN on top
         for r in range(first, first + count):
-            if not _finite(bits, r * B + j) or abs(work[r * B + j]) > limit[j0 + j]:
-                bounded = False
-        if bounded:
+            largest = max(largest, bits[r * B + j] & _MAGNITUDE)
+        if largest < _EXPONENT and largest <= limit_bits[j0 + j]:
             running += 1
         else:
             status[j0 + j] = BLEW_UP
@@ -372,27 +373,28 @@ def _set_ghosts(work, x, n, B, periodic):
 
 
 @njit(inline="always", **FAST)
+def _store_chain_sample(work, samples, save, j0, n, B):
+    V = n + 2
+    for i in range(n):
+        for j in range(B):
+            samples[save, i, j0 + j] = work[(1 + i) * B + j]
+            samples[save, n + i, j0 + j] = work[(V + i) * B + j]
+
+
+@njit(inline="always", **FAST)
 def _load_chain_block(state0, rate, j0, samples, n, B, rows, periodic):
     """A block's work array (rows x B) with its state and parameters; also its first sample."""
     V, CL, CR = n + 2, 2 * n + 2, 3 * n + 2
     work = np.zeros(rows * B)
     for i in range(n):
-        work[(1 + i) * B:(2 + i) * B] = state0[i, j0:j0 + B]
-        work[(V + i) * B:(V + 1 + i) * B] = state0[n + i, j0:j0 + B]
-        work[(CL + i) * B:(CL + 1 + i) * B] = rate[i, j0:j0 + B]
-        work[(CR + i) * B:(CR + 1 + i) * B] = rate[n + i, j0:j0 + B]
-        samples[0, i, j0:j0 + B] = state0[i, j0:j0 + B]
-        samples[0, n + i, j0:j0 + B] = state0[n + i, j0:j0 + B]
+        for j in range(B):
+            work[(1 + i) * B + j] = state0[i, j0 + j]
+            work[(V + i) * B + j] = state0[n + i, j0 + j]
+            work[(CL + i) * B + j] = rate[i, j0 + j]
+            work[(CR + i) * B + j] = rate[n + i, j0 + j]
+    _store_chain_sample(work, samples, 0, j0, n, B)
     _set_ghosts(work, 0, n, B, periodic)
     return work
-
-
-@njit(inline="always", **FAST)
-def _store_chain_sample(work, samples, save, j0, n, B):
-    V = n + 2
-    for i in range(n):
-        samples[save, i, j0:j0 + B] = work[(1 + i) * B:(2 + i) * B]
-        samples[save, n + i, j0:j0 + B] = work[(V + i) * B:(V + 1 + i) * B]
 
 
 @njit(inline="always", **FAST)
