@@ -63,12 +63,17 @@ def main():
                   "x0": rng.normal(0, 0.1, (members, n)), "v0": np.zeros((members, n))}
         constants = {"n": n, "boundary": "fixed"}
         state, rate = chain.inputs(values, constants)
-        kernel = kernels.kernel_for("chain", "verlet", chain.kernel_key(constants))
-        samples = np.empty((2, 2 * n, members))
+        key = chain.kernel_key(constants)
+        kernel = kernels.kernel_for("chain", "verlet", key)
+        block = kernels.block_size("chain", key)
+        members -= members % block
+        state, rate = state[:, :members], rate[:, :members]
+        inputs = kernels.blocked(state, block), kernels.blocked(rate, block)
+        samples = np.empty((2, members // block, 2 * n, block))
         failure = (np.full(members, np.inf), samples, np.zeros(members), np.full(members, np.nan))
         steps = 200
-        kernel(state, rate, h, 1, *failure)  # compile or load; failure: limit, samples, status, time
-        fast = members * n * steps / median_seconds(lambda: kernel(state, rate, h, steps, *failure), args.repeats)
+        kernel(*inputs, h, 1, *failure)  # compile or load; failure: limit, samples, status, time
+        fast = members * n * steps / median_seconds(lambda: kernel(*inputs, h, steps, *failure), args.repeats)
         numpy_steps = 10
         slow = members * n * numpy_steps / median_seconds(
             lambda: numpy_verlet(state[:n], state[n:], rate[:n], rate[n:], h, numpy_steps), args.repeats)

@@ -60,7 +60,7 @@ def main():
     args = parser.parse_args()
 
     rng = np.random.default_rng(2026)
-    n = args.members
+    n = max(args.members // kernels.BLOCK, 1) * kernels.BLOCK  # whole kernel blocks
     table = {"lambda1": np.full(n, 1e-3), "lambda3": rng.uniform(1.2e-3, 2e-3, n), "c": rng.uniform(0, 2e-4, n),
              "spin0": rng.uniform(30, 60, n), "tilt0": rng.uniform(0.02, 0.2, n), "azimuth0": rng.uniform(0, 6, n)}
     state, rate = top.initial_state(table), top.rates(table)
@@ -69,11 +69,12 @@ def main():
           f"median of {args.repeats}")
     print(f"{'method':<8} {'numba member-steps/s':>21} {'numpy member-steps/s':>21} {'ratio':>7}")
     for name in ("euler", "rk4"):
-        samples = np.empty((2, 3, n))
+        samples = np.empty((2, n // kernels.BLOCK, 3, kernels.BLOCK))
         failure = (np.full(n, np.inf), samples, np.zeros(n), np.full(n, np.nan))  # limit, samples, status, time
         kernel = kernels.kernel_for("top", name)
-        kernel(state, rate, h, 1, *failure)  # compile or load
-        fast = median_rate(lambda: kernel(state, rate, h, args.steps, *failure), n, args.steps, args.repeats)
+        inputs = kernels.blocked(state, kernels.BLOCK), kernels.blocked(rate, kernels.BLOCK)
+        kernel(*inputs, h, 1, *failure)  # compile or load
+        fast = median_rate(lambda: kernel(*inputs, h, args.steps, *failure), n, args.steps, args.repeats)
         slow = median_rate(lambda: numpy_rk(METHODS[name].tableau, state, rate, h, args.numpy_steps),
                            n, args.numpy_steps, args.repeats)
         print(f"{name:<8} {fast:>21.3g} {slow:>21.3g} {fast / slow:>7.1f}")

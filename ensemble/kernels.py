@@ -7,6 +7,12 @@ single base pointer LLVM proves the rows disjoint and emits only the vector
 loop (separate arrays add a runtime overlap check whose scalar fallback
 rounds differently, so results would depend on heap addresses).
 
+Kernel arrays are laid out by block: state0 and rate (blocks, rows, B) and
+samples (n_save, blocks, rows, B), so a block reads and writes contiguous
+memory (as (rows, members) arrays, each row of a block was a separate cache
+line far from the next: loading and saving cost as much as 200 chain steps).
+Per-member arrays (limit, status, failure_time, control) are (..., members).
+
 Kernels are generated per (scene, method, kernel key) by factories whose
 closures capture the method's data as constants; Numba caches each on disk.
 """
@@ -69,9 +75,25 @@ def _check_members(work, first, count, B, j0, limit, status, failure_time, t, st
 
 
 @njit(inline="always", **FAST)
-def _fill_failed(samples, first_save, j0, B):
+def _fill_failed(samples, first_save, block):
     """NaN for the samples from first_save on of a block whose members have all failed."""
-    samples[first_save:, :, j0:j0 + B] = np.nan
+    samples[first_save:, block] = np.nan
+
+
+@njit(inline="always", **FAST)
+def _rows_in(work, row, source, first, count, B):
+    """Rows first .. first + count - 1 of a block's (rows, B) array into the work array from `row` on."""
+    for i in range(count):
+        for j in range(B):
+            work[(row + i) * B + j] = source[first + i, j]
+
+
+@njit(inline="always", **FAST)
+def _rows_out(work, row, target, first, count, B):
+    """Work rows row .. row + count - 1 into rows first .. first + count - 1 of a block's (rows, B) array."""
+    for i in range(count):
+        for j in range(B):
+            target[first + i, j] = work[(row + i) * B + j]
 
 
 def _method_constants(method: Method):
@@ -101,17 +123,15 @@ def _top_kernel(method: Method):
 
     @njit(parallel=True, cache=True, **FAST)
     def kernel(state0, rate, h, steps_per_save, limit, samples, status, failure_time):
-        """state0 (3, M), rate (3, M), limit (M,) -> samples (n_save, 3, M), status (M,), failure_time (M,)
-        (s; set only where a member fails); M a multiple of BLOCK."""
+        """state0 (blocks, 3, BLOCK), rate (blocks, 3, BLOCK), limit (M,) -> samples (n_save, blocks, 3, BLOCK),
+        status (M,), failure_time (M,) (s; set only where a member fails); M = blocks x BLOCK."""
         n_save = samples.shape[0]
-        for block in prange(state0.shape[1] // BLOCK):
+        for block in prange(state0.shape[0]):
             j0 = block * BLOCK
-            j1 = j0 + BLOCK
             work = np.zeros(rows * BLOCK)
-            for c in range(3):
-                work[c * BLOCK:(c + 1) * BLOCK] = state0[c, j0:j1]
-                work[(3 + c) * BLOCK:(4 + c) * BLOCK] = rate[c, j0:j1]
-                samples[0, c, j0:j1] = state0[c, j0:j1]
+            _rows_in(work, 0, state0[block], 0, 3, BLOCK)
+            _rows_in(work, 3, rate[block], 0, 3, BLOCK)
+            _rows_out(work, 0, samples[0, block], 0, 3, BLOCK)
             _check_members(work, 0, 3, BLOCK, j0, limit, status, failure_time, 0.0)  # a non-finite start
             if not runge_kutta:
                 for e in range(E):
@@ -164,10 +184,9 @@ def _top_kernel(method: Method):
                         work[BLOCK + j] = y2
                         work[2 * BLOCK + j] = y3
                 running = _check_members(work, 0, 3, BLOCK, j0, limit, status, failure_time, i * steps_per_save * h)
-                for c in range(3):
-                    samples[i, c, j0:j1] = work[c * BLOCK:(c + 1) * BLOCK]
+                _rows_out(work, 0, samples[i, block], 0, 3, BLOCK)
                 if running == 0:
-                    _fill_failed(samples, i + 1, j0, BLOCK)
+                    _fill_failed(samples, i + 1, block)
                     break
 
     return kernel
@@ -269,18 +288,17 @@ def _top_adaptive_kernel(method: Method):
 
     @njit(parallel=True, cache=True, **FAST)
     def kernel(state0, rate, control, save_dt, limit, samples, counts, status, failure_time):
-        """state0, rate (3, M); control (3, M): first step (s; <= 0: estimate it), rtol, atol; limit (M,)
-        -> samples (n_save, 3, M), counts (3, M): accepted, rejected, right-hand-side evaluations;
-        status (M,) and failure_time (M,; s, set only where a member fails)."""
+        """state0, rate (blocks, 3, BLOCK); control (3, M): first step (s; <= 0: estimate it), rtol, atol;
+        limit (M,) -> samples (n_save, blocks, 3, BLOCK), counts (3, M): accepted, rejected, right-hand-side
+        evaluations; status (M,) and failure_time (M,; s, set only where a member fails)."""
         n_save = samples.shape[0]
         B = BLOCK
-        for block in prange(state0.shape[1] // B):
+        for block in prange(state0.shape[0]):
             j0 = block * B
             work = np.zeros(rows * B)
-            for c in range(3):
-                work[c * B:(c + 1) * B] = state0[c, j0:j0 + B]
-                work[(3 + c) * B:(4 + c) * B] = rate[c, j0:j0 + B]
-                samples[0, c, j0:j0 + B] = state0[c, j0:j0 + B]
+            _rows_in(work, 0, state0[block], 0, 3, B)
+            _rows_in(work, 3, rate[block], 0, 3, B)
+            _rows_out(work, 0, samples[0, block], 0, 3, B)
             for j in range(B):
                 y1, y2, y3 = work[j], work[B + j], work[2 * B + j]
                 d1, d2, d3 = top.rhs(y1, y2, y3, work[3 * B + j], work[4 * B + j], work[5 * B + j])
@@ -338,10 +356,9 @@ def _top_adaptive_kernel(method: Method):
                             for c in range(3):
                                 work[c * B + j] = np.nan
                 running = _check_members(work, 0, 3, B, j0, limit, status, failure_time, target, C0 + H)
-                for c in range(3):
-                    samples[i, c, j0:j0 + B] = work[c * B:(c + 1) * B]
+                _rows_out(work, 0, samples[i, block], 0, 3, B)
                 if running == 0:
-                    _fill_failed(samples, i + 1, j0, B)
+                    _fill_failed(samples, i + 1, block)
                     break
 
     return kernel
@@ -373,38 +390,32 @@ def _set_ghosts(work, x, n, B, periodic):
 
 
 @njit(inline="always", **FAST)
-def _store_chain_sample(work, samples, save, j0, n, B):
-    V = n + 2
-    for i in range(n):
-        for j in range(B):
-            samples[save, i, j0 + j] = work[(1 + i) * B + j]
-            samples[save, n + i, j0 + j] = work[(V + i) * B + j]
+def _store_chain_sample(work, samples, save, block, n, B):
+    _rows_out(work, 1, samples[save, block], 0, n, B)
+    _rows_out(work, n + 2, samples[save, block], n, n, B)
 
 
 @njit(inline="always", **FAST)
-def _load_chain_block(state0, rate, j0, samples, n, B, rows, periodic):
-    """A block's work array (rows x B) with its state and parameters; also its first sample."""
-    V, CL, CR = n + 2, 2 * n + 2, 3 * n + 2
+def _load_chain_block(state0, rate, block, samples, n, B, rows, periodic):
+    """A block's work array (rows x B) with its state and parameters (CL and CR follow each other); also its
+    first sample."""
     work = np.zeros(rows * B)
-    for i in range(n):
-        for j in range(B):
-            work[(1 + i) * B + j] = state0[i, j0 + j]
-            work[(V + i) * B + j] = state0[n + i, j0 + j]
-            work[(CL + i) * B + j] = rate[i, j0 + j]
-            work[(CR + i) * B + j] = rate[n + i, j0 + j]
-    _store_chain_sample(work, samples, 0, j0, n, B)
+    _rows_in(work, 1, state0[block], 0, n, B)
+    _rows_in(work, n + 2, state0[block], n, n, B)
+    _rows_in(work, 2 * n + 2, rate[block], 0, 2 * n, B)
+    _store_chain_sample(work, samples, 0, block, n, B)
     _set_ghosts(work, 0, n, B, periodic)
     return work
 
 
 @njit(inline="always", **FAST)
-def _chain_saved(work, samples, save, j0, limit, status, failure_time, t, step_row, n, B):
+def _chain_saved(work, samples, save, block, limit, status, failure_time, t, step_row, n, B):
     """End of a save interval at time t (s): fail the members that blew up, store sample `save`; when no member
     of the block runs any more, fill its later samples with NaN and return True (the block is done)."""
-    running = _check_members(work, 1, 2 * n + 1, B, j0, limit, status, failure_time, t, step_row)
-    _store_chain_sample(work, samples, save, j0, n, B)
+    running = _check_members(work, 1, 2 * n + 1, B, block * B, limit, status, failure_time, t, step_row)
+    _store_chain_sample(work, samples, save, block, n, B)
     if running == 0:
-        _fill_failed(samples, save + 1, j0, B)
+        _fill_failed(samples, save + 1, block)
     return running == 0
 
 
@@ -473,11 +484,11 @@ def _chain_kernel(method: Method, n: int, periodic: bool):
 
     @njit(parallel=True, cache=True, **FAST)
     def splitting_kernel(state0, rate, h, steps_per_save, limit, samples, status, failure_time):
-        """state0 (2n, M), rate (2n, M), limit (M,) -> samples (n_save, 2n, M), status (M,), failure_time (M,)
-        (s; set only where a member fails); M a multiple of B."""
-        for block in prange(state0.shape[1] // B):
+        """state0 (blocks, 2n, B), rate (blocks, 2n, B), limit (M,) -> samples (n_save, blocks, 2n, B),
+        status (M,), failure_time (M,) (s; set only where a member fails); M = blocks x B."""
+        for block in prange(state0.shape[0]):
             j0 = block * B
-            work = _load_chain_block(state0, rate, j0, samples, n, B, rows, periodic)
+            work = _load_chain_block(state0, rate, block, samples, n, B, rows, periodic)
             _check_members(work, X + 1, 2 * n + 1, B, j0, limit, status, failure_time, 0.0)  # a non-finite start
             for save in range(1, samples.shape[0]):
                 for step in range(steps_per_save):
@@ -496,16 +507,16 @@ def _chain_kernel(method: Method, n: int, periodic: bool):
                                 for j in range(B):
                                     work[(X + 1 + i) * B + j] += tau * work[(V + i) * B + j]
                             _set_ghosts(work, X, n, B, periodic)
-                if _chain_saved(work, samples, save, j0, limit, status, failure_time, save * steps_per_save * h, -1,
+                if _chain_saved(work, samples, save, block, limit, status, failure_time, save * steps_per_save * h, -1,
                                 n, B):
                     break
 
     @njit(parallel=True, cache=True, **FAST)
     def runge_kutta_kernel(state0, rate, h, steps_per_save, limit, samples, status, failure_time):
         """As splitting_kernel."""
-        for block in prange(state0.shape[1] // B):
+        for block in prange(state0.shape[0]):
             j0 = block * B
-            work = _load_chain_block(state0, rate, j0, samples, n, B, rows, periodic)
+            work = _load_chain_block(state0, rate, block, samples, n, B, rows, periodic)
             _check_members(work, X + 1, 2 * n + 1, B, j0, limit, status, failure_time, 0.0)  # a non-finite start
             for save in range(1, samples.shape[0]):
                 for _ in range(steps_per_save):
@@ -520,7 +531,7 @@ def _chain_kernel(method: Method, n: int, periodic: bool):
                                 dv += b[s] * work[(KV + s * n + i) * B + j]
                             work[(X + 1 + i) * B + j] += h * dx
                             work[(V + i) * B + j] += h * dv
-                if _chain_saved(work, samples, save, j0, limit, status, failure_time, save * steps_per_save * h, -1,
+                if _chain_saved(work, samples, save, block, limit, status, failure_time, save * steps_per_save * h, -1,
                                 n, B):
                     break
 
@@ -548,12 +559,12 @@ def _chain_adaptive_kernel(method: Method, n: int, periodic: bool):
     stage_rows = (X, V, ZX, ZV, KX, KV)
     @njit(parallel=True, cache=True, **FAST)
     def kernel(state0, rate, control, save_dt, limit, samples, counts, status, failure_time):
-        """state0, rate (2n, M); control (3, M): first step (s; <= 0: estimate it), rtol, atol; limit (M,)
-        -> samples (n_save, 2n, M), counts (3, M): accepted, rejected, right-hand-side evaluations;
+        """state0, rate (blocks, 2n, B); control (3, M): first step (s; <= 0: estimate it), rtol, atol;
+        limit (M,) -> samples (n_save, blocks, 2n, B), counts (3, M): accepted, rejected, right-hand-side evaluations;
         status (M,) and failure_time (M,; s, set only where a member fails)."""
-        for block in prange(state0.shape[1] // B):
+        for block in prange(state0.shape[0]):
             j0 = block * B
-            work = _load_chain_block(state0, rate, j0, samples, n, B, rows, periodic)
+            work = _load_chain_block(state0, rate, block, samples, n, B, rows, periodic)
             _chain_slopes(work, X, V, KX, KV, n, B)
             for j in range(B):
                 rtol, atol = control[1, j0 + j], control[2, j0 + j]
@@ -606,7 +617,7 @@ def _chain_adaptive_kernel(method: Method, n: int, periodic: bool):
                                 work[(X + 1 + i) * B + j] = np.nan
                                 work[(V + i) * B + j] = np.nan
                     _set_ghosts(work, X, n, B, periodic)
-                if _chain_saved(work, samples, save, j0, limit, status, failure_time, target, C0 + H, n, B):
+                if _chain_saved(work, samples, save, block, limit, status, failure_time, target, C0 + H, n, B):
                     break
 
     return kernel
@@ -661,16 +672,17 @@ def integrate(scene, method: str, values: dict[str, np.ndarray], constants: dict
     key = scene.kernel_key(constants)
     n = state0.shape[1]
     limit = _limits(state0, blowup_factor)
-    state0, rate, limit = _padded((state0, rate, limit[None]), block_size(scene.NAME, key))
-    samples = np.empty((n_save, state0.shape[0], state0.shape[1]))
+    block = block_size(scene.NAME, key)
+    state0, rate, limit = _padded((state0, rate, limit[None]), block)
+    samples = np.empty((n_save, state0.shape[1] // block, state0.shape[0], block))
     status = np.zeros(state0.shape[1])
     failure_time = np.full(state0.shape[1], np.nan)
-    kernel_for(scene.NAME, method, key)(state0, rate, float(dt), int(steps_per_save), limit[0], samples, status,
-                                        failure_time)
+    kernel_for(scene.NAME, method, key)(blocked(state0, block), blocked(rate, block), float(dt), int(steps_per_save),
+                                        limit[0], samples, status, failure_time)
     failure_time = failure_time[:n]
     steps = np.where(np.isnan(failure_time), steps_per_save * (n_save - 1), np.rint(failure_time / dt))
     counts = np.stack([steps, np.zeros(n), steps * m.evaluations_per_step(scene.NAME)]).astype(np.int64)
-    return Outcome(samples[:, :, :n], counts, status[:n].astype(np.int8), failure_time)
+    return Outcome(unblocked(samples)[:, :, :n], counts, status[:n].astype(np.int8), failure_time)
 
 
 def integrate_adaptive(scene, method: str, values: dict[str, np.ndarray], constants: dict, first_step: np.ndarray,
@@ -688,14 +700,15 @@ def integrate_adaptive(scene, method: str, values: dict[str, np.ndarray], consta
     control = np.stack([np.nan_to_num(np.broadcast_to(x, (n,)).astype(float), nan=0.0)
                         for x in (first_step, rtol, atol)])
     limit = _limits(state0, blowup_factor)
-    state0, rate, control, limit = _padded((state0, rate, control, limit[None]), block_size(scene.NAME, key))
-    samples = np.empty((n_save, state0.shape[0], state0.shape[1]))
+    block = block_size(scene.NAME, key)
+    state0, rate, control, limit = _padded((state0, rate, control, limit[None]), block)
+    samples = np.empty((n_save, state0.shape[1] // block, state0.shape[0], block))
     counts = np.zeros((3, state0.shape[1]))
     status = np.zeros(state0.shape[1])
     failure_time = np.full(state0.shape[1], np.nan)
-    kernel_for(scene.NAME, method, key)(state0, rate, control, float(save_dt), limit[0], samples, counts, status,
-                                        failure_time)
-    return Outcome(samples[:, :, :n], counts[:, :n].astype(np.int64), status[:n].astype(np.int8), failure_time[:n])
+    kernel_for(scene.NAME, method, key)(blocked(state0, block), blocked(rate, block), control, float(save_dt), limit[0],
+                                        samples, counts, status, failure_time)
+    return Outcome(unblocked(samples)[:, :, :n], counts[:, :n].astype(np.int64), status[:n].astype(np.int8), failure_time[:n])
 
 
 def _padded(arrays, block: int) -> tuple[np.ndarray, ...]:
@@ -706,6 +719,18 @@ def _padded(arrays, block: int) -> tuple[np.ndarray, ...]:
                  for x in arrays)
 
 
+def blocked(x: np.ndarray, block: int) -> np.ndarray:
+    """A (rows, members) array, members a multiple of block, in a kernel's layout (members / block, rows, block)."""
+    rows, members = x.shape
+    return np.ascontiguousarray(x.reshape(rows, members // block, block).transpose(1, 0, 2))
+
+
+def unblocked(samples: np.ndarray) -> np.ndarray:
+    """A kernel's samples (n_save, blocks, rows, block) as (n_save, rows, members)."""
+    n_save, blocks, rows, block = samples.shape
+    return samples.transpose(0, 2, 1, 3).reshape(n_save, rows, blocks * block)
+
+
 def prepare(scene: str, method: str, constants: dict) -> None:
     """Compile (or load from Numba's cache) the kernel of a stepping method."""
     if METHODS[method].closed_form:
@@ -714,8 +739,8 @@ def prepare(scene: str, method: str, constants: dict) -> None:
     key = module.kernel_key(constants)
     state_rows, rate_rows = module.kernel_rows(constants)
     block = block_size(scene, key)
-    state0, rate = np.zeros((state_rows, block)), np.zeros((rate_rows, block))
-    samples = np.empty((1, state_rows, block))
+    state0, rate = np.zeros((1, state_rows, block)), np.zeros((1, rate_rows, block))
+    samples = np.empty((1, 1, state_rows, block))
     limit, status, failure_time = np.ones(block), np.zeros(block), np.zeros(block)
     if METHODS[method].adaptive:
         kernel_for(scene, method, key)(state0, rate, np.ones((3, block)), 1.0, limit, samples, np.zeros((3, block)),
