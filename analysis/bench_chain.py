@@ -1,11 +1,13 @@
 """Benchmark: chain kernels against NumPy vectorized over members, at several chain lengths.
 
-    python analysis/bench_chain.py [--masses 1048576] [--repeats 5] [--n 2 16 1024]
+    python analysis/bench_chain.py [--masses 1048576] [--repeats 7] [--n 2 16 1024] [--steps 200]
 
 For each chain length n the ensemble holds about `masses` masses in all
 (members = masses / n). The Numba verlet kernel and a NumPy velocity Verlet
 (one force evaluation per step, as the kernel does) run side by side in this
-process; the script prints median mass-steps per second and their ratio.
+process, in rounds that time each contender once; the script prints median
+mass-steps per second and the median of the ratios taken within each round
+(this machine is shared: its speed drifts between rounds, not within one).
 """
 from __future__ import annotations
 
@@ -37,50 +39,68 @@ def numpy_verlet(x, v, c_left, c_right, h, steps):
     return x, v
 
 
-def median_seconds(fn, repeats):
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - start)
-    return statistics.median(times)
+def seconds(fn):
+    start = time.perf_counter()
+    fn()
+    return time.perf_counter() - start
+
+
+def contenders(n, masses, rng, h, steps, numpy_steps):
+    """For a chain of n masses: the members, and the Numba kernel and NumPy calls (each returns mass-steps)."""
+    members = max(masses // n, 1)
+    values = {"m": rng.uniform(0.5, 2, (members, n)), "k": rng.uniform(0.5, 2, (members, n + 1)),
+              "x0": rng.normal(0, 0.1, (members, n)), "v0": np.zeros((members, n))}
+    constants = {"n": n, "boundary": "fixed"}
+    state, rate = chain.inputs(values, constants)
+    key = chain.kernel_key(constants)
+    kernel = kernels.kernel_for("chain", "verlet", key)
+    block = kernels.block_size("chain", key)
+    members = max(members - members % block, block)
+    state, rate = state[:, :members], rate[:, :members]
+    inputs = kernels.blocked(state, block), kernels.blocked(rate, block)
+    samples = np.empty((2, members // block, 2 * n, block))
+    failure = (np.full(members, np.inf), samples, np.zeros(members), np.full(members, np.nan))
+    kernel(*inputs, h, 1, *failure)  # compile or load; failure: limit, samples, status, time
+
+    def fast():
+        kernel(*inputs, h, steps, *failure)
+        return members * n * steps
+
+    def slow():
+        numpy_verlet(state[:n], state[n:], rate[:n], rate[n:], h, numpy_steps)
+        return members * n * numpy_steps
+
+    return members, fast, slow
 
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--masses", type=int, default=2**20)
     parser.add_argument("--n", type=int, nargs="+", default=[2, 16, 1024])
-    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--repeats", type=int, default=7)
+    parser.add_argument("--steps", type=int, default=200, help="Numba steps per kernel call (one saved sample)")
     args = parser.parse_args()
     rng = np.random.default_rng(2026)
     h = 1e-2
-    print(f"chain, fixed ends, velocity Verlet, about {args.masses} masses per ensemble, median of {args.repeats}")
-    print(f"{'n':>5} {'members':>8} {'numba mass-steps/s':>19} {'numpy mass-steps/s':>19} {'ratio':>6}")
-    rates = {}
-    for n in args.n:
-        members = max(args.masses // n, 1)
-        values = {"m": rng.uniform(0.5, 2, (members, n)), "k": rng.uniform(0.5, 2, (members, n + 1)),
-                  "x0": rng.normal(0, 0.1, (members, n)), "v0": np.zeros((members, n))}
-        constants = {"n": n, "boundary": "fixed"}
-        state, rate = chain.inputs(values, constants)
-        key = chain.kernel_key(constants)
-        kernel = kernels.kernel_for("chain", "verlet", key)
-        block = kernels.block_size("chain", key)
-        members -= members % block
-        state, rate = state[:, :members], rate[:, :members]
-        inputs = kernels.blocked(state, block), kernels.blocked(rate, block)
-        samples = np.empty((2, members // block, 2 * n, block))
-        failure = (np.full(members, np.inf), samples, np.zeros(members), np.full(members, np.nan))
-        steps = 200
-        kernel(*inputs, h, 1, *failure)  # compile or load; failure: limit, samples, status, time
-        fast = members * n * steps / median_seconds(lambda: kernel(*inputs, h, steps, *failure), args.repeats)
-        numpy_steps = 10
-        slow = members * n * numpy_steps / median_seconds(
-            lambda: numpy_verlet(state[:n], state[n:], rate[:n], rate[n:], h, numpy_steps), args.repeats)
-        rates[n] = fast
-        print(f"{n:>5} {members:>8} {fast:>19.3g} {slow:>19.3g} {fast / slow:>6.1f}")
-    if len(rates) > 1:
-        print(f"largest / smallest numba mass-steps/s across n: {max(rates.values()) / min(rates.values()):.2f}")
+    runs = {n: contenders(n, args.masses, rng, h, args.steps, numpy_steps=10) for n in args.n}
+    fast_rates = {n: [] for n in args.n}
+    slow_rates = {n: [] for n in args.n}
+    for _ in range(args.repeats):  # rounds: every contender once, so slow spells of the machine hit them all
+        for n, (_, fast, slow) in runs.items():
+            fast_rates[n].append(fast() / seconds(fast))
+            slow_rates[n].append(slow() / seconds(slow))
+    print(f"chain, fixed ends, velocity Verlet, about {args.masses} masses per ensemble, {args.steps} steps per "
+          f"kernel call; medians of {args.repeats} rounds, ratios taken within each round")
+    print(f"{'n':>5} {'members':>8} {'numba mass-steps/s':>19} {'numpy mass-steps/s':>19} {'ratio':>6} "
+          f"{'ratio range':>12}")
+    for n, (members, _, _) in runs.items():
+        ratios = [f / s for f, s in zip(fast_rates[n], slow_rates[n])]
+        print(f"{n:>5} {members:>8} {statistics.median(fast_rates[n]):>19.3g} "
+              f"{statistics.median(slow_rates[n]):>19.3g} {statistics.median(ratios):>6.1f} "
+              f"{min(ratios):>5.1f}..{max(ratios):<5.1f}")
+    if len(args.n) > 1:
+        spread = [max(r) / min(r) for r in zip(*fast_rates.values())]
+        print(f"largest / smallest numba mass-steps/s across n, median over rounds: {statistics.median(spread):.2f}")
 
 
 if __name__ == "__main__":

@@ -29,6 +29,7 @@ from .methods import DRAG, KICK, METHODS, Method
 from .scenes import SCENES, chain, top
 
 BLOCK = 128  # members per block of the top kernels
+TILE_ROWS, TILE_PIECES = 64, 32  # a long chain's splitting kernel: masses per tile, pieces per sweep
 FAST = dict(fastmath=True, error_model="numpy", boundscheck=False)
 # Code that tests for NaN and infinity is compiled without fastmath, on its own (not inlined at Numba level),
 # and tests the exponent bits: once LLVM inlines it into a fastmath kernel, it may assume that values made
@@ -458,6 +459,59 @@ def _chain_stage(work, s, S, a, h, step_row, rows, n, B, periodic):
     _chain_slopes(work, ZX, ZV, KX + s * n, KV + s * n, n, B)
 
 
+@njit(inline="always", **FAST)
+def _kick(work, tau, lo, hi, n, B, T):
+    """Kick masses lo + 1 .. hi (0 <= hi - lo <= T): v += tau (s) times their acceleration."""
+    w = work[lo * B:]  # rows from lo on, indexed from a loop of constant trip count T (see _chain_kernel)
+    for i in range(T):
+        if i >= hi - lo:
+            break
+        for j in range(B):
+            w[(n + 2 + i) * B + j] += tau * _chain_acceleration(w, 0, i, j, n, B)
+
+
+@njit(inline="always", **FAST)
+def _drift(work, tau, lo, hi, n, B, T):
+    """Drift masses lo + 1 .. hi (0 <= hi - lo <= T): x += tau (s) times their velocity."""
+    w = work[lo * B:]
+    for i in range(T):
+        if i >= hi - lo:
+            break
+        for j in range(B):
+            w[(1 + i) * B + j] += tau * w[(n + 2 + i) * B + j]
+
+
+@njit(**FAST)
+def _splitting_schedule(pieces, fractions, h, steps_per_save, chunk):
+    """The pieces of one save interval of steps h (s): kinds (KICK or DRIFT), taus (s), and lags.
+
+    Where a step ends with the piece the next begins with (verlet: a half
+    kick), the two merge into one. lags[p] is how many masses piece p runs
+    behind the first piece of its chunk (pieces in chunks of `chunk`): one
+    more at each change between kick and drift.
+    """
+    E = len(pieces)
+    merge = E > 1 and pieces[0] == pieces[E - 1]
+    kinds = np.empty(E * steps_per_save, np.int64)
+    taus = np.empty(E * steps_per_save)
+    count = 0
+    for step in range(steps_per_save):
+        for e in range(E):
+            if merge and e == 0 and step > 0:
+                continue  # done by the previous step's last piece
+            tau = h * fractions[e]
+            if merge and e == E - 1 and step < steps_per_save - 1:
+                tau += h * fractions[0]
+            kinds[count] = pieces[e]
+            taus[count] = tau
+            count += 1
+    lags = np.zeros(count, np.int64)
+    for p in range(count):
+        if p % chunk:
+            lags[p] = lags[p - 1] + (kinds[p] != kinds[p - 1])
+    return kinds[:count], taus[:count], lags
+
+
 def _chain_kernel(method: Method, n: int, periodic: bool):
     """Chain kernel for n masses: a kick/drift splitting or an explicit Runge-Kutta tableau.
 
@@ -466,15 +520,23 @@ def _chain_kernel(method: Method, n: int, periodic: bool):
     and right of each mass over its mass, see chain.inputs); Runge-Kutta adds
     the stage state ZX (n + 2), ZV (n) and slopes KX, KV (stages x n each).
     Forces come from neighbours only: O(n) per step.
+
+    A long chain's rows outgrow the L1 cache, so its splitting kernel runs
+    TILE_PIECES pieces (kicks and drifts) at once over tiles of TILE_ROWS
+    masses, each piece one mass behind the piece before it where kick and
+    drift alternate (a wavefront): every mass still sees its neighbours as
+    the one-piece-at-a-time order has them, so results are bit for bit the
+    same. A ring's ghost masses need every piece to finish first, so rings
+    run one piece at a time. Kick and drift index rows from a loop of
+    constant trip count: with a variable start, Numba's negative-index
+    wraparound stays in the loop and LLVM does not vectorize it.
     """
     B = chain_block(n)
     X, V = 0, n + 2
     CL = V + n
     CR = CL + n
     runge_kutta, S, a, b, E, pieces, fractions = _method_constants(method)
-    # A splitting that starts and ends with the same piece (verlet: kick) merges
-    # the end of one step with the start of the next inside a save interval.
-    merge = E > 1 and pieces[0] == pieces[E - 1]
+    tiled = not periodic and n > 2 * TILE_ROWS
     ZX = CR + n
     ZV = ZX + n + 2
     KX = ZV + n
@@ -486,26 +548,30 @@ def _chain_kernel(method: Method, n: int, periodic: bool):
     def splitting_kernel(state0, rate, h, steps_per_save, limit, samples, status, failure_time):
         """state0 (blocks, 2n, B), rate (blocks, 2n, B), limit (M,) -> samples (n_save, blocks, 2n, B),
         status (M,), failure_time (M,) (s; set only where a member fails); M = blocks x B."""
+        kinds, taus, lags = _splitting_schedule(pieces, fractions, h, steps_per_save, TILE_PIECES)
+        count = len(kinds)
         for block in prange(state0.shape[0]):
             j0 = block * B
             work = _load_chain_block(state0, rate, block, samples, n, B, rows, periodic)
             _check_members(work, X + 1, 2 * n + 1, B, j0, limit, status, failure_time, 0.0)  # a non-finite start
             for save in range(1, samples.shape[0]):
-                for step in range(steps_per_save):
-                    for e in range(E):
-                        tau = h * fractions[e]
-                        if merge and e == 0 and step > 0:
-                            continue  # done by the previous step's last piece
-                        if merge and e == E - 1 and step < steps_per_save - 1:
-                            tau += h * fractions[0]
-                        if pieces[e] == KICK:
-                            for i in range(n):
-                                for j in range(B):
-                                    work[(V + i) * B + j] += tau * _chain_acceleration(work, X, i, j, n, B)
+                if tiled:
+                    for c0 in range(0, count, TILE_PIECES):
+                        c1 = min(c0 + TILE_PIECES, count)
+                        for t0 in range(0, n + lags[c1 - 1], TILE_ROWS):
+                            for p in range(c0, c1):
+                                lo = max(t0 - lags[p], 0)
+                                hi = min(t0 + TILE_ROWS - lags[p], n)
+                                if kinds[p] == KICK:
+                                    _kick(work, taus[p], lo, hi, n, B, TILE_ROWS)
+                                else:
+                                    _drift(work, taus[p], lo, hi, n, B, TILE_ROWS)
+                else:
+                    for p in range(count):
+                        if kinds[p] == KICK:
+                            _kick(work, taus[p], 0, n, n, B, n)
                         else:
-                            for i in range(n):
-                                for j in range(B):
-                                    work[(X + 1 + i) * B + j] += tau * work[(V + i) * B + j]
+                            _drift(work, taus[p], 0, n, n, B, n)
                             _set_ghosts(work, X, n, B, periodic)
                 if _chain_saved(work, samples, save, block, limit, status, failure_time, save * steps_per_save * h, -1,
                                 n, B):

@@ -11,7 +11,7 @@ import xarray as xr
 from scipy.linalg import expm
 
 from ensemble import cli, kernels, runner
-from ensemble.methods import METHODS
+from ensemble.methods import KICK, METHODS
 from ensemble.scenes import chain
 from ensemble.spec import SpecError, load, parse
 
@@ -154,6 +154,35 @@ def test_verlet_is_reversible():
     back = run("verlet", {**values, "x0": forward[:n].T, "v0": forward[n:].T}, constants, -h, steps, 2)[1]
     start = np.concatenate((values["x0"].T, values["v0"].T))
     np.testing.assert_allclose(back, start, atol=1e-12 * np.abs(start).max())
+
+
+def numpy_splitting(method, values, constants, h, steps):
+    """State (2n, members) after `steps` steps of a splitting method applied one piece at a time, with NumPy
+    (fixed or free ends)."""
+    n = constants["n"]
+    state, rate = chain.inputs(values, constants)
+    x, v = state[:n].copy(), state[n:].copy()
+    with_walls = np.zeros((n + 2, x.shape[1]))
+    for _ in range(steps):
+        for piece, fraction in METHODS[method].splitting.sequence:
+            if piece == KICK:
+                with_walls[1:-1] = x
+                v += h * fraction * (rate[:n] * (with_walls[:-2] - x) + rate[n:] * (with_walls[2:] - x))
+            else:
+                x += h * fraction * v
+    return np.concatenate((x, v))
+
+
+@pytest.mark.parametrize("method, boundary", [("verlet", "fixed"), ("verlet", "free"), ("yoshida4", "fixed")])
+def test_long_chains_step_in_tiles_as_one_piece_at_a_time(method, boundary):
+    """Past 2 TILE_ROWS masses the splitting kernel runs many pieces at once over tiles of masses; 37 steps a
+    save interval make chunks of pieces that do not divide it."""
+    n, h = 2 * kernels.TILE_ROWS + 5, 0.05
+    constants = {"n": n, "boundary": boundary}
+    values = disordered(n, boundary, members=5)
+    samples = run(method, values, constants, h, 37, 3)
+    reference = numpy_splitting(method, values, constants, h, 74)
+    np.testing.assert_allclose(samples[-1], reference, rtol=0, atol=1e-12 * np.abs(reference).max())
 
 
 def test_course_chain_in_mode_two_oscillates_at_sqrt_3k_over_m(write_runfile):
