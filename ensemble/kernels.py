@@ -11,7 +11,8 @@ Kernel arrays are laid out by block: state0 and rate (blocks, rows, B) and
 samples (n_save, blocks, rows, B), so a block reads and writes contiguous
 memory (as (rows, members) arrays, each row of a block was a separate cache
 line far from the next: loading and saving a block of 16-mass chains cost
-about as much as 200 of its steps, measured). Per-member arrays (limit, status, failure_time, control) are (..., members).
+about as much as 200 of its steps, measured). Per-member arrays (limit,
+status, failure_time, control) are (..., members).
 
 Kernels are generated per (scene, method, kernel key) by factories whose
 closures capture the method's data as constants; Numba caches each on disk.
