@@ -18,6 +18,8 @@ import time
 import numpy as np
 
 from ensemble import kernels
+from ensemble.cli import OneLineParser
+from ensemble.report import positive_int
 from ensemble.scenes import chain
 
 
@@ -74,11 +76,12 @@ def contenders(n, masses, rng, h, steps, numpy_steps):
 
 
 def main():
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--masses", type=int, default=2**20)
-    parser.add_argument("--n", type=int, nargs="+", default=[2, 16, 1024])
-    parser.add_argument("--repeats", type=int, default=7)
-    parser.add_argument("--steps", type=int, default=200, help="Numba steps per kernel call (one saved sample)")
+    parser = OneLineParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--masses", type=positive_int, default=2**20)
+    parser.add_argument("--n", type=positive_int, nargs="+", default=[2, 16, 1024])
+    parser.add_argument("--repeats", type=positive_int, default=7)
+    parser.add_argument("--steps", type=positive_int, default=200,
+                        help="Numba steps per kernel call (one saved sample)")
     args = parser.parse_args()
     rng = np.random.default_rng(2026)
     h = 1e-2

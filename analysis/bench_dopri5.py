@@ -19,6 +19,8 @@ from pathlib import Path
 import numpy as np
 
 from ensemble import kernels
+from ensemble.cli import OneLineParser
+from ensemble.report import positive_int
 from ensemble.runner import measured_error
 from ensemble.scenes import chain, top
 from ensemble.spec import members_table, parse
@@ -81,8 +83,8 @@ def evaluations_for(target: float):
 
 
 def main():
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--repeats", type=int, default=3)
+    parser = OneLineParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--repeats", type=positive_int, default=3)
     args = parser.parse_args()
     spec = parse((RUNS / "aerobie.toml").read_text().replace("members = 200", "members = 4096"))
     tops = {name: v[:8192] for name, v in members_table(spec).items()}

@@ -20,7 +20,9 @@ from pathlib import Path
 import numpy as np
 
 from ensemble import kernels
+from ensemble.cli import OneLineParser
 from ensemble.methods import METHODS
+from ensemble.report import positive_int
 from ensemble.scenes import top
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -52,11 +54,11 @@ def median_rate(fn, members, steps, repeats):
 
 
 def main():
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--members", type=int, default=65536)
-    parser.add_argument("--steps", type=int, default=1000)
-    parser.add_argument("--numpy-steps", type=int, default=20)
-    parser.add_argument("--repeats", type=int, default=7)
+    parser = OneLineParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--members", type=positive_int, default=65536)
+    parser.add_argument("--steps", type=positive_int, default=1000)
+    parser.add_argument("--numpy-steps", type=positive_int, default=20)
+    parser.add_argument("--repeats", type=positive_int, default=7)
     args = parser.parse_args()
 
     rng = np.random.default_rng(2026)

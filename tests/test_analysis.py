@@ -84,3 +84,11 @@ def test_bad_options_are_one_line_and_exit_2(tmp_path):
     not_netcdf.write_text("not a result\n")
     refused = script("normal_modes.py", not_netcdf)
     assert refused.returncode == 2 and len(refused.stderr.strip().splitlines()) == 1
+
+
+@pytest.mark.parametrize("name", ["bench_chain.py", "bench_top.py", "bench_dopri5.py"])
+def test_benchmark_options_are_checked_in_one_line(name):
+    done = script(name, "--repeats", 0)
+    assert done.returncode == 2
+    assert done.stderr.strip().splitlines() == [f"{name}: error: argument --repeats: must be >= 1, got 0 "
+                                                f"(see {name} --help)"]
