@@ -348,7 +348,8 @@ def _top_adaptive_kernel(method: Method):
                         q2 = h * e2 / (atol + rtol * max(abs(y2), abs(z2)))
                         q3 = h * e3 / (atol + rtol * max(abs(y3), abs(z3)))
                         work[(C0 + ERR) * B + j] = math.sqrt((q1 * q1 + q2 * q2 + q3 * q3) / 3.0)
-                    _control_step(work, C0, B, target, counts, j0, status, failure_time, S - 1, alpha, beta, safety, min_factor, max_factor)
+                    _control_step(work, C0, B, target, counts, j0, status, failure_time, S - 1, alpha, beta, safety,
+                                  min_factor, max_factor)
                     for j in range(B):
                         if work[(C0 + REJECTED_LAST) * B + j] == 0.0 and work[(C0 + ERR) * B + j] >= 0.0:
                             for c in range(3):
@@ -436,6 +437,17 @@ def _chain_slopes(work, zx, zv, kx, kv, n, B):
         for j in range(B):
             work[(kx + i) * B + j] = work[(zv + i) * B + j]
             work[(kv + i) * B + j] = _chain_acceleration(work, zx, i, j, n, B)
+
+
+@njit(inline="always", **FAST)
+def _stage_sums(work, weights, S, KX, KV, i, j, n, B):
+    """sum_s weights[s] K_s for mass i + 1 of member j: its x part and its v part."""
+    dx = 0.0
+    dv = 0.0
+    for s in range(S):
+        dx += weights[s] * work[(KX + s * n + i) * B + j]
+        dv += weights[s] * work[(KV + s * n + i) * B + j]
+    return dx, dv
 
 
 @njit(inline="always", **FAST)
@@ -591,11 +603,7 @@ def _chain_kernel(method: Method, n: int, periodic: bool):
                         _chain_stage(work, s, S, a, h, -1, stage_rows, n, B, periodic)
                     for i in range(n):
                         for j in range(B):
-                            dx = 0.0
-                            dv = 0.0
-                            for s in range(S):
-                                dx += b[s] * work[(KX + s * n + i) * B + j]
-                                dv += b[s] * work[(KV + s * n + i) * B + j]
+                            dx, dv = _stage_sums(work, b, S, KX, KV, i, j, n, B)
                             work[(X + 1 + i) * B + j] += h * dx
                             work[(V + i) * B + j] += h * dv
                 if _chain_saved(work, samples, save, block, limit, status, failure_time, save * steps_per_save * h, -1,
@@ -659,11 +667,7 @@ def _chain_adaptive_kernel(method: Method, n: int, periodic: bool):
                     # FSAL: the last stage state ZX, ZV is the new state; estimate its error
                     for i in range(n):
                         for j in range(B):
-                            ex = 0.0
-                            ev = 0.0
-                            for s in range(S):
-                                ex += e[s] * work[(KX + s * n + i) * B + j]
-                                ev += e[s] * work[(KV + s * n + i) * B + j]
+                            ex, ev = _stage_sums(work, e, S, KX, KV, i, j, n, B)
                             h = work[(C0 + STEP) * B + j]
                             rtol, atol = work[(C0 + RTOL) * B + j], work[(C0 + ATOL) * B + j]
                             qx = h * ex / (atol + rtol * max(abs(work[(X + 1 + i) * B + j]),
@@ -672,7 +676,8 @@ def _chain_adaptive_kernel(method: Method, n: int, periodic: bool):
                             work[(C0 + ERR) * B + j] += qx * qx + qv * qv
                     for j in range(B):
                         work[(C0 + ERR) * B + j] = math.sqrt(work[(C0 + ERR) * B + j] / (2 * n))
-                    _control_step(work, C0, B, target, counts, j0, status, failure_time, S - 1, alpha, beta, safety, min_factor, max_factor)
+                    _control_step(work, C0, B, target, counts, j0, status, failure_time, S - 1, alpha, beta, safety,
+                                  min_factor, max_factor)
                     for i in range(n):
                         for j in range(B):
                             if work[(C0 + REJECTED_LAST) * B + j] == 0.0 and work[(C0 + ERR) * B + j] >= 0.0:
