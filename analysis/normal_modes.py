@@ -44,17 +44,12 @@ def draw(plt, ds, fits, rows, stem, member):
     ax.legend(loc="lower left", fontsize=8)
     paths = [report.save(plt, fig, stem, "spectrum")]
 
-    fig, ax = plt.subplots(figsize=(5.5, 4.5), layout="constrained")
     th, fr = fits["frequency_theory"].values.ravel(), fits["frequency"].values.ravel()
     ok = np.isfinite(fr)
-    ax.plot(th[ok], fr[ok], ".", ms=4, label="fitted, every member and mode")
-    span = np.array([0, th.max()])
-    ax.plot(span, span, "k--", lw=1, label="theory")
-    ax.set_xlabel("eigenfrequency (rad/s)")
-    ax.set_ylabel("fitted frequency (rad/s)")
-    ax.set_title("fitted frequencies against theory")
-    ax.legend()
-    paths.append(report.save(plt, fig, stem, "frequencies"))
+    paths.append(report.save_against_theory(
+        plt, stem, "frequencies", lambda ax: ax.plot(th[ok], fr[ok], ".", ms=4, label="fitted, every member and mode"),
+        [0, th.max()], "theory", "eigenfrequency (rad/s)", "fitted frequency (rad/s)",
+        "fitted frequencies against theory"))
     return paths
 
 

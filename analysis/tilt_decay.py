@@ -35,17 +35,15 @@ def draw(plt, ds, fits, rows, stem, sample):
     ax.legend(fontsize=7, loc="best")
     paths = [report.save(plt, fig, stem, "tilt")]
 
-    fig, ax = plt.subplots(figsize=(5.5, 4.5), layout="constrained")
     theory = np.array([r.theory for r in rows])
-    ax.errorbar(theory, [r.mean for r in rows], yerr=[r.error for r in rows], fmt="o", label="fitted mean +- error")
-    ax.plot(theory, [r.method for r in rows], "x", label=f"what {ds.attrs['method']} shows")
-    span = np.array([min(theory.min(), 0), theory.max()])
-    ax.plot(span, span, "k--", lw=1, label="theory c (1/lambda1 - 1/lambda3)")
-    ax.set_xlabel("theoretical rate (1/s)")
-    ax.set_ylabel("fitted rate (1/s)")
-    ax.set_title("tilt decay rate per sweep point")
-    ax.legend()
-    paths.append(report.save(plt, fig, stem, "rates"))
+
+    def draw_fits(ax):
+        ax.errorbar(theory, [r.mean for r in rows], yerr=[r.error for r in rows], fmt="o", label="fitted mean +- error")
+        ax.plot(theory, [r.method for r in rows], "x", label=f"what {ds.attrs['method']} shows")
+
+    paths.append(report.save_against_theory(
+        plt, stem, "rates", draw_fits, [min(theory.min(), 0), theory.max()], "theory c (1/lambda1 - 1/lambda3)",
+        "theoretical rate (1/s)", "fitted rate (1/s)", "tilt decay rate per sweep point"))
     return paths
 
 

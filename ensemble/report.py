@@ -203,6 +203,17 @@ def save(plt, fig, stem: Path, chart: str) -> Path:
     return path
 
 
+def save_against_theory(plt, stem: Path, chart: str, draw_fits, span, theory_label: str, xlabel: str, ylabel: str,
+                        title: str) -> Path:
+    """A chart of fitted values against theory: draw_fits(ax) draws the fits, then the line y = x over span."""
+    fig, ax = plt.subplots(figsize=(5.5, 4.5), layout="constrained")
+    draw_fits(ax)
+    ax.plot(span, span, "k--", lw=1, label=theory_label)
+    ax.set(xlabel=xlabel, ylabel=ylabel, title=title)
+    ax.legend()
+    return save(plt, fig, stem, chart)
+
+
 def z_histogram(ax, z: np.ndarray, label: str, reference: str = "theory") -> None:
     """Histogram of z values as a density, with the N(0, 1) density over it."""
     z = z[np.isfinite(z)]
