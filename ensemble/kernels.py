@@ -98,6 +98,16 @@ def _rows_out(work, row, target, first, count, B):
             target[first + i, j] = work[(row + i) * B + j]
 
 
+@njit(inline="always", **FAST)
+def _load_top_block(state0, rate, block, samples, rows):
+    """A top block's work array (rows x BLOCK): rates w1, w2, w3, then p, r1, r3; also its first sample."""
+    work = np.zeros(rows * BLOCK)
+    _rows_in(work, 0, state0[block], 0, 3, BLOCK)
+    _rows_in(work, 3, rate[block], 0, 3, BLOCK)
+    _rows_out(work, 0, samples[0, block], 0, 3, BLOCK)
+    return work
+
+
 def _method_constants(method: Method):
     """A method's data as plain tuples for a kernel closure (unused parts get placeholders).
 
@@ -130,10 +140,7 @@ def _top_kernel(method: Method):
         n_save = samples.shape[0]
         for block in prange(state0.shape[0]):
             j0 = block * BLOCK
-            work = np.zeros(rows * BLOCK)
-            _rows_in(work, 0, state0[block], 0, 3, BLOCK)
-            _rows_in(work, 3, rate[block], 0, 3, BLOCK)
-            _rows_out(work, 0, samples[0, block], 0, 3, BLOCK)
+            work = _load_top_block(state0, rate, block, samples, rows)
             _check_members(work, 0, 3, BLOCK, j0, limit, status, failure_time, 0.0)  # a non-finite start
             if not runge_kutta:
                 for e in range(E):
@@ -297,10 +304,7 @@ def _top_adaptive_kernel(method: Method):
         B = BLOCK
         for block in prange(state0.shape[0]):
             j0 = block * B
-            work = np.zeros(rows * B)
-            _rows_in(work, 0, state0[block], 0, 3, B)
-            _rows_in(work, 3, rate[block], 0, 3, B)
-            _rows_out(work, 0, samples[0, block], 0, 3, B)
+            work = _load_top_block(state0, rate, block, samples, rows)
             for j in range(B):
                 y1, y2, y3 = work[j], work[B + j], work[2 * B + j]
                 d1, d2, d3 = top.rhs(y1, y2, y3, work[3 * B + j], work[4 * B + j], work[5 * B + j])
