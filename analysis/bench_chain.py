@@ -17,9 +17,9 @@ import time
 
 import numpy as np
 
-from ensemble import kernels
-from ensemble.cli import OneLineParser
-from ensemble.report import positive_int
+from ensemble.arguments import OneLineParser, positive_int
+from ensemble.engine import launch
+from ensemble.methods import METHODS
 from ensemble.scenes import chain
 
 
@@ -53,19 +53,17 @@ def contenders(n, masses, rng, h, steps, numpy_steps):
     values = {"m": rng.uniform(0.5, 2, (members, n)), "k": rng.uniform(0.5, 2, (members, n + 1)),
               "x0": rng.normal(0, 0.1, (members, n)), "v0": np.zeros((members, n))}
     constants = {"n": n, "boundary": "fixed"}
-    state, rate = chain.inputs(values, constants)
-    key = chain.kernel_key(constants)
-    kernel = kernels.kernel_for("chain", "verlet", key)
-    block = kernels.block_size("chain", key)
+    block = launch.block_size(chain, constants)
     members = max(members - members % block, block)
-    state, rate = state[:, :members], rate[:, :members]
-    inputs = kernels.blocked(state, block), kernels.blocked(rate, block)
-    samples = np.empty((2, members // block, 2 * n, block))
-    failure = (np.full(members, np.inf), samples, np.zeros(members), np.full(members, np.nan))
-    kernel(*inputs, h, 1, *failure)  # compile or load; failure: limit, samples, status, time
+    values = {name: v[:members] for name, v in values.items()}
+    state, rate = chain.inputs(values, constants)
+    verlet = METHODS["verlet"]
+    launch.prepare(chain, verlet, constants)  # compile or load
+    kernel = launch.launcher(chain, verlet, values, constants, n_save=2, save_dt=h * steps, dt=h,
+                             blowup_factor=np.inf)
 
     def fast():
-        kernel(*inputs, h, steps, *failure)
+        kernel()
         return members * n * steps
 
     def slow():

@@ -18,10 +18,10 @@ from pathlib import Path
 
 import numpy as np
 
-from ensemble import kernels
-from ensemble.cli import OneLineParser
-from ensemble.report import positive_int
-from ensemble.runner import measured_error
+from ensemble.arguments import OneLineParser, positive_int
+from ensemble.engine import launch
+from ensemble.methods import METHODS
+from ensemble.records import measured_error
 from ensemble.scenes import chain, top
 from ensemble.spec import members_table, parse
 
@@ -44,18 +44,19 @@ x0 = { uniform = [-0.1, 0.1] }
 
 def per_step(scene, values, constants, dt, save_dt, n_save, repeats):
     """Median kernel seconds per member-step of rk4 (step dt) and dopri5 (rtol 1e-8)."""
-    for method in ("rk4", "dopri5"):
-        kernels.prepare(scene.NAME, method, constants)
-    members = len(values["method"])
-    steps_per_save = round(save_dt / dt)
+    rk4, dopri5 = METHODS["rk4"], METHODS["dopri5"]
+    for method in (rk4, dopri5):
+        launch.prepare(scene, method, constants)
+    fixed = launch.launcher(scene, rk4, values, constants, n_save=n_save, save_dt=save_dt, dt=dt)
+    adaptive = launch.launcher(scene, dopri5, values, constants, n_save=n_save, save_dt=save_dt, rtol=1e-8,
+                               atol=1e-12)
     rk4, dopri5 = [], []
     for _ in range(repeats):
         start = time.perf_counter()
-        kernels.integrate(scene, "rk4", values, constants, dt, steps_per_save, n_save)
-        rk4.append((time.perf_counter() - start) / (members * steps_per_save * (n_save - 1)))
+        counts = fixed().counts
+        rk4.append((time.perf_counter() - start) / (counts[0].sum() + counts[1].sum()))
         start = time.perf_counter()
-        counts = kernels.integrate_adaptive(scene, "dopri5", values, constants, np.nan, 1e-8, 1e-12, save_dt,
-                                            n_save).counts
+        counts = adaptive().counts
         dopri5.append((time.perf_counter() - start) / (counts[0].sum() + counts[1].sum()))
     return statistics.median(rk4), statistics.median(dopri5)
 
@@ -70,12 +71,14 @@ def evaluations_for(target: float):
     exact = top.exact(values, {}, t)
     rk4 = dopri5 = None
     for steps_per_save in 100 * 2 ** np.arange(10):
-        samples = kernels.integrate(top, "rk4", values, {}, 0.25 / steps_per_save, int(steps_per_save), 9).samples
+        samples = launch.integrate(top, METHODS["rk4"], values, {}, n_save=9, save_dt=0.25,
+                                   dt=0.25 / steps_per_save).samples
         if measured_error(samples, exact)[0].max() <= target:
             rk4 = (4 * steps_per_save * 8, 0.25 / steps_per_save)
             break
     for rtol in 10.0 ** -np.arange(6, 15):
-        samples, counts = kernels.integrate_adaptive(top, "dopri5", values, {}, np.nan, rtol, 1e-14, 0.25, 9)[:2]
+        samples, counts = launch.integrate(top, METHODS["dopri5"], values, {}, n_save=9, save_dt=0.25, rtol=rtol,
+                                           atol=1e-14)[:2]
         if measured_error(samples, exact)[0].max() <= target:
             dopri5 = (int(counts[2].max()), rtol)
             break

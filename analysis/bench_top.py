@@ -19,11 +19,11 @@ from pathlib import Path
 
 import numpy as np
 
-from ensemble import kernels
-from ensemble.cli import OneLineParser
+from ensemble.arguments import OneLineParser, positive_int
+from ensemble.engine import launch
 from ensemble.methods import METHODS
-from ensemble.report import positive_int
 from ensemble.scenes import top
+from ensemble.scenes.top.kernels import BLOCK, rhs
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -31,7 +31,7 @@ ROOT = Path(__file__).resolve().parents[1]
 def numpy_rk(tableau, state, rate, h, steps):
     """Explicit Runge-Kutta over members with NumPy, from the same tableau and right-hand side."""
     def f(y):
-        return np.stack(top.rhs.py_func(y[0], y[1], y[2], rate[0], rate[1], rate[2]))
+        return np.stack(rhs.py_func(y[0], y[1], y[2], rate[0], rate[1], rate[2]))
     for _ in range(steps):
         k = []
         for s in range(tableau.stages):
@@ -62,7 +62,7 @@ def main():
     args = parser.parse_args()
 
     rng = np.random.default_rng(2026)
-    n = max(args.members // kernels.BLOCK, 1) * kernels.BLOCK  # whole kernel blocks
+    n = max(args.members // BLOCK, 1) * BLOCK  # whole kernel blocks
     table = {"lambda1": np.full(n, 1e-3), "lambda3": rng.uniform(1.2e-3, 2e-3, n), "c": rng.uniform(0, 2e-4, n),
              "spin0": rng.uniform(30, 60, n), "tilt0": rng.uniform(0.02, 0.2, n), "azimuth0": rng.uniform(0, 6, n)}
     state, rate = top.initial_state(table), top.rates(table)
@@ -71,13 +71,11 @@ def main():
           f"median of {args.repeats}")
     print(f"{'method':<8} {'numba member-steps/s':>21} {'numpy member-steps/s':>21} {'ratio':>7}")
     for name in ("euler", "rk4"):
-        samples = np.empty((2, n // kernels.BLOCK, 3, kernels.BLOCK))
-        failure = (np.full(n, np.inf), samples, np.zeros(n), np.full(n, np.nan))  # limit, samples, status, time
-        kernel = kernels.kernel_for("top", name)
-        inputs = kernels.blocked(state, kernels.BLOCK), kernels.blocked(rate, kernels.BLOCK)
-        kernel(*inputs, h, 1, *failure)  # compile or load
-        fast = median_rate(lambda: kernel(*inputs, h, args.steps, *failure), n, args.steps, args.repeats)
-        slow = median_rate(lambda: numpy_rk(METHODS[name].tableau, state, rate, h, args.numpy_steps),
+        method = METHODS[name]
+        launch.prepare(top, method, {})  # compile or load
+        kernel = launch.launcher(top, method, table, {}, n_save=2, save_dt=h * args.steps, dt=h, blowup_factor=np.inf)
+        fast = median_rate(kernel, n, args.steps, args.repeats)
+        slow = median_rate(lambda: numpy_rk(method.tableau, state, rate, h, args.numpy_steps),
                            n, args.numpy_steps, args.repeats)
         print(f"{name:<8} {fast:>21.3g} {slow:>21.3g} {fast / slow:>7.1f}")
 

@@ -24,7 +24,9 @@ import numpy as np
 import xarray as xr
 
 from ensemble import report, stability
-from ensemble.cli import OneLineParser
+from ensemble.arguments import OneLineParser
+from ensemble.methods import METHODS
+from ensemble.results import Status
 from ensemble.scenes import SCENES
 
 LIMIT_RTOL = 0.02  # --check: measured limits within this of theory
@@ -51,8 +53,8 @@ def print_limits(rows: list[dict], points: xr.Dataset) -> None:
           f"{stability.GROWTH_TOLERANCE:g}); inf: none, 0: grows at every step")
     for method in dict.fromkeys(points["method"].values):
         status = points["status"].values[points["method"].values == method]
-        print(f"{method}: {np.sum(status == 1)} of {status.size} members blew up, "
-              f"{np.sum(status == 2)} step size underflows")
+        print(f"{method}: {np.sum(status == Status.BLEW_UP)} of {status.size} members blew up, "
+              f"{np.sum(status == Status.STEP_SIZE_UNDERFLOW)} step size underflows")
 
 
 def draw_map(plt, points: xr.Dataset, rows: list[dict], stem: Path) -> Path:
@@ -67,9 +69,9 @@ def draw_map(plt, points: xr.Dataset, rows: list[dict], stem: Path) -> Path:
             color = f"C{i % 10}"
             chosen = on_axis & (points["method"].values == method)
             x, growth, failed = (points[v].values[chosen] for v in ("x", "growth", "status"))
-            panel.semilogy(span, scene.axis_growth(method, axis, span), "-", color=color, lw=1, alpha=0.7)
-            panel.semilogy(x[failed == 0], growth[failed == 0], "o", color=color, ms=4, label=method)
-            panel.semilogy(x[failed != 0], growth[failed != 0], "x", color=color, ms=6)
+            panel.semilogy(span, scene.axis_growth(METHODS[method], axis, span), "-", color=color, lw=1, alpha=0.7)
+            panel.semilogy(x[failed == Status.OK], growth[failed == Status.OK], "o", color=color, ms=4, label=method)
+            panel.semilogy(x[failed != Status.OK], growth[failed != Status.OK], "x", color=color, ms=6)
             limit = next((r["theory"] for r in rows if r["method"] == method and r["axis"] == axis), np.nan)
             if np.isfinite(limit) and limit > 0:
                 panel.axvline(limit, color=color, ls=":", lw=1)

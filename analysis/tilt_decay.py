@@ -14,7 +14,7 @@ import sys
 
 import numpy as np
 
-from ensemble import fit, report
+from ensemble import arguments, fit, report
 
 
 def label(sel, point, mode) -> str:
@@ -49,7 +49,7 @@ def draw(plt, ds, fits, rows, stem, sample):
 
 def main(argv=None) -> int:
     parser = report.parser(__doc__)
-    parser.add_argument("--sample", type=report.positive_int, default=6, help="members drawn in the tilt chart")
+    parser.add_argument("--sample", type=arguments.positive_int, default=6, help="members drawn in the tilt chart")
     args = parser.parse_args(argv)
     return report.run_script(args, fit.tilt_decay, name="tilt_decay", value="rate", units="1/s",
                              title="tilt decay rates", label=label,

@@ -21,7 +21,7 @@ import numpy as np
 import xarray as xr
 
 from ensemble import fit, report
-from ensemble.cli import OneLineParser
+from ensemble.arguments import OneLineParser
 from ensemble.methods import METHODS
 
 

@@ -6,18 +6,7 @@ import sys
 from pathlib import Path
 
 from . import __version__
-
-EXIT_BAD_INPUT = 2
-EXIT_INTERRUPTED = 130
-
-
-class OneLineParser(argparse.ArgumentParser):
-    """argparse with one-line errors (no usage block), exit status 2; also used by the analysis scripts."""
-
-    def error(self, message):
-        program, _, where = self.prog.partition(" ")
-        self.exit(EXIT_BAD_INPUT, f"{program}: error: {where + ': ' if where else ''}{message} "
-                                  f"(see {self.prog} --help)\n")
+from .arguments import EXIT_BAD_INPUT, EXIT_INTERRUPTED, OneLineParser
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -123,12 +112,13 @@ def _run(args) -> int:
 
 def _methods() -> int:
     from .methods import METHODS
+    from .scenes import scenes_of
 
     width = max(len(name) for name in METHODS)
     print(f"{'method':<{width}} {'order':>5}  {'symplectic':<10}  {'scenes':<12} description")
     for m in METHODS.values():
         order = "exact" if m.order is None else str(m.order)
-        print(f"{m.name:<{width}} {order:>5}  {'yes' if m.symplectic else 'no':<10}  {','.join(m.scenes):<12} "
+        print(f"{m.name:<{width}} {order:>5}  {'yes' if m.symplectic else 'no':<10}  {','.join(scenes_of(m)):<12} "
               f"{m.summary}")
     return 0
 

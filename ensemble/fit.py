@@ -73,17 +73,18 @@ def member_settings(ds: xr.Dataset) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _method_prediction(ds: xr.Dataset, theory: np.ndarray, predict) -> np.ndarray:
-    """What each member's method shows: predict(method, dt, member indices) per (method, dt) group.
+    """What each member's method shows: predict(method (a Method), dt, member indices) per (method, dt) group.
 
     Adaptive methods keep their error to the tolerance: they show the physics.
     """
     methods, dt = member_settings(ds)
     out = np.array(theory, dtype=float, copy=True)
     for name, step in set(zip(methods, dt)):
-        if METHODS[name].adaptive or not np.isfinite(step):
+        method = METHODS[name]
+        if method.adaptive or not np.isfinite(step):
             continue
         chosen = np.flatnonzero((methods == name) & ((dt == step) | (np.isnan(dt) & np.isnan(step))))
-        out[chosen] = predict(name, step, chosen)
+        out[chosen] = predict(method, step, chosen)
     return out
 
 
@@ -102,8 +103,8 @@ def tilt_decay(ds: xr.Dataset) -> xr.Dataset:
     values = {name: ds[name].values for name in top.PARAMETERS if name in ds}
     intercept, rate, stderr, used = _tilt_fit_noisy(t, tilt, sigma) if sigma > 0 else _tilt_fit_clean(t, tilt)
     theory = values["c"] * (1 / values["lambda1"] - 1 / values["lambda3"])
-    method = _method_prediction(ds, theory, lambda name, dt, chosen: top.tilt_rate_method(
-        name, {k: v[chosen] for k, v in values.items()}, dt, t))
+    method = _method_prediction(ds, theory, lambda m, dt, chosen: top.tilt_rate_method(
+        m, {k: v[chosen] for k, v in values.items()}, dt, t))
     data = {
         "rate": (rate, "s-1", "fitted tilt decay rate: tan(tilt) ~ exp(-rate t)"),
         "rate_stderr": (stderr, "s-1", "standard error of rate"),
@@ -205,8 +206,8 @@ def mode_frequencies(ds: xr.Dataset) -> xr.Dataset:
     x = ds["x"].values
     sigma = _noise(ds["x"])
     theory, _ = chain.normal_modes(ds["m"].values, ds["k"].values, boundary)
-    method = _method_prediction(ds, theory, lambda name, dt, chosen: np.angle(
-        chain.step_eigenvalue(name, theory[chosen], dt)) / dt)
+    method = _method_prediction(ds, theory, lambda m, dt, chosen: np.angle(
+        chain.step_eigenvalue(m, theory[chosen], dt)) / dt)
     frequency = np.full(theory.shape, np.nan)
     stderr = np.full(theory.shape, np.nan)
     for i in range(x.shape[0]):
@@ -232,43 +233,35 @@ def mode_frequencies(ds: xr.Dataset) -> xr.Dataset:
     return _dataset(ds, data, ("member", "mode"), noise=sigma, fit="mode_frequencies")
 
 
-def _member_frequencies(t: np.ndarray, x: np.ndarray, sigma: float, most: int):
-    """Frequencies (rad/s, ascending) and their standard errors in x (times, sites)."""
-    if not np.all(np.isfinite(x)):
-        return np.empty(0), np.empty(0)
-    times, sites = x.shape
-    tc = t - t.mean()
-    window = blackmanharris(times)
-    pad = 4 * 2 ** int(np.ceil(np.log2(times)))
-    grid = 2 * np.pi * np.fft.rfftfreq(pad, t[1] - t[0])
-    lobe = 4 * pad // times  # the window's main-lobe half width, in padded bins
-    noise_power = sigma**2 * np.sum(window**2) * sites
+class _VariableProjection:
+    """The model x(t) = a + b t + sum_k (c_k cos w_k t + s_k sin w_k t) per site, linear in all but the w_k.
 
-    def design(w):
-        phase = np.outer(tc, w)
-        return np.hstack((np.ones((times, 1)), tc[:, None], np.cos(phase), np.sin(phase)))
+    least_squares asks for the residual and then the Jacobian at the same w, so the last factorization is kept.
+    """
 
-    last = {}
+    def __init__(self, t: np.ndarray, x: np.ndarray):
+        self.tc, self.x = t - t.mean(), x
+        self.last = {}
 
-    def solve(w):
-        """Least-squares amplitudes for frequencies w: orthonormal basis Q, amplitudes, residual.
+    def design(self, w):
+        phase = np.outer(self.tc, w)
+        return np.hstack((np.ones((self.tc.size, 1)), self.tc[:, None], np.cos(phase), np.sin(phase)))
 
-        least_squares asks for the residual and then the Jacobian at the same
-        w, so the last factorization is kept.
-        """
-        if last.get("w") is None or not np.array_equal(last["w"], w):
-            q, r = np.linalg.qr(design(w))
-            projected = q.T @ x
-            last.update(w=w.copy(), solved=(q, np.linalg.solve(r, projected), x - q @ projected))
-        return last["solved"]
+    def solve(self, w):
+        """Least-squares amplitudes for frequencies w: orthonormal basis Q, amplitudes, residual."""
+        if self.last.get("w") is None or not np.array_equal(self.last["w"], w):
+            q, r = np.linalg.qr(self.design(w))
+            projected = q.T @ self.x
+            self.last.update(w=w.copy(), solved=(q, np.linalg.solve(r, projected), self.x - q @ projected))
+        return self.last["solved"]
 
-    def residual(w):
-        return solve(w)[2].ravel()
+    def residual(self, w):
+        return self.solve(w)[2].ravel()
 
-    def jacobian(w):
+    def jacobian(self, w):
         """Kaufman's variable-projection Jacobian: -(I - Q Q^T) (d design / d w_k) amplitudes, all k at once."""
-        q, amplitudes, _ = solve(w)
-        k = w.size
+        q, amplitudes, _ = self.solve(w)
+        tc, (times, sites), k = self.tc, self.x.shape, w.size
         phase = np.outer(tc, w)  # (times, k)
         # d design / d w_k times the amplitudes: (times, sites, k)
         derivative = (-(tc[:, None] * np.sin(phase))[:, None, :] * amplitudes[2:2 + k].T[None, :, :]
@@ -276,6 +269,20 @@ def _member_frequencies(t: np.ndarray, x: np.ndarray, sigma: float, most: int):
         flat = derivative.reshape(times, sites * k)
         projected = flat - q @ (q.T @ flat)
         return -projected.reshape(times * sites, k)
+
+
+def _member_frequencies(t: np.ndarray, x: np.ndarray, sigma: float, most: int):
+    """Frequencies (rad/s, ascending) and their standard errors in x (times, sites)."""
+    if not np.all(np.isfinite(x)):
+        return np.empty(0), np.empty(0)
+    times, sites = x.shape
+    window = blackmanharris(times)
+    pad = 4 * 2 ** int(np.ceil(np.log2(times)))
+    grid = 2 * np.pi * np.fft.rfftfreq(pad, t[1] - t[0])
+    lobe = 4 * pad // times  # the window's main-lobe half width, in padded bins
+    noise_power = sigma**2 * np.sum(window**2) * sites
+    model = _VariableProjection(t, x)
+    solve = model.solve
 
     scale = np.sqrt(np.mean(x**2))
     slowest = 2 * np.pi * MIN_PERIODS / (t[-1] - t[0])
@@ -293,7 +300,7 @@ def _member_frequencies(t: np.ndarray, x: np.ndarray, sigma: float, most: int):
         if not new or power.max() == 0.0:
             break
         new = sorted(new, key=lambda w: -power[np.searchsorted(grid, w)])[: most - found.size]
-        fit = least_squares(residual, np.concatenate((found, new)), jac=jacobian, method="lm",
+        fit = least_squares(model.residual, np.concatenate((found, new)), jac=model.jacobian, method="lm",
                             xtol=1e-15, ftol=1e-15, gtol=1e-15)
         found = fit.x
         left = solve(found)[2]

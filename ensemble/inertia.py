@@ -17,17 +17,14 @@ from typing import Callable, Iterable
 
 import numpy as np
 
+from .parameter import ParameterError
+
 # Principal moments closer than this, relative to the largest, are equal (a symmetry, up to rounding).
 EQUAL_RTOL = 1e-9
 
 
-class ShapeError(ValueError):
+class ShapeError(ParameterError):
     """A bad shape dimension; `name` is the dimension (e.g. "r_inner")."""
-
-    def __init__(self, name: str, problem: str):
-        super().__init__(f"{name}: {problem}")
-        self.name = name
-        self.problem = problem
 
 
 @dataclass(frozen=True)

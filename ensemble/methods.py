@@ -5,8 +5,11 @@ A method is data wherever it fits a standard form:
 - splitting methods are sequences of exactly solved pieces, each advanced by a
   fraction of the step; higher orders come from composing a symmetric
   splitting (Yoshida's triple jump).
-The kernels in :mod:`ensemble.kernels` are generated from this data, so adding
-such a method is one entry here.
+Nothing here names a scene. A splitting names the exactly solved pieces it is
+made of (kick and drift, drag and rotation); a scene says which pieces it has
+(its PIECES), and the methods that apply to it follow (`ensemble.scenes.methods_for`).
+The scenes' kernels are generated from this data, so adding such a method is one
+entry here.
 """
 from __future__ import annotations
 
@@ -53,11 +56,19 @@ class Tableau:
 class Splitting:
     """One step as exactly solved pieces in turn: ((piece, fraction of the step), ...).
 
-    Pieces are numbered; each scene says what its piece 0 and piece 1 are
-    (chain: 0 kick, 1 drift; top: 0 drag, 1 free rotation).
+    `pieces` names the pieces (a scene with the same PIECES can take the
+    method); the sequence numbers them by their place in `pieces`.
     """
 
+    pieces: tuple[str, ...]
     sequence: tuple[tuple[int, float], ...]
+
+    def evaluations(self, evaluating: tuple[str, ...]) -> int:
+        """Right-hand-side evaluations per step: the pieces named in `evaluating` (a chain's kick evaluates the
+        forces), less one where a step ends with the piece the next begins with (they merge)."""
+        used = [p for p, _ in self.sequence if self.pieces[p] in evaluating]
+        first, last = self.sequence[0][0], self.sequence[-1][0]
+        return len(used) - (len(self.sequence) > 1 and first == last and self.pieces[first] in evaluating)
 
     def composed(self, weights: tuple[float, ...]) -> Splitting:
         """This splitting applied with step fractions `weights` in turn; adjacent equal pieces merge."""
@@ -68,7 +79,7 @@ class Splitting:
                     merged[-1][1] += w * fraction
                 else:
                     merged.append([piece, w * fraction])
-        return Splitting(tuple((p, f) for p, f in merged))
+        return Splitting(self.pieces, tuple((p, f) for p, f in merged))
 
 
 _CBRT2 = 2.0 ** (1.0 / 3.0)
@@ -112,20 +123,22 @@ class StepControl:
     max_factor: float = 10.0
 
 
-KICK, DRIFT = 0, 1  # chain pieces
-DRAG, ROTATE = 0, 1  # top pieces
-VERLET = Splitting(((KICK, 0.5), (DRIFT, 1.0), (KICK, 0.5)))
-STRANG_TOP = Splitting(((DRAG, 0.5), (ROTATE, 1.0), (DRAG, 0.5)))
+#: A separable Hamiltonian's pieces: kick (v += tau a(x)) and drift (x += tau v).
+KICK_DRIFT = ("kick", "drift")
+#: A torque-free rotation and a linear drag, each solved exactly.
+DRAG_ROTATION = ("drag", "rotate")
+SYMPLECTIC_EULER = Splitting(KICK_DRIFT, ((0, 1.0), (1, 1.0)))
+VERLET = Splitting(KICK_DRIFT, ((0, 0.5), (1, 1.0), (0, 0.5)))
+STRANG_DRAG_ROTATION = Splitting(DRAG_ROTATION, ((0, 0.5), (1, 1.0), (0, 0.5)))
 
 
 @dataclass(frozen=True)
 class Method:
-    """An integration method, its order, and the scenes it applies to."""
+    """An integration method and its order; which scenes it applies to follows from its kind."""
 
     name: str
     order: int | None  # None: no truncation error (closed form)
     symplectic: bool
-    scenes: tuple[str, ...]
     summary: str
     tableau: Tableau | None = None  # explicit Runge-Kutta methods
     splitting: Splitting | None = None  # splitting and composition methods
@@ -136,43 +149,29 @@ class Method:
     def adaptive(self) -> bool:
         return self.control is not None
 
-    def evaluations_per_step(self, scene: str) -> int:
-        """Right-hand-side (force) evaluations of a fixed step: the stages, or a splitting's kicks.
-
-        A splitting that starts and ends with a kick shares it with the next
-        step; the top's splitting pieces are solved exactly, without the rhs.
-        """
+    def evaluations_per_step(self, evaluating: tuple[str, ...]) -> int:
+        """Right-hand-side (force) evaluations of a fixed step: the stages, or the splitting pieces named in
+        `evaluating` (a scene's EVALUATING_PIECES); 0 for the closed form."""
         if self.tableau is not None:
             return self.tableau.stages
-        if self.splitting is None or scene != "chain":
-            return 0
-        pieces = [p for p, _ in self.splitting.sequence]
-        return pieces.count(KICK) - (len(pieces) > 1 and pieces[0] == pieces[-1] == KICK)
+        return self.splitting.evaluations(evaluating) if self.splitting is not None else 0
 
 
 METHODS: dict[str, Method] = {
     m.name: m
     for m in (
-        Method("euler", 1, False, ("top", "chain"), "explicit (forward) Euler", tableau=EULER),
-        Method("symplectic_euler", 1, True, ("chain",), "kick, then drift (semi-implicit Euler)",
-               splitting=Splitting(((KICK, 1.0), (DRIFT, 1.0)))),
-        Method("verlet", 2, True, ("chain",), "velocity Verlet (leapfrog): half kick, drift, half kick",
-               splitting=VERLET),
-        Method("rk4", 4, False, ("top", "chain"), "classical fourth-order Runge-Kutta", tableau=RK4),
-        Method("yoshida4", 4, True, ("chain",), "Yoshida's fourth-order composition of verlet",
+        Method("euler", 1, False, "explicit (forward) Euler", tableau=EULER),
+        Method("symplectic_euler", 1, True, "kick, then drift (semi-implicit Euler)", splitting=SYMPLECTIC_EULER),
+        Method("verlet", 2, True, "velocity Verlet (leapfrog): half kick, drift, half kick", splitting=VERLET),
+        Method("rk4", 4, False, "classical fourth-order Runge-Kutta", tableau=RK4),
+        Method("yoshida4", 4, True, "Yoshida's fourth-order composition of verlet",
                splitting=VERLET.composed(YOSHIDA4)),
-        Method("split2", 2, False, ("top",), "Strang splitting: half drag decay, free rotation, half drag decay",
-               splitting=STRANG_TOP),
-        Method("split4", 4, False, ("top",), "Yoshida's fourth-order composition of split2",
-               splitting=STRANG_TOP.composed(YOSHIDA4)),
-        Method("dopri5", 5, False, ("top", "chain"), "Dormand-Prince 5(4), adaptive: each member controls its "
-               "step to rtol and atol", tableau=DOPRI5, control=StepControl(alpha=0.7 / 5 - 0.75 * 0.04, beta=0.04)),
-        Method("exact", None, False, ("top", "chain"), "closed-form solution at the saved times (no stepping)",
-               closed_form=True),
+        Method("split2", 2, False, "Strang splitting: half drag decay, free rotation, half drag decay",
+               splitting=STRANG_DRAG_ROTATION),
+        Method("split4", 4, False, "Yoshida's fourth-order composition of split2",
+               splitting=STRANG_DRAG_ROTATION.composed(YOSHIDA4)),
+        Method("dopri5", 5, False, "Dormand-Prince 5(4), adaptive: each member controls its step to rtol and atol",
+               tableau=DOPRI5, control=StepControl(alpha=0.7 / 5 - 0.75 * 0.04, beta=0.04)),
+        Method("exact", None, False, "closed-form solution at the saved times (no stepping)", closed_form=True),
     )
 }
-
-
-def methods_for(scene: str) -> list[str]:
-    """Names of the methods that apply to `scene`, in listing order."""
-    return [name for name, m in METHODS.items() if scene in m.scenes]

@@ -1,7 +1,19 @@
-"""How a scene declares its run-file parameters."""
+"""How a scene declares its run-file parameters, and the one error a scene raises about a value."""
 from __future__ import annotations
 
 from dataclasses import dataclass
+
+
+class ParameterError(ValueError):
+    """A parameter value no scene member can have: `name` is the parameter, `problem` says why.
+
+    The run file reports it as one line naming the key where the value was given.
+    """
+
+    def __init__(self, name: str, problem: str):
+        super().__init__(f"{name}: {problem}")
+        self.name = name
+        self.problem = problem
 
 
 @dataclass(frozen=True)

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import xarray as xr
 
-from .cli import OneLineParser
+from .arguments import OneLineParser
 
 Z_TOLERANCE = 5.0  # a sweep point passes when its mean is within this many standard errors of theory...
 RTOL = 1e-6  # ...or within this relative difference (noise-free runs have tiny standard errors)
@@ -122,14 +122,6 @@ def outputs(result: Path, fit: str) -> tuple[Path, Path]:
     """Where a script writes its fits (NetCDF) and the stem of its charts, next to the result."""
     stem = result.with_suffix("")
     return stem.with_name(f"{stem.name}_{fit}.nc"), stem.with_name(f"{stem.name}_{fit}")
-
-
-def positive_int(text: str) -> int:
-    """An argparse type: an integer >= 1."""
-    value = int(text)
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be >= 1, got {value}")
-    return value
 
 
 def parser(doc: str) -> argparse.ArgumentParser:

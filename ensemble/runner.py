@@ -1,20 +1,26 @@
-"""Running a validated spec: members in chunks through a kernel into NetCDF."""
+"""Running a validated spec: members in chunks through the launch into NetCDF.
+
+Nothing here imports the analysis layer (fit, stability, report): a run starts fast.
+"""
 from __future__ import annotations
 
 import math
 import sys
 import tempfile
 import time
+import zlib
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 from tqdm import tqdm
 
-from . import kernels, stability
-from .methods import METHODS
+from .engine import launch
+from .methods import METHODS, Method
+from .records import growth_per_step, measured_error
+from .results import COUNTS, Outcome, Status
 from .scenes import SCENES
-from .spec import Spec, members_table, observation_noise
+from .spec import Spec, members_table
 from .store import Writer
 
 CHUNK_BYTES = 32 * 2**20  # saved data held in memory per chunk
@@ -26,8 +32,8 @@ class Summary:
     member_steps: int
     seconds: float
     steps_each: int | None = None  # when every member took the same number of steps
-    blew_up: int = 0  # failed members (status 1)
-    underflowed: int = 0  # failed members (status 2)
+    blew_up: int = 0  # failed members (status BLEW_UP)
+    underflowed: int = 0  # failed members (status STEP_SIZE_UNDERFLOW)
 
     def __str__(self) -> str:
         failed = self.blew_up + self.underflowed
@@ -44,18 +50,19 @@ class Summary:
 def default_chunk(spec: Spec) -> int:
     """Members per chunk: a multiple of the kernel block that keeps a chunk within CHUNK_BYTES."""
     scene = SCENES[spec.scene]
-    sizes = {"axis": 3, **scene.sizes(spec.constants)}
+    sizes = scene.sizes(spec.constants)
     state_rows, _ = scene.kernel_rows(spec.constants)
     saved = sum(math.prod(sizes[d] for d in scene.OBSERVABLES[v][0][2:]) for v in spec.save)
     values_per_member = spec.n_save * (state_rows + saved)  # kernel samples and the saved variables
-    block = kernels.block_size(spec.scene, scene.kernel_key(spec.constants))
+    block = launch.block_size(scene, spec.constants)
     chunk = CHUNK_BYTES // (8 * values_per_member) // block * block
     return min(max(chunk, block), spec.n_members)  # at least one kernel block
 
 
 def _same_settings(table: dict[str, np.ndarray], j0: int, j1: int):
-    """Ranges [k0, k1) within [j0, j1) of consecutive members that one kernel call can run (same method and dt)."""
-    key = [(m, d) for m, d in zip(table["method"][j0:j1], table["dt"][j0:j1])]
+    """Ranges [k0, k1) within [j0, j1) of consecutive members that one launch can run (same method and dt; a dt
+    of NaN, as adaptive and closed-form members have without one, equals NaN here)."""
+    key = [(m, d if d == d else None) for m, d in zip(table["method"][j0:j1], table["dt"][j0:j1])]
     k0 = j0
     for k in range(j0 + 1, j1 + 1):
         if k == j1 or key[k - j0] != key[k0 - j0]:
@@ -63,51 +70,49 @@ def _same_settings(table: dict[str, np.ndarray], j0: int, j1: int):
             k0 = k
 
 
-def integrate(spec: Spec, values: dict[str, np.ndarray], repeats: int = 1) -> tuple[kernels.Outcome, float]:
-    """Integrate members that share one method and dt; returns what the kernel did and its best seconds per
+def integrate(spec: Spec, method: Method, values: dict[str, np.ndarray], repeats: int = 1) -> tuple[Outcome, float]:
+    """Integrate members that share one method and dt; returns what the launch did and its best seconds per
     member-step over `repeats` calls."""
     scene = SCENES[spec.scene]
-    method = METHODS[str(values["method"][0])]
+    dt = values["dt"] if method.adaptive else float(values["dt"][0])
     best = np.inf
     for _ in range(repeats):
         start = time.perf_counter()
-        if method.adaptive:
-            outcome = kernels.integrate_adaptive(scene, method.name, values, spec.constants, values["dt"],
-                                                 values["rtol"], values["atol"], spec.save_dt, spec.n_save,
-                                                 spec.blowup_factor)
-        else:
-            dt = float(values["dt"][0]) if np.isfinite(values["dt"][0]) else spec.save_dt
-            outcome = kernels.integrate(scene, method.name, values, spec.constants, dt, round(spec.save_dt / dt),
-                                        spec.n_save, spec.blowup_factor)
+        outcome = launch.integrate(scene, method, values, spec.constants, n_save=spec.n_save, save_dt=spec.save_dt,
+                                   dt=dt, rtol=values["rtol"], atol=values["atol"], blowup_factor=spec.blowup_factor)
         best = min(best, time.perf_counter() - start)
     taken = outcome.counts[0].sum() + outcome.counts[1].sum()
     return outcome, best / taken if taken else np.nan
 
 
-def growth_per_step(spec: Spec, values: dict[str, np.ndarray], outcome: kernels.Outcome) -> np.ndarray:
-    """Each member's measured growth factor per step (see stability.measured_growth); per mean accepted step
-    for adaptive methods; NaN for the closed form."""
-    method = METHODS[str(values["method"][0])]
-    if method.closed_form:
-        return np.full(outcome.samples.shape[2], np.nan)
-    scene = SCENES[spec.scene]
-    step = values["dt"]
-    if method.adaptive:
-        reached = np.where(np.isnan(outcome.failure_time), spec.t_end, outcome.failure_time)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            step = reached / outcome.counts[0]
-    return stability.measured_growth(scene.amplitudes(outcome.samples, values, spec.constants), spec.times(), step)
+def observation_noise(spec: Spec, name: str, first: int, shape: tuple[int, ...]) -> np.ndarray:
+    """Gaussian noise (stddev spec.noise[name]) for members first, first + 1, ...; shape (members, ...).
 
-
-def measured_error(samples: np.ndarray, exact: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Per member: max over saved samples, and at the last one, of max |y - y_exact| / max |y_exact| over the state.
-
-    samples and exact: (n_save, state, members). A member with non-finite values has an infinite error.
+    Member i's noise on variable `name` comes from a stream seeded by (seed, crc32("noise:" + name), i).
     """
-    with np.errstate(invalid="ignore", divide="ignore"):
-        relative = np.abs(samples - exact).max(axis=1) / np.abs(exact).max(axis=1)
-    relative[~np.isfinite(relative) & np.isfinite(exact).all(axis=1)] = np.inf
-    return relative[1:].max(axis=0) if len(relative) > 1 else relative[0], relative[-1]
+    stream = zlib.crc32(f"noise:{name}".encode())
+    return spec.noise[name] * np.stack([
+        np.random.default_rng([spec.seed, stream, first + i]).standard_normal(shape[1:]) for i in range(shape[0])
+    ])
+
+
+def chunk_data(spec: Spec, method: Method, values: dict[str, np.ndarray], first: int, repeats: int = 1):
+    """Integrate members first, first + 1, ... (one method and dt) and return (outcome, the variables to write)."""
+    scene = SCENES[spec.scene]
+    outcome, seconds_per_step = integrate(spec, method, values, repeats)
+    data = scene.observe(outcome.samples, spec.save, values, spec.constants)
+    for name in spec.noise:
+        data[name] = data[name] + observation_noise(spec, name, first, data[name].shape)
+    data.update(zip(COUNTS, outcome.counts))
+    data.update(status=outcome.status, failure_time=outcome.failure_time,
+                growth_per_step=growth_per_step(scene, method, values, spec.constants, outcome, spec.times(),
+                                                spec.t_end))
+    if spec.measure["error"]:
+        data["error_max"], data["error_final"] = measured_error(
+            outcome.samples, scene.exact(values, spec.constants, spec.times()))
+    if spec.measure["timing"]:
+        data["seconds_per_step"] = np.full(len(outcome.status), seconds_per_step)
+    return outcome, data
 
 
 def run(spec: Spec, out: str | Path, *, chunk: int | None = None, progress: bool = True) -> Summary:
@@ -116,12 +121,12 @@ def run(spec: Spec, out: str | Path, *, chunk: int | None = None, progress: bool
     table = members_table(spec)
     n = spec.n_members
     chunk = chunk or default_chunk(spec)
-    for method in spec.methods:  # compile or load before the clock starts
-        kernels.prepare(spec.scene, method, spec.constants)
+    for name in spec.methods:  # compile or load before the clock starts
+        launch.prepare(scene, METHODS[name], spec.constants)
     repeats = spec.measure["repeats"] if spec.measure["timing"] else 1
     member_steps = 0
     step_counts = set()
-    failed = np.zeros(2, dtype=np.int64)  # members that blew up, whose step underflowed
+    failed = np.zeros(len(Status), dtype=np.int64)
     start = time.perf_counter()
     with Writer(out, spec, table, chunk) as writer, tqdm(
         total=n, unit="member", file=sys.stderr, disable=not progress, leave=False
@@ -129,26 +134,14 @@ def run(spec: Spec, out: str | Path, *, chunk: int | None = None, progress: bool
         for j0 in range(0, n, chunk):
             for k0, k1 in _same_settings(table, j0, min(j0 + chunk, n)):
                 values = {name: v[k0:k1] for name, v in table.items()}
-                outcome, seconds_per_step = integrate(spec, values, repeats)
-                counts = outcome.counts
-                member_steps += int(counts[0].sum() + counts[1].sum())
-                step_counts.update(np.unique(counts[0] + counts[1]).tolist())
-                failed += np.bincount(outcome.status, minlength=3)[1:]
-                data = scene.observe(outcome.samples, spec.save, values, spec.constants)
-                for name in spec.noise:
-                    data[name] = data[name] + observation_noise(spec, name, k0, data[name].shape)
-                data.update(steps_accepted=counts[0], steps_rejected=counts[1], rhs_evals=counts[2],
-                            status=outcome.status, failure_time=outcome.failure_time,
-                            growth_per_step=growth_per_step(spec, values, outcome))
-                if spec.measure["error"]:
-                    data["error_max"], data["error_final"] = measured_error(
-                        outcome.samples, scene.exact(values, spec.constants, spec.times()))
-                if spec.measure["timing"]:
-                    data["seconds_per_step"] = np.full(k1 - k0, seconds_per_step)
+                outcome, data = chunk_data(spec, METHODS[str(values["method"][0])], values, k0, repeats)
+                member_steps += int(outcome.counts[0].sum() + outcome.counts[1].sum())
+                step_counts.update(np.unique(outcome.counts[0] + outcome.counts[1]).tolist())
+                failed += np.bincount(outcome.status, minlength=len(Status))
                 writer.write(k0, data)
                 bar.update(k1 - k0)
     return Summary(n, member_steps, time.perf_counter() - start, step_counts.pop() if len(step_counts) == 1 else None,
-                   blew_up=int(failed[0]), underflowed=int(failed[1]))
+                   blew_up=int(failed[Status.BLEW_UP]), underflowed=int(failed[Status.STEP_SIZE_UNDERFLOW]))
 
 
 def simulate(spec: Spec, *, chunk: int | None = None):

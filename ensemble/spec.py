@@ -4,10 +4,11 @@ A run file is TOML (see README.md). Every problem is a SpecError naming the
 key, so the command line can print one line and exit with status 2.
 
 Randomness: parameter `name` of member i is the i-th draw of a stream seeded by
-(seed, crc32(name)). Observation noise on variable `name` of member i comes
-from a stream seeded by (seed, crc32("noise:" + name), i). Both depend only on
-the seed, the variable and the member index, never on chunk size, thread
-count, or the order of keys in the file.
+(seed, crc32(name)). It depends only on the seed, the parameter and the member
+index, never on chunk size, thread count, or the order of keys in the file.
+(Observation noise is drawn where it is added, in the runner.)
+
+Parsing imports no Numba: a run file is checked before any kernel is loaded.
 """
 from __future__ import annotations
 
@@ -21,11 +22,11 @@ from pathlib import Path
 
 import numpy as np
 
-from .inertia import SHAPES, ShapeError
-from .kernels import DEFAULT_BLOWUP_FACTOR
-from .methods import METHODS, methods_for
-from .parameter import Mode, Parameter
-from .scenes import SCENES
+from .inertia import SHAPES
+from .methods import METHODS
+from .parameter import Mode, Parameter, ParameterError
+from .results import DEFAULT_BLOWUP_FACTOR
+from .scenes import SCENES, applies, methods_for
 
 
 class SpecError(ValueError):
@@ -192,12 +193,12 @@ def _parameter(key: str, value, parameter: Parameter):
     if isinstance(value, list) and parameter.per:
         return [_expect(f"{key}[{i}]", x, float) for i, x in enumerate(value)]
     if isinstance(value, list):
-        raise SpecError(key, f"takes one value per member (a number or a distribution), got a list")
+        raise SpecError(key, "takes one value per member (a number or a distribution), got a list")
     return _expect(key, value, float)
 
 
-def parse(text: str, path: str = "<string>") -> Spec:
-    """Validate run-file text; raises SpecError naming the first bad key."""
+def _top_level(text: str) -> dict:
+    """The run file's top-level keys, each of its expected type."""
     try:
         raw = tomllib.loads(text)
     except tomllib.TOMLDecodeError as e:
@@ -208,8 +209,20 @@ def parse(text: str, path: str = "<string>") -> Spec:
     for key in REQUIRED:
         if key not in raw:
             raise SpecError(key, "missing (required)")
-    values = {key: _expect(key, raw[key], kind) for key, kind in TOP_LEVEL.items() if key in raw}
+    return {key: _expect(key, raw[key], kind) for key, kind in TOP_LEVEL.items() if key in raw}
 
+
+def _grids(sweep) -> tuple[list[dict], list[str]]:
+    """The sweep grids and where each is written: [sweep] is one grid, [[sweep]] tables a union of grids."""
+    if isinstance(sweep, list):
+        grids = [_expect(f"sweep[{g}]", grid, dict) for g, grid in enumerate(sweep)]
+        return grids, [f"sweep[{g}]" for g in range(len(grids))]
+    return ([sweep], ["sweep"]) if sweep else ([], [])
+
+
+def parse(text: str, path: str = "<string>") -> Spec:
+    """Validate run-file text; raises SpecError naming the first bad key."""
+    values = _top_level(text)
     scene = values["scene"]
     if scene not in SCENES:
         raise SpecError("scene", f"unknown scene {scene!r}; scenes: {', '.join(SCENES)}")
@@ -217,12 +230,7 @@ def parse(text: str, path: str = "<string>") -> Spec:
 
     t_end = _positive("t_end", values["t_end"])
     save_dt = _positive("save_dt", values["save_dt"])
-    sweep = values.get("sweep", {})
-    if isinstance(sweep, list):  # [[sweep]] tables: the run is the union of their grids
-        grids = [_expect(f"sweep[{g}]", grid, dict) for g, grid in enumerate(sweep)]
-        labels = [f"sweep[{g}]" for g in range(len(grids))]
-    else:
-        grids, labels = ([sweep], ["sweep"]) if sweep else ([], [])
+    grids, labels = _grids(values.get("sweep", {}))
     settings = {key: values[key] for key in SETTINGS if key in values}
     setting_axes = [_settings(settings, {k: v for k, v in grid.items() if k in SETTINGS}, label, scene, save_dt)
                     for grid, label in zip(grids, labels)] or [_settings(settings, {}, "sweep", scene, save_dt)]
@@ -266,55 +274,84 @@ def _parameters(given: dict, grids: list[dict], labels: list[str], module):
 
     Returns per-member parameters (name -> value), each grid's axes (name ->
     values), run constants and the declarations of every per-member
-    parameter the dataset records. A parameter that `derives` others (the
-    top's `body`) is a shape table: its shape becomes the constant
-    `<name>_shape`, its mass and lengths become parameters `<name>_<dimension>`
-    (swept as `<name>.<dimension>`), and the parameters it derives are
-    computed from it when the members table is built.
+    parameter the dataset records.
     """
     given, grids = dict(given), [dict(grid) for grid in grids]
     declared = dict(module.PARAMETERS)
     keys = {name: f"parameters.{name}" for name in declared}  # where each parameter's value is written
     constants = {}
     for name, parameter in module.PARAMETERS.items():
-        if not parameter.derives:
-            continue
-        del declared[name]
-        if name not in given:
-            for grid, label in zip(grids, labels):
-                if name in grid:
-                    raise SpecError(f"{label}.{name}", f"needs parameters.{name} with its shape")
-            continue
-        for other in parameter.derives:
-            if other in given or any(other in grid for grid in grids):
-                raise SpecError(f"parameters.{other}", f"is given by parameters.{name}; give "
-                                                       f"{' and '.join(parameter.derives)}, or {name}, not both")
-        shape, dimensions = _shape(f"parameters.{name}", given.pop(name))
-        constants[f"{name}_shape"] = shape
-        lengths = ("mass", *SHAPES[shape].lengths)
-        for dim in lengths:
-            flat = f"{name}_{dim}"
-            if flat in given or any(flat in grid for grid in grids):
-                raise SpecError(f"{'parameters' if flat in given else 'sweep'}.{flat}",
-                                f"give it as {dim} in parameters.{name} (or as {name}.{dim} under [sweep])")
-            keys[flat] = f"parameters.{name}.{dim}"
-            declared[flat] = Parameter("kg" if dim == "mass" else "m", f"{dim.replace('_', ' ')} of the {shape} body")
-            if dim in dimensions:
-                given[flat] = dimensions.pop(dim)
-        for dim in dimensions:
-            raise _unknown(f"parameters.{name}.{dim}", dim, ("shape", *lengths))
-        for grid, label in zip(grids, labels):
-            swept = _expect(f"{label}.{name}", grid.pop(name, {}), dict)
-            for dim, axis in swept.items():
-                if dim not in lengths:
-                    raise _unknown(f"{label}.{name}.{dim}", dim, lengths)
-                grid[f"{name}_{dim}"] = axis
-
+        if parameter.derives:
+            _shape_parameter(name, given, grids, labels, declared, keys, constants)
     parameters = {}
     for name, value in given.items():
         if name not in declared:
             raise _unknown(f"parameters.{name}", name, (*module.PARAMETERS, *SETTINGS))
         parameters[name] = _parameter(keys[name], value, declared[name])
+    axes = _parameter_axes(grids, labels, keys, declared, parameters, module)
+    swept = set(axes[0]) if axes else set()
+    for name, parameter in declared.items():
+        if name not in parameters and name not in swept and not _derived(name, module, constants):
+            if parameter.optional:
+                continue
+            if parameter.default is None:
+                sources = [source for source, p in module.PARAMETERS.items() if name in p.derives]
+                raise SpecError(keys[name], "missing (required" + "".join(
+                    f"; or give parameters.{source} as a shape" for source in sources) + ")")
+            parameters[name] = parameter.default
+    constants.update({name: parameters.pop(name) for name, p in declared.items() if p.constant})
+    try:
+        module.check_constants(constants)
+    except ParameterError as e:
+        raise SpecError(f"parameters.{e.name}", e.problem) from None
+    given = set(parameters) | swept
+    return parameters, axes, constants, {name: p for name, p in declared.items()
+                                         if not p.constant and (name in given or not p.optional)}
+
+
+def _shape_parameter(name: str, given: dict, grids: list[dict], labels: list[str], declared: dict, keys: dict,
+                     constants: dict) -> None:
+    """A parameter that `derives` others (the top's `body`), given as a shape table, in place.
+
+    Its shape becomes the constant `<name>_shape`, its mass and lengths become
+    parameters `<name>_<dimension>` (swept as `<name>.<dimension>`), and the
+    parameters it derives are computed from it when the members table is built.
+    """
+    parameter = declared.pop(name)
+    if name not in given:
+        for grid, label in zip(grids, labels):
+            if name in grid:
+                raise SpecError(f"{label}.{name}", f"needs parameters.{name} with its shape")
+        return
+    for other in parameter.derives:
+        if other in given or any(other in grid for grid in grids):
+            raise SpecError(f"parameters.{other}", f"is given by parameters.{name}; give "
+                                                   f"{' and '.join(parameter.derives)}, or {name}, not both")
+    shape, dimensions = _shape(f"parameters.{name}", given.pop(name))
+    constants[f"{name}_shape"] = shape
+    lengths = ("mass", *SHAPES[shape].lengths)
+    for dim in lengths:
+        flat = f"{name}_{dim}"
+        if flat in given or any(flat in grid for grid in grids):
+            raise SpecError(f"{'parameters' if flat in given else 'sweep'}.{flat}",
+                            f"give it as {dim} in parameters.{name} (or as {name}.{dim} under [sweep])")
+        keys[flat] = f"parameters.{name}.{dim}"
+        declared[flat] = Parameter("kg" if dim == "mass" else "m", f"{dim.replace('_', ' ')} of the {shape} body")
+        if dim in dimensions:
+            given[flat] = dimensions.pop(dim)
+    for dim in dimensions:
+        raise _unknown(f"parameters.{name}.{dim}", dim, ("shape", *lengths))
+    for grid, label in zip(grids, labels):
+        swept = _expect(f"{label}.{name}", grid.pop(name, {}), dict)
+        for dim, axis in swept.items():
+            if dim not in lengths:
+                raise _unknown(f"{label}.{name}.{dim}", dim, lengths)
+            grid[f"{name}_{dim}"] = axis
+
+
+def _parameter_axes(grids: list[dict], labels: list[str], keys: dict, declared: dict, parameters: dict,
+                    module) -> list[dict[str, tuple]]:
+    """Each grid's parameter axes, checked: declared, not run constants, not also fixed, the same in every grid."""
     axes = []
     for grid, label in zip(grids, labels):
         checked = {}
@@ -331,22 +368,7 @@ def _parameters(given: dict, grids: list[dict], labels: list[str], module):
             raise SpecError(label, f"sweeps parameters {sorted(checked)}, but {labels[0]} sweeps {sorted(axes[0])}: "
                                    f"every grid must sweep the same parameters (methods and steps may differ)")
         axes.append(checked)
-    swept = set(axes[0]) if axes else set()
-    for name, parameter in declared.items():
-        if name not in parameters and name not in swept and not _derived(name, module, constants):
-            if parameter.optional:
-                continue
-            if parameter.default is None:
-                sources = [source for source, p in module.PARAMETERS.items() if name in p.derives]
-                raise SpecError(keys[name], "missing (required" + "".join(
-                    f"; or give parameters.{source} as a shape" for source in sources) + ")")
-            parameters[name] = parameter.default
-    constants.update({name: parameters.pop(name) for name, p in declared.items() if p.constant})
-    for name, problem in module.check_constants(constants):
-        raise SpecError(f"parameters.{name}", problem)
-    given = set(parameters) | swept
-    return parameters, axes, constants, {name: p for name, p in declared.items()
-                                         if not p.constant and (name in given or not p.optional)}
+    return axes
 
 
 def _axis(key: str, axis, kind) -> tuple:
@@ -363,7 +385,7 @@ def _settings(top: dict, axes: dict, label: str, scene: str, save_dt: float) -> 
     out = {}
     for key, axis in axes.items():
         if key in top:
-            raise SpecError(f"{label}.{key}", f"is both a top-level value and a sweep axis; give it in one place only")
+            raise SpecError(f"{label}.{key}", "is both a top-level value and a sweep axis; give it in one place only")
         out[key] = _axis(f"{label}.{key}", axis, str if key == "method" else float)
     where = {key: f"{label}.{key}" if key in out else key for key in SETTINGS}
     if "method" not in top and "method" not in out:
@@ -375,15 +397,15 @@ def _settings(top: dict, axes: dict, label: str, scene: str, save_dt: float) -> 
                 raise SpecError(where[key], f"must be > 0 and finite, got {value!r}")
     for value in out.get("dt", (top["dt"],) if "dt" in top else ()):
         _positive(where["dt"], value)
-    adaptive = [name for name, m in METHODS.items() if m.adaptive and scene in m.scenes]
+    module = SCENES[scene]
+    names = ", ".join(m.name for m in methods_for(module))
+    adaptive = [m.name for m in methods_for(module) if m.adaptive]
     for method in out.get("method", (top.get("method"),)):
         if method not in METHODS:
-            raise SpecError(where["method"], f"unknown method {method!r}; methods for {scene}: "
-                                             f"{', '.join(methods_for(scene))}")
-        if scene not in METHODS[method].scenes:
-            raise SpecError(where["method"], f"{method!r} does not apply to scene {scene!r}; "
-                                             f"use one of: {', '.join(methods_for(scene))}")
+            raise SpecError(where["method"], f"unknown method {method!r}; methods for {scene}: {names}")
         m = METHODS[method]
+        if not applies(m, module):
+            raise SpecError(where["method"], f"{method!r} does not apply to scene {scene!r}; use one of: {names}")
         if m.adaptive:
             if "dt" in out:
                 raise SpecError(where["dt"], f"is swept, but {method!r} is adaptive: dt is only its first trial step; "
@@ -515,14 +537,11 @@ def _build_table(spec: Spec) -> dict[str, np.ndarray]:
     for source, parameter in scene.PARAMETERS.items():
         if f"{source}_shape" in spec.constants:
             table.update(_from_shape(spec, source, table))
-    for name, problem in SCENES[spec.scene].check(table):
-        where = "sweep" if name in spec.sweep else "parameters"
-        raise SpecError(f"{where}.{name}", problem)
     try:
+        scene.check(table)
         table.update(scene.derive(table, spec.constants))
-    except ValueError as e:  # args: (parameter, problem)
-        name, problem = e.args
-        raise SpecError(f"{'sweep' if name in spec.sweep else 'parameters'}.{name}", problem) from None
+    except ParameterError as e:
+        raise SpecError(f"{'sweep' if e.name in spec.sweep else 'parameters'}.{e.name}", e.problem) from None
     for name, mode in modes.items():
         if not 1 <= mode.number <= sizes["site"]:
             raise SpecError(f"parameters.{name}.mode", f"must be in 1..{sizes['site']}, got {mode.number}")
@@ -536,18 +555,10 @@ def _from_shape(spec: Spec, source: str, table: dict[str, np.ndarray]) -> dict[s
     dimensions = {dim: table[f"{source}_{dim}"] for dim in ("mass", *shape.lengths)}
     try:
         body = shape.build(**dimensions)
-    except ShapeError as e:
+    except ParameterError as e:
         where = "sweep" if f"{source}_{e.name}" in spec.sweep else "parameters"
         raise SpecError(f"{where}.{source}.{e.name}", e.problem) from None
     try:
-        return SCENES[spec.scene].from_body(body)
-    except ValueError as e:
-        raise SpecError(f"parameters.{source}", str(e)) from None
-
-
-def observation_noise(spec: Spec, name: str, first: int, shape: tuple[int, ...]) -> np.ndarray:
-    """Gaussian noise (stddev spec.noise[name]) for members first, first + 1, ...; shape (members, ...)."""
-    stream = zlib.crc32(f"noise:{name}".encode())
-    return spec.noise[name] * np.stack([
-        np.random.default_rng([spec.seed, stream, first + i]).standard_normal(shape[1:]) for i in range(shape[0])
-    ])
+        return SCENES[spec.scene].from_body(body, source)
+    except ParameterError as e:
+        raise SpecError(f"parameters.{e.name}", e.problem) from None

@@ -15,50 +15,12 @@ from scipy.optimize import brentq
 
 from . import fit
 from .methods import METHODS
+from .results import Status
 from .scenes import SCENES
 
 #: A member counts as growing when its measured factor per step exceeds 1 by more than this.
 GROWTH_TOLERANCE = 1e-3
-#: A decaying amplitude is used while above this fraction of its start (and above SUBNORMAL): in subnormal
-#: numbers rounding stalls a decay (a last unit times 0.6 rounds back to itself).
-DECAY_FLOOR = 1e-200
-SUBNORMAL = 1e-290
 _THEORY_SLACK = 1e-9  # a factor this close to 1 is neutral (rounding in the one-step map)
-
-
-def measured_growth(amplitudes: np.ndarray, t: np.ndarray, step: np.ndarray) -> np.ndarray:
-    """Amplitude growth factor per step of each member's fastest-growing motion; shape (members,).
-
-    amplitudes (motions, samples, members) at times t (s); step (members,) s,
-    the step each member took (an adaptive method's mean accepted step). Per
-    motion, the slope of log amplitude against time is fitted by least
-    squares over the second half of the samples taken before the member
-    failed (the first ones mix in the motions a step damps), so a transient
-    or the last values alone do not decide it. Motions that start at zero
-    amplitude are skipped, and samples below DECAY_FLOOR times the start end
-    a motion's record; NaN where fewer than two samples remain.
-    """
-    a = np.asarray(amplitudes, dtype=float)
-    floor = np.maximum(DECAY_FLOOR * a[:, :1], SUBNORMAL)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        log_a = np.where(a > floor, np.log(a), np.nan)
-    count = np.cumprod(np.isfinite(log_a), axis=1).sum(axis=1, keepdims=True)  # samples before the first unusable
-    start = np.maximum(np.minimum(count // 2, count - 2), 0)
-    index = np.arange(a.shape[1])[None, :, None]
-    window = (index >= start) & (index < count)
-    weight = window.astype(float)
-    total = weight.sum(axis=1)
-    tt = np.broadcast_to(np.asarray(t, dtype=float)[None, :, None], a.shape)
-    y = np.where(window, log_a, 0.0)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t_mean = (weight * tt).sum(axis=1) / total
-        y_mean = y.sum(axis=1) / total
-        dt = np.where(window, tt - t_mean[:, None], 0.0)
-        slope = (dt * (y - y_mean[:, None])).sum(axis=1) / (dt * dt).sum(axis=1)
-    slope = np.where(total >= 2, slope, np.nan)
-    growth = np.exp(slope * np.asarray(step, dtype=float)[None, :])
-    fastest = np.where(np.isnan(growth), -np.inf, growth).max(axis=0)
-    return np.where(np.isfinite(fastest), fastest, np.nan)
 
 
 def theoretical_limit(growth, upper: float = 10.0, points: int = 20001) -> float:
@@ -109,8 +71,9 @@ def member_steps(ds: xr.Dataset) -> np.ndarray:
     reached = np.where(np.isnan(ds["failure_time"].values), float(ds.attrs["t_end"]), ds["failure_time"].values)
     with np.errstate(invalid="ignore", divide="ignore"):
         mean_step = reached / ds["steps_accepted"].values
-    adaptive = np.array([METHODS[m].adaptive for m in methods])
-    closed = np.array([METHODS[m].closed_form for m in methods])
+    used = {name: METHODS[name] for name in set(methods)}
+    adaptive = np.array([used[m].adaptive for m in methods])
+    closed = np.array([used[m].closed_form for m in methods])
     return np.where(closed, np.nan, np.where(adaptive, mean_step, dt))
 
 
@@ -133,12 +96,12 @@ def stability_map(ds: xr.Dataset) -> xr.Dataset:
     h = member_steps(ds)
     keep = np.isfinite(h)
     values = {name: ds[name].values[keep] for name in scene.PARAMETERS if name in ds}
-    constants = {name: ds.attrs[name] for name in ("n", "boundary") if name in ds.attrs}
+    constants = {name: ds.attrs[name] for name, p in scene.PARAMETERS.items() if p.constant and name in ds.attrs}
     axis, x = scene.stability_axis(values, constants, h[keep])
     theory = np.full(keep.sum(), np.nan)
     for method in dict.fromkeys(methods[keep]):
         chosen = methods[keep] == method
-        theory[chosen] = scene.step_growth(method, {k: v[chosen] for k, v in values.items()}, constants,
+        theory[chosen] = scene.step_growth(METHODS[method], {k: v[chosen] for k, v in values.items()}, constants,
                                            h[keep][chosen])
     out = xr.Dataset(coords={"member": ds["member"].values[keep]})
     for name, data, units, long_name in (
@@ -146,9 +109,11 @@ def stability_map(ds: xr.Dataset) -> xr.Dataset:
             ("axis", axis, "", "stability axis: the dimensionless step that dominates the member"),
             ("x", x, "1", "the member's dimensionless step on its axis"),
             ("growth", ds["growth_per_step"].values[keep], "1", "measured growth factor per step"),
-            ("growth_theory", theory, "1", "growth factor per step that linear theory predicts"),
-            ("status", ds["status"].values[keep], "", "0 ok, 1 blew up, 2 step size underflow")):
+            ("growth_theory", theory, "1", "growth factor per step that linear theory predicts")):
         out[name] = ("member", data, {"units": units, "long_name": long_name} if units else {"long_name": long_name})
+    out["status"] = ("member", ds["status"].values[keep], {"long_name": "how the member ended",
+                                                          "flag_values": Status.flag_values(),
+                                                          "flag_meanings": Status.flag_meanings()})
     out.attrs["scene"] = ds.attrs["scene"]
     return out
 
@@ -162,37 +127,32 @@ def stability_limits(points: xr.Dataset) -> list[dict]:
     """
     scene = SCENES[points.attrs["scene"]]
     rows = []
-    for method in dict.fromkeys(points["method"].values):
-        if METHODS[method].adaptive:
+    for name in dict.fromkeys(points["method"].values):
+        method = METHODS[name]
+        if method.adaptive:
             continue
         for axis in scene.STABILITY_AXES:
-            chosen = (points["method"].values == method) & (points["axis"].values == axis)
+            chosen = (points["method"].values == name) & (points["axis"].values == axis)
             if not chosen.any():
                 continue
             measured, stable, growing = measured_limit(points["x"].values[chosen], points["growth"].values[chosen],
-                                                       points["status"].values[chosen] != 0)
-            rows.append(dict(method=method, axis=axis, members=int(chosen.sum()), measured=measured,
+                                                       points["status"].values[chosen] != Status.OK)
+            rows.append(dict(method=name, axis=axis, members=int(chosen.sum()), measured=measured,
                              last_stable=stable, first_growing=growing,
                              theory=theoretical_limit(lambda s: scene.axis_growth(method, axis, s))))
     return rows
 
 
 def energy_drift(ds: xr.Dataset) -> xr.DataArray:
-    """|E(t) / E(0) - 1| over (member, t) for members whose energy the physics conserves; NaN elsewhere.
-
-    Chains: the saved `energy`. Tops: the kinetic energy (see top.kinetic_energy) of members without
-    drag (c = 0), from the saved `omega`.
-    """
-    if ds.attrs.get("scene") == "chain":
-        if "energy" not in ds:
-            raise fit.FitError("energy_drift: the result lacks energy (save it in the run file)")
-        energy = ds["energy"].values
-    else:
-        if "omega" not in ds:
-            raise fit.FitError("energy_drift: the result lacks omega (save it in the run file)")
-        energy = SCENES["top"].kinetic_energy(ds["omega"].values, ds["lambda1"].values[:, None],
-                                              ds["lambda3"].values[:, None])
-        energy[ds["c"].values != 0] = np.nan
+    """|E(t) / E(0) - 1| over (member, t) for members whose energy the physics conserves; NaN elsewhere
+    (see the scene's conserved_energy: a chain's saved energy, a top's kinetic energy without drag)."""
+    scene = SCENES.get(ds.attrs.get("scene"))
+    if scene is None:
+        raise fit.FitError("energy_drift needs a result of `ensemble run`")
+    try:
+        energy = scene.conserved_energy(ds)
+    except KeyError as e:
+        raise fit.FitError(f"energy_drift: the result lacks {e.args[0]} (save it in the run file)") from None
     with np.errstate(invalid="ignore", divide="ignore"):
         drift = np.abs(energy / energy[:, :1] - 1)
     return xr.DataArray(drift, dims=("member", "t"), coords={"member": ds["member"], "t": ds["t"]},

@@ -13,10 +13,9 @@ import netCDF4
 import numpy as np
 
 from . import __version__
+from .results import Status
 from .scenes import SCENES
 from .spec import Spec
-
-AXIS_LABELS = np.array([1, 2, 3], dtype=np.int32)
 
 
 def part_path(path: Path) -> Path:
@@ -41,8 +40,6 @@ RUN_RECORDS = {
                                    "motion, from the slope of log amplitude over the second half of its samples "
                                    "before any failure (per mean accepted step for adaptive methods)"),
 }
-#: status values (see kernels.OK, BLEW_UP, UNDERFLOW)
-STATUS_MEANINGS = "ok blew_up step_size_underflow"
 SETTING_UNITS = {"dt": ("s", "integration step (for adaptive methods: the first trial step)"),
                  "rtol": ("1", "relative tolerance of the step-size control"),
                  "atol": ("1", "absolute tolerance of the step-size control, in the SI units of each state variable")}
@@ -89,67 +86,86 @@ class Writer:
         self.part = part_path(self.path)
         self.scene = SCENES[spec.scene]
         self.spec = spec
-        n = spec.n_members
         self.nc = nc = netCDF4.Dataset(self.part, "w", format="NETCDF4")
         nc.setncatts(global_attributes(spec, table))
         nc.setncattr("members_written", 0)
-        sizes = {"member": n, "t": spec.n_save, "axis": 3, **self.scene.sizes(spec.constants)}
-        for dim, size in sizes.items():
-            nc.createDimension(dim, size)
+        self._dimensions(table)
+        self._parameters(table)
+        self._settings(table)
+        self._records()
+        self._observables(chunk)
+        self.written = 0
+
+    def _dimensions(self, table: dict[str, np.ndarray]) -> None:
+        """member, t and the scene's dimensions that a saved variable or a parameter uses, with coordinates."""
+        spec, n = self.spec, self.spec.n_members
+        used = {d for name in spec.save for d in self.scene.OBSERVABLES[name][0]}
+        used |= {p.per for p in spec.declared.values() if p.per}
+        self.sizes = {"member": n, "t": spec.n_save, **self.scene.sizes(spec.constants)}
+        for dim, size in self.sizes.items():
+            self.nc.createDimension(dim, size)
         self._coordinate("member", np.arange(n, dtype=np.int32), "ensemble member index")
         self._coordinate("t", spec.times(), "time since the start of the run", units="s")
-        if "omega" in spec.save:
-            self._coordinate("axis", AXIS_LABELS, "body-frame axis (3: symmetry axis)")
-        if "site" in sizes:
-            self._coordinate("site", np.arange(1, sizes["site"] + 1, dtype=np.int32), "mass number along the chain")
-            self._coordinate("spring", np.arange(1, sizes["spring"] + 1, dtype=np.int32),
-                             "spring number along the chain")
-        self._coordinate(
-            "sweep_point", table["sweep_point"].astype(np.int32), "index of the member's point on the sweep grid",
-            dims=("member",),
-        )
+        for dim, (values, long_name) in self.scene.coordinates(spec.constants).items():
+            if dim in used:
+                self._coordinate(dim, values, long_name)
+        self._coordinate("sweep_point", table["sweep_point"].astype(np.int32),
+                         "index of the member's point on the sweep grid", dims=("member",))
+
+    def _parameters(self, table: dict[str, np.ndarray]) -> None:
+        """Every member's parameter values; those a shape derives say so."""
+        spec = self.spec
         derived = {name: source for source, p in self.scene.PARAMETERS.items() if f"{source}_shape" in spec.constants
                    for name in p.derives}
         for name, parameter in spec.declared.items():
-            var = nc.createVariable(name, "f8", ("member", parameter.per) if parameter.per else ("member",))
+            var = self.nc.createVariable(name, "f8", ("member", parameter.per) if parameter.per else ("member",))
             var.setncatts({"units": parameter.units, "long_name": parameter.long_name})
             if name in derived:
                 var.setncattr("comment", f"from the principal moments of the {derived[name]} "
                                          f"({spec.constants[derived[name] + '_shape']}) about its centre of mass")
             var[:] = table[name]
+
+    def _settings(self, table: dict[str, np.ndarray]) -> None:
+        """method, dt, rtol and atol per member, where the run sweeps them."""
+        spec = self.spec
         if "method" in spec.sweep:
             methods = list(dict.fromkeys(table["method"]))
-            var = nc.createVariable("method", "i1", ("member",))
+            var = self.nc.createVariable("method", "i1", ("member",))
             var.setncatts({"long_name": "integration method", "flag_values": np.arange(len(methods), dtype=np.int8),
                            "flag_meanings": " ".join(methods)})
             var[:] = np.array([methods.index(m) for m in table["method"]], dtype=np.int8)
         for key, (units, long_name) in SETTING_UNITS.items():
             if key in spec.sweep:
-                var = nc.createVariable(key, "f8", ("member",), fill_value=np.nan)
+                var = self.nc.createVariable(key, "f8", ("member",), fill_value=np.nan)
                 var.setncatts({"units": units, "long_name": long_name})
                 var[:] = table[key]
+
+    def _records(self) -> None:
+        """How each member ran: step counts, status, failure time, growth, and what [measure] asks for."""
         records = ["steps_accepted", "steps_rejected", "rhs_evals", "status", "failure_time", "growth_per_step"]
-        records += ["error_max", "error_final"] if spec.measure["error"] else []
-        records += ["seconds_per_step"] if spec.measure["timing"] else []
+        records += ["error_max", "error_final"] if self.spec.measure["error"] else []
+        records += ["seconds_per_step"] if self.spec.measure["timing"] else []
         for name in records:
             kind, units, long_name = RUN_RECORDS[name]
-            var = nc.createVariable(name, kind, ("member",), fill_value=np.nan if kind == "f8" else None)
+            var = self.nc.createVariable(name, kind, ("member",), fill_value=np.nan if kind == "f8" else None)
             if name == "status":
-                var.setncatts({"long_name": long_name, "flag_values": np.arange(3, dtype=np.int8),
-                               "flag_meanings": STATUS_MEANINGS})
+                var.setncatts({"long_name": long_name, "flag_values": Status.flag_values(),
+                               "flag_meanings": Status.flag_meanings()})
             else:
                 var.setncatts({"units": units, "long_name": long_name})
+
+    def _observables(self, chunk: int) -> None:
+        """The saved variables, chunked by `chunk` members; NaN marks a member's samples after it failed."""
+        spec = self.spec
         for name in spec.save:
             dims, units, long_name = self.scene.OBSERVABLES[name]
-            chunks = {**sizes, "member": min(chunk, n)}
-            # NaN marks the samples of a member after it failed
-            var = nc.createVariable(name, "f8", dims, chunksizes=tuple(chunks[d] for d in dims), fill_value=np.nan)
+            chunks = {**self.sizes, "member": min(chunk, spec.n_members)}
+            var = self.nc.createVariable(name, "f8", dims, chunksizes=tuple(chunks[d] for d in dims), fill_value=np.nan)
             var.setncatts({"units": units, "long_name": long_name})
             if name in spec.noise:
                 var.setncattr("observation_noise_stddev", spec.noise[name])
                 var.setncattr("comment", "includes Gaussian observation noise of stddev observation_noise_stddev "
                                          "(same units), drawn per member from the run's seed")
-        self.written = 0
 
     def _coordinate(self, name, values, long_name, units="1", dims=None):
         var = self.nc.createVariable(name, values.dtype, dims or (name,))

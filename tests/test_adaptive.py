@@ -5,8 +5,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from ensemble import fit, kernels, runner
+from ensemble import fit, runner
+from ensemble.engine import launch
 from ensemble.methods import DOPRI5, METHODS
+from ensemble.records import measured_error
 from ensemble.scenes import top
 from ensemble.spec import SpecError, members_table, parse
 from tests.conftest import top_runfile
@@ -32,7 +34,7 @@ def top_members(members=16, **parameters):
 
 
 def error_against_exact(samples, values, t):
-    return runner.measured_error(samples, top.exact(values, {}, t))[0]
+    return measured_error(samples, top.exact(values, {}, t))[0]
 
 
 def test_dopri5_error_follows_rtol_over_six_decades():
@@ -41,7 +43,8 @@ def test_dopri5_error_follows_rtol_over_six_decades():
     rtols = 10.0 ** -np.arange(4, 11)
     errors = []
     for rtol in rtols:
-        samples, counts = kernels.integrate_adaptive(top, "dopri5", values, {}, np.nan, rtol, 1e-14, 0.25, 9)[:2]
+        samples, counts = launch.integrate(top, METHODS["dopri5"], values, {}, n_save=9, save_dt=0.25, rtol=rtol,
+                                           atol=1e-14)[:2]
         errors.append(np.median(error_against_exact(samples, values, t)))
         evaluations = 1 + 6 * (counts[0] + counts[1])
         assert np.array_equal(counts[2], evaluations)  # FSAL: six new stages per trial step
@@ -56,13 +59,15 @@ def test_dopri5_beats_rk4_on_rhs_evaluations_at_1e_10():
     t = np.arange(9) * 0.25
     rk4 = None
     for steps_per_save in (1600, 3200, 6400, 12800, 25600):  # rk4: the first dt reaching 1e-10
-        samples = kernels.integrate(top, "rk4", values, {}, 0.25 / steps_per_save, steps_per_save, 9).samples
+        samples = launch.integrate(top, METHODS["rk4"], values, {}, n_save=9, save_dt=0.25,
+                                   dt=0.25 / steps_per_save).samples
         if error_against_exact(samples, values, t).max() <= 1e-10:
             rk4 = 4 * steps_per_save * 8
             break
     dopri5 = None
     for rtol in 10.0 ** -np.arange(8, 14):
-        samples, counts = kernels.integrate_adaptive(top, "dopri5", values, {}, np.nan, rtol, 1e-14, 0.25, 9)[:2]
+        samples, counts = launch.integrate(top, METHODS["dopri5"], values, {}, n_save=9, save_dt=0.25, rtol=rtol,
+                                           atol=1e-14)[:2]
         if error_against_exact(samples, values, t).max() <= 1e-10:
             dopri5 = counts[2].max()
             break
@@ -176,3 +181,20 @@ def test_work_precision_script_prints_orders_and_draws(tmp_path):
     bad = subprocess.run([sys.executable, str(RUNS.parent / "analysis" / "work_precision.py"), str(tmp_path / "x.nc")],
                          capture_output=True, text=True)
     assert bad.returncode == 2 and len(bad.stderr.strip().splitlines()) == 1
+
+
+def test_adaptive_run_launches_once_per_chunk_and_setting(monkeypatch):
+    """dopri5 without dt (NaN per member) used to start a launch per member: NaN != NaN split every range."""
+    calls = []
+    integrate = launch.integrate
+
+    def counted(*args, **kwargs):
+        calls.append(1)
+        return integrate(*args, **kwargs)
+
+    monkeypatch.setattr(launch, "integrate", counted)
+    spec = parse(top_runfile(method="dopri5", dt=None, members=150, t_end=0.2, parameters={"c": None},
+                             sweep={"c": [1e-4, 2e-4]}))
+    ds = runner.simulate(spec, chunk=128)
+    chunks, settings = -(-300 // 128), 1
+    assert len(calls) <= chunks * settings and ds.sizes["member"] == 300

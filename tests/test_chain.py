@@ -10,12 +10,14 @@ import pytest
 import xarray as xr
 from scipy.linalg import expm
 
-from ensemble import cli, kernels, runner
-from ensemble.methods import KICK, METHODS
-from ensemble.scenes import chain
+from ensemble import cli, runner
+from ensemble.engine import launch
+from ensemble.methods import METHODS
+from ensemble.scenes import applies, chain
+from ensemble.scenes.chain.kernels import TILE_ROWS
 from ensemble.spec import SpecError, load, parse
 
-CHAIN_METHODS = [name for name, m in METHODS.items() if "chain" in m.scenes and not (m.closed_form or m.adaptive)]
+CHAIN_METHODS = [name for name, m in METHODS.items() if applies(m, chain) and not (m.closed_form or m.adaptive)]
 
 
 def chain_runfile(parameters=None, **top_level) -> str:
@@ -113,7 +115,8 @@ def test_exact_matches_the_matrix_exponential(boundary):
 
 def run(method, values, constants, dt, steps_per_save, n_save, blowup_factor=np.inf):
     """Samples (n_save, 2n, members); members never fail unless blowup_factor is given."""
-    return kernels.integrate(chain, method, values, constants, dt, steps_per_save, n_save, blowup_factor).samples
+    return launch.integrate(chain, METHODS[method], values, constants, n_save=n_save, save_dt=dt * steps_per_save, dt=dt,
+                            blowup_factor=blowup_factor).samples
 
 
 @pytest.mark.parametrize("boundary", ["fixed", "periodic"])
@@ -165,7 +168,7 @@ def numpy_splitting(method, values, constants, h, steps):
     with_walls = np.zeros((n + 2, x.shape[1]))
     for _ in range(steps):
         for piece, fraction in METHODS[method].splitting.sequence:
-            if piece == KICK:
+            if METHODS[method].splitting.pieces[piece] == "kick":
                 with_walls[1:-1] = x
                 v += h * fraction * (rate[:n] * (with_walls[:-2] - x) + rate[n:] * (with_walls[2:] - x))
             else:
@@ -177,7 +180,7 @@ def numpy_splitting(method, values, constants, h, steps):
 def test_long_chains_step_in_tiles_as_one_piece_at_a_time(method, boundary):
     """Past 2 TILE_ROWS masses the splitting kernel runs many pieces at once over tiles of masses; 37 steps a
     save interval make chunks of pieces that do not divide it."""
-    n, h = 2 * kernels.TILE_ROWS + 5, 0.05
+    n, h = 2 * TILE_ROWS + 5, 0.05
     constants = {"n": n, "boundary": boundary}
     values = disordered(n, boundary, members=5)
     samples = run(method, values, constants, h, 37, 3)

@@ -11,9 +11,10 @@ import numpy as np
 import pytest
 import xarray as xr
 
-from ensemble import cli, kernels, runner
+from ensemble import cli, runner
+from ensemble.engine import launch
 from ensemble.methods import METHODS
-from ensemble.scenes import SCENES, top
+from ensemble.scenes import SCENES, scenes_of, top
 from ensemble.spec import load, members_table, parse
 from tests.conftest import top_runfile
 
@@ -66,7 +67,7 @@ def test_file_round_trips_the_kernel_output(cli_run, tmp_path):
     table = members_table(parse(SWEEP_RUN))
     for name in ("lambda1", "lambda3", "c", "spin0", "tilt0", "azimuth0"):
         np.testing.assert_array_equal(ds[name].values, table[name])
-    samples = kernels.integrate(top, "rk4", table, {}, 1e-3, 100, 11).samples
+    samples = launch.integrate(top, METHODS["rk4"], table, {}, n_save=11, save_dt=0.1, dt=1e-3).samples
     np.testing.assert_array_equal(ds.omega.values, samples.transpose(2, 0, 1))
     np.testing.assert_allclose(ds.tilt.values, top.tilt(ds.omega.values, axis=2), rtol=1e-15)
     copy = tmp_path / "copy.nc"
@@ -103,7 +104,7 @@ def test_version_help_and_methods(tmp_path):
     assert set(rows) == set(METHODS)
     for name, m in METHODS.items():
         order = "exact" if m.order is None else str(m.order)
-        assert rows[name] == [order, "yes" if m.symplectic else "no", ",".join(m.scenes)]
+        assert rows[name] == [order, "yes" if m.symplectic else "no", ",".join(scenes_of(m))]
     assert rows["verlet"] == ["2", "yes", "chain"] and rows["rk4"] == ["4", "no", "top,chain"]
 
 
@@ -120,15 +121,15 @@ def test_save_limits_what_is_stored(write_runfile):
 
 def test_interrupted_run_leaves_no_complete_looking_file(write_runfile, tmp_path, monkeypatch, capsys):
     calls = []
-    integrate = kernels.integrate
+    integrate = launch.integrate
 
-    def interrupted_after_one_chunk(*args):
+    def interrupted_after_one_chunk(*args, **kwargs):
         if calls:
             raise KeyboardInterrupt
         calls.append(1)
-        return integrate(*args)
+        return integrate(*args, **kwargs)
 
-    monkeypatch.setattr(kernels, "integrate", interrupted_after_one_chunk)
+    monkeypatch.setattr(launch, "integrate", interrupted_after_one_chunk)
     out = tmp_path / "out.nc"
     status = cli.main(["run", str(write_runfile(top_runfile(members=300))), "-o", str(out), "--chunk", "128"])
     assert status == 130 and "interrupted" in capsys.readouterr().err
@@ -170,7 +171,7 @@ def test_default_chunk_keeps_kernel_samples_and_saved_data_near_the_budget(text)
     it is whole kernel blocks, and a single block when one block alone exceeds the budget."""
     spec = parse(text)
     chunk = runner.default_chunk(spec)
-    block = kernels.block_size(spec.scene, SCENES[spec.scene].kernel_key(spec.constants))
+    block = launch.block_size(SCENES[spec.scene], spec.constants)
     state_rows = 3 if spec.scene == "top" else 2 * spec.constants["n"]
     saved = 4 if spec.scene == "top" else 1  # omega (3) + tilt, or energy
     per_member = spec.n_save * (state_rows + saved) * 8
@@ -179,3 +180,16 @@ def test_default_chunk_keeps_kernel_samples_and_saved_data_near_the_budget(text)
         assert chunk == block
     else:
         assert runner.CHUNK_BYTES / 2 < chunk * per_member <= runner.CHUNK_BYTES
+
+
+def test_a_run_imports_no_analysis_and_parsing_no_numba(write_runfile, tmp_path):
+    """Start-up: `ensemble run` loads neither the fits nor scipy.signal or scipy.stats; reading a run file loads no
+    Numba (run files are checked before any kernel is loaded)."""
+    runfile = write_runfile(top_runfile(members=10))
+    probe = ("import sys\nfrom ensemble import spec\nspec.load(sys.argv[1])\nassert 'numba' not in sys.modules\n"
+             "from ensemble import cli\nassert cli.main(['run', sys.argv[1], '-o', sys.argv[2], '--quiet']) == 0\n"
+             "loaded = [m for m in ('ensemble.fit', 'ensemble.stability', 'ensemble.report', 'scipy.signal', "
+             "'scipy.stats', 'xarray') if m in sys.modules]\nassert not loaded, loaded\nassert 'numba' in sys.modules\n")
+    done = subprocess.run([sys.executable, "-c", probe, str(runfile), str(tmp_path / "out.nc")], capture_output=True,
+                          text=True)
+    assert done.returncode == 0, done.stderr

@@ -48,10 +48,10 @@ def test_rk_stability_function_is_the_taylor_polynomial():
 def test_splitting_eigenvalues_give_the_verlet_frequency():
     omega, h = np.array([0.5, 1.0, 1.9]), 1.0
     for method in ("verlet", "symplectic_euler"):
-        step = chain.step_eigenvalue(method, omega, h)
+        step = chain.step_eigenvalue(METHODS[method], omega, h)
         assert np.allclose(np.abs(step), 1.0, atol=1e-14)
         assert np.allclose(np.angle(step) / h, 2 / h * np.arcsin(omega * h / 2), rtol=1e-14)
-    assert np.allclose(np.angle(chain.step_eigenvalue("exact", omega, h)), omega * h)
+    assert np.allclose(np.angle(chain.step_eigenvalue(METHODS["exact"], omega, h)), omega * h)
 
 
 # ---------------------------------------------------------------- tops

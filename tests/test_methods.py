@@ -49,5 +49,5 @@ def test_symmetric_methods_read_the_same_backwards(name):
 
 
 def test_composition_merges_adjacent_pieces():
-    base = Splitting(((0, 0.5), (1, 1.0), (0, 0.5)))
+    base = Splitting(("kick", "drift"), ((0, 0.5), (1, 1.0), (0, 0.5)))
     assert base.composed((0.5, 0.5)).sequence == ((0, 0.25), (1, 0.5), (0, 0.5), (1, 0.5), (0, 0.25))

@@ -7,7 +7,9 @@ import netCDF4
 import numpy as np
 import pytest
 
-from ensemble import cli, kernels, runner, stability
+from ensemble import cli, records, runner, stability
+from ensemble.engine import launch
+from ensemble.methods import METHODS
 from ensemble.scenes import chain, top
 from ensemble.spec import load, parse
 
@@ -35,10 +37,10 @@ def limits(ds) -> dict[tuple[str, str], dict]:
 
 def test_theoretical_limits_are_the_known_ones():
     def chain_limit(method):
-        return stability.theoretical_limit(lambda x: chain.axis_growth(method, "h omega_max", x))
+        return stability.theoretical_limit(lambda x: chain.axis_growth(METHODS[method], "h omega_max", x))
 
     def top_limit(method, axis):
-        return stability.theoretical_limit(lambda x: top.axis_growth(method, axis, x))
+        return stability.theoretical_limit(lambda x: top.axis_growth(METHODS[method], axis, x))
 
     assert chain_limit("verlet") == pytest.approx(2.0, rel=1e-9)
     assert chain_limit("symplectic_euler") == pytest.approx(2.0, rel=1e-9)
@@ -57,7 +59,7 @@ def test_one_step_map_of_verlet_past_its_limit():
     z = np.array([2.01, 2.5, 3.0])
     trace = 2 - z**2  # of the map of x'' = -omega^2 x over a step, determinant 1
     larger = np.abs(trace - np.sqrt(trace**2 - 4)) / 2
-    np.testing.assert_allclose(chain.axis_growth("verlet", "h omega_max", z), larger, rtol=1e-12)
+    np.testing.assert_allclose(chain.axis_growth(METHODS["verlet"], "h omega_max", z), larger, rtol=1e-12)
 
 
 def test_measured_growth_fits_the_later_samples_and_stops_at_failure():
@@ -68,10 +70,10 @@ def test_measured_growth_fits_the_later_samples_and_stops_at_failure():
     decaying[25:] = 0.0  # reached zero
     amplitudes = np.stack([growing, decaying], axis=-1)[None]  # (1 motion, 40 samples, 2 members)
     # the fade leaves 3e-6 of the amplitude at sample 15: the fitted factor is off by about 1e-7
-    np.testing.assert_allclose(stability.measured_growth(amplitudes, t, np.ones(2)), [1.2, 0.9], rtol=1e-6)
+    np.testing.assert_allclose(records.measured_growth(amplitudes, t, np.ones(2)), [1.2, 0.9], rtol=1e-6)
     # the fastest of two motions, and per step of 0.5 s
     two = np.stack([1.1 ** t, 1.3 ** t])[:, :, None]
-    assert stability.measured_growth(two, t, np.array([0.5])) == pytest.approx(np.sqrt(1.3), rel=1e-12)
+    assert records.measured_growth(two, t, np.array([0.5])) == pytest.approx(np.sqrt(1.3), rel=1e-12)
 
 
 # --- measured limits -----------------------------------------------------------------------------------------
@@ -129,7 +131,7 @@ def test_energy_drift_over_the_long_run(chain_scan):
     rk4 = chain_scan["energy"].sel(member=member("rk4", 0.5)).values
     steps = np.arange(rk4.size)
     # rk4 loses energy slowly, by |R(0.5 i)|^2 per step
-    np.testing.assert_allclose(rk4 / rk4[0], np.abs(chain.step_eigenvalue("rk4", 0.5, 1.0)) ** (2 * steps),
+    np.testing.assert_allclose(rk4 / rk4[0], np.abs(chain.step_eigenvalue(METHODS["rk4"], 0.5, 1.0)) ** (2 * steps),
                                rtol=1e-6)
     assert 0.2 < rk4[-1] / rk4[0] < 0.9
     euler = drift.sel(member=member("euler", 0.05)).values
@@ -194,8 +196,8 @@ def test_growth_of_a_chain_started_in_its_highest_mode_matches_theory_within_1_p
         ds = runner.simulate(load(path))
         h = np.ones(ds.sizes["member"])
         values = {name: ds[name].values for name in ("m", "k")}
-        expected = chain.step_growth(method, values, {"boundary": "fixed"}, h)
-        highest = chain.axis_growth(method, "h omega_max", ds["omega_max"].values)
+        expected = chain.step_growth(METHODS[method], values, {"boundary": "fixed"}, h)
+        highest = chain.axis_growth(METHODS[method], "h omega_max", ds["omega_max"].values)
         np.testing.assert_allclose(expected, highest, rtol=1e-12)  # past the limit the highest mode grows fastest
         np.testing.assert_allclose(ds["growth_per_step"].values, expected, rtol=0.01)
 
@@ -203,7 +205,8 @@ def test_growth_of_a_chain_started_in_its_highest_mode_matches_theory_within_1_p
 def test_a_non_finite_start_fails_at_once_and_spares_its_block():
     values = {"m": np.ones((3, 4)), "k": np.ones((3, 5)), "x0": np.full((3, 4), 0.01), "v0": np.zeros((3, 4))}
     values["x0"][1, 2] = np.nan
-    out = kernels.integrate(chain, "verlet", values, {"n": 4, "boundary": "fixed"}, 0.1, 5, 4)
+    out = launch.integrate(chain, METHODS["verlet"], values, {"n": 4, "boundary": "fixed"}, n_save=4, save_dt=0.5,
+                           dt=0.1)
     np.testing.assert_array_equal(out.status, [0, 1, 0])
     assert out.failure_time[1] == 0.0 and out.counts[0, 1] == 0 and np.all(np.isnan(out.samples[1:, :, 1]))
     np.testing.assert_array_equal(out.samples[:, :, 0], out.samples[:, :, 2])

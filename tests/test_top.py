@@ -3,9 +3,10 @@ import numpy as np
 import pytest
 from scipy.integrate import solve_ivp
 
-from ensemble import kernels
+from ensemble.engine import launch
 from ensemble.methods import METHODS
-from ensemble.scenes import top
+from ensemble.scenes import applies, top
+from ensemble.scenes.top.kernels import rhs
 
 
 def members(lambda1, lambda3, c, spin0, tilt0, azimuth0):
@@ -37,7 +38,7 @@ def test_exact_matches_tight_reference_integration():
     exact = top.closed_form(state0, rate, t)
     for j in range(state0.shape[1]):
         def f(_, w, p=rate[:, j]):
-            return top.rhs.py_func(*w, *p)
+            return rhs.py_func(*w, *p)
         ref = solve_ivp(f, (0, t[-1]), state0[:, j], method="DOP853", t_eval=t, rtol=1e-13, atol=1e-12)
         err = np.abs(ref.y.T - exact[:, :, j]).max() / np.abs(ref.y).max()
         assert err < 1e-10, (j, err)
@@ -61,7 +62,7 @@ def test_exact_tilt_follows_the_course_law():
 
 
 def run(method, table, dt, steps_per_save, n_save):
-    return kernels.integrate(top, method, table, {}, dt, steps_per_save, n_save).samples
+    return launch.integrate(top, METHODS[method], table, {}, n_save=n_save, save_dt=dt * steps_per_save, dt=dt).samples
 
 
 def test_rk4_agrees_with_exact_to_1e_9_over_10_s():
@@ -84,7 +85,7 @@ def test_rk4_phase_error_matches_its_truncation_term():
     assert measured == pytest.approx(predicted, rel=0.01)
 
 
-TOP_METHODS = [name for name, m in METHODS.items() if "top" in m.scenes and not (m.closed_form or m.adaptive)]
+TOP_METHODS = [name for name, m in METHODS.items() if applies(m, top) and not (m.closed_form or m.adaptive)]
 
 
 # strong drag (c / lambda ~ 1/s): the split methods' only error comes from drag and rotation not commuting

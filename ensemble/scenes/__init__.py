@@ -1,8 +1,67 @@
-"""Scenes: the physical systems, each with its equations in its own module."""
+"""Scenes: the physical systems. Each is one folder: `model.py` (numpy only) and `kernels.py` (Numba).
+
+A new scene is its folder, one line in SCENES, its run files and its tests; `Scene` lists what it provides.
+"""
 from __future__ import annotations
 
-from types import ModuleType
+from typing import Protocol
 
+import numpy as np
+
+from ..methods import METHODS, Method
+from ..parameter import Parameter
 from . import chain, top
 
-SCENES: dict[str, ModuleType] = {"top": top, "chain": chain}
+
+class Scene(Protocol):
+    """What a scene's model provides (its package's names). Arrays are over members on their first axis in
+    `values` (name -> (members,) or (members, site)); kernel arrays are (rows, members).
+
+    Its `kernels` module provides block_size(constants) -> int and kernel(method, constants) -> compiled
+    kernel, with the call convention in `ensemble.engine.launch`.
+    """
+
+    NAME: str
+    PARAMETERS: dict[str, Parameter]  # run-file parameters
+    OBSERVABLES: dict[str, tuple[tuple[str, ...], str, str]]  # saved variables: name -> (dims, units, long_name)
+    PIECES: tuple[str, ...]  # the exactly solved pieces its splitting methods take (see methods.Splitting)
+    EVALUATING_PIECES: tuple[str, ...]  # the pieces that evaluate the right-hand side (counted as rhs_evals)
+    STABILITY_AXES: tuple[str, ...]  # the dimensionless steps its stability is read against
+
+    def sizes(self, constants: dict) -> dict[str, int]: ...  # dimensions besides member and t
+    def coordinates(self, constants: dict) -> dict[str, tuple[np.ndarray, str]]: ...  # dim -> (values, long_name)
+    def check_constants(self, constants: dict) -> None: ...  # raises ParameterError
+    def check(self, values: dict) -> None: ...  # raises ParameterError
+    def derive(self, values: dict, constants: dict) -> dict: ...  # parameters computed from others
+    def inputs(self, values: dict, constants: dict) -> tuple[np.ndarray, np.ndarray]: ...  # state0, rate
+    def kernel_rows(self, constants: dict) -> tuple[int, int]: ...  # rows of state0 and rate
+    def exact(self, values: dict, constants: dict, t: np.ndarray) -> np.ndarray: ...  # (len(t), state, members)
+    def observe(self, samples: np.ndarray, names, values: dict, constants: dict) -> dict: ...  # saved variables
+    def amplitudes(self, samples: np.ndarray, values: dict, constants: dict) -> np.ndarray: ...  # (motions, t, M)
+    def axis_growth(self, method: Method, axis: str, x: np.ndarray) -> np.ndarray: ...
+    def stability_axis(self, values: dict, constants: dict, h: np.ndarray) -> tuple[np.ndarray, np.ndarray]: ...
+    def step_growth(self, method: Method, values: dict, constants: dict, h: np.ndarray) -> np.ndarray: ...
+    def conserved_energy(self, ds) -> np.ndarray: ...  # (member, t), NaN where not conserved
+
+
+SCENES: dict[str, Scene] = {"top": top, "chain": chain}
+
+
+def applies(method: Method, scene: Scene) -> bool:
+    """Whether `method` can integrate `scene`: any tableau; a splitting of the scene's own pieces; the closed form
+    of a scene that has one."""
+    if method.splitting is not None:
+        return method.splitting.pieces == scene.PIECES
+    if method.closed_form:
+        return hasattr(scene, "exact")
+    return True
+
+
+def methods_for(scene: Scene) -> list[Method]:
+    """The methods that apply to `scene`, in listing order."""
+    return [m for m in METHODS.values() if applies(m, scene)]
+
+
+def scenes_of(method: Method) -> list[str]:
+    """Names of the scenes `method` applies to."""
+    return [name for name, scene in SCENES.items() if applies(method, scene)]

@@ -6,17 +6,19 @@ Boundaries: "fixed" (walls at both ends, N+1 springs), "free" (N-1 springs),
 "periodic" (a ring of N springs). Spring s connects, in order:
 fixed: the left wall and mass 1, mass s and s+1, ..., mass N and the right wall;
 free: mass s and s+1; periodic: mass s and s+1, the last one mass N and mass 1.
-Displacements x (m) are measured from equilibrium.
+Displacements x (m) are measured from equilibrium. The compiled forces and the
+kernels are in `kernels.py` beside this file.
 """
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
 
-from ..methods import DRIFT, METHODS
-from ..parameter import Mode, Parameter
+from ...methods import KICK_DRIFT, Method
+from ...parameter import Mode, Parameter, ParameterError
 
 NAME = "chain"
+PIECES = KICK_DRIFT  # splitting methods: kick (v += tau a(x)) and drift (x += tau v)
+EVALUATING_PIECES = ("kick",)  # a kick evaluates the forces
 BOUNDARIES = ("fixed", "free", "periodic")
 
 PARAMETERS = {
@@ -37,15 +39,6 @@ OBSERVABLES: dict[str, tuple[tuple[str, ...], str, str]] = {
 }
 
 
-@njit(inline="always", fastmath=True, error_model="numpy")
-def acceleration(x_left, x, x_right, c_left, c_right):
-    """Acceleration (m/s^2) of a mass at x between neighbours x_left, x_right (m).
-
-    c_left and c_right (1/s^2) are the springs' constants on each side over the mass.
-    """
-    return c_left * (x_left - x) + c_right * (x_right - x)
-
-
 def spring_count(n: int, boundary: str) -> int:
     return {"fixed": n + 1, "free": n - 1, "periodic": n}[boundary]
 
@@ -55,24 +48,32 @@ def sizes(constants: dict) -> dict[str, int]:
     return {"site": constants["n"], "spring": spring_count(constants["n"], constants["boundary"])}
 
 
-def check_constants(constants: dict) -> list[tuple[str, str]]:
+def coordinates(constants: dict) -> dict[str, tuple[np.ndarray, str]]:
+    """Coordinate variables of the dimensions in `sizes`: values and long_name."""
+    return {"site": (np.arange(1, constants["n"] + 1, dtype=np.int32), "mass number along the chain"),
+            "spring": (np.arange(1, spring_count(constants["n"], constants["boundary"]) + 1, dtype=np.int32),
+                       "spring number along the chain")}
+
+
+def check_constants(constants: dict) -> None:
+    """The run constants n and boundary; raises ParameterError."""
     if constants["n"] < 1:
-        return [("n", f"must be >= 1, got {constants['n']}")]
+        raise ParameterError("n", f"must be >= 1, got {constants['n']}")
     if constants["boundary"] == "free" and constants["n"] < 2:
-        return [("n", "a free chain needs at least 2 masses (it has n - 1 springs)")]
-    return []
+        raise ParameterError("n", "a free chain needs at least 2 masses (it has n - 1 springs)")
 
 
-def check(values: dict[str, np.ndarray]) -> list[tuple[str, str]]:
-    """Physical constraints on per-member parameters: [(parameter, problem), ...]."""
-    return [(name, f"must be > 0 (got {values[name].min():g})")
-            for name in ("m", "k", "omega_max") if name in values and values[name].size and np.any(values[name] <= 0)]
+def check(values: dict[str, np.ndarray]) -> None:
+    """Physical constraints on per-member parameters; raises ParameterError for the first broken one."""
+    for name in ("m", "k", "omega_max"):
+        if name in values and values[name].size and np.any(values[name] <= 0):
+            raise ParameterError(name, f"must be > 0 (got {values[name].min():g})")
 
 
 def derive(values: dict[str, np.ndarray], constants: dict) -> dict[str, np.ndarray]:
     """Parameters computed from others: with omega_max, the springs k scaled to give that highest frequency.
 
-    Raises ValueError(parameter, problem).
+    Raises ParameterError.
 
     Scaling every spring of a member by one factor keeps its mode shapes and
     multiplies every frequency by the factor's square root.
@@ -81,7 +82,7 @@ def derive(values: dict[str, np.ndarray], constants: dict) -> dict[str, np.ndarr
         return {}
     highest = normal_modes(values["m"], values["k"], constants["boundary"])[0][..., -1]
     if np.any(highest <= 0):
-        raise ValueError("omega_max", "needs a chain with a moving mode; this one has only zero modes")
+        raise ParameterError("omega_max", "needs a chain with a moving mode; this one has only zero modes")
     return {"k": values["k"] * ((values["omega_max"] / highest) ** 2)[:, None]}
 
 
@@ -135,7 +136,7 @@ def normal_modes(m, k, boundary: str = "fixed") -> tuple[np.ndarray, np.ndarray]
     return np.sqrt(eigenvalues), shapes * np.sign(first)
 
 
-def step_eigenvalue(method: str, omega, h: float) -> np.ndarray:
+def step_eigenvalue(method: Method, omega, h: float) -> np.ndarray:
     """What one step of `method` does to a normal mode of frequency omega (rad/s): a complex factor.
 
     Its angle over h is the frequency the method shows, its modulus the
@@ -145,16 +146,15 @@ def step_eigenvalue(method: str, omega, h: float) -> np.ndarray:
     both are real, the larger one; exact: exp(i omega h).
     """
     omega = np.asarray(omega, dtype=float)
-    m = METHODS[method]
-    if m.closed_form:
+    if method.closed_form:
         return np.exp(1j * omega * h)
-    if m.tableau is not None:
-        return m.tableau.stability(1j * omega * h)
+    if method.tableau is not None:
+        return method.tableau.stability(1j * omega * h)
     step = np.broadcast_to(np.eye(2), omega.shape + (2, 2)).copy()
-    for piece, fraction in m.splitting.sequence:
+    for piece, fraction in method.splitting.sequence:
         tau = fraction * h
         one = np.broadcast_to(np.eye(2), omega.shape + (2, 2)).copy()
-        if piece == DRIFT:
+        if method.splitting.pieces[piece] == "drift":
             one[..., 0, 1] = tau  # x += tau v
         else:
             one[..., 1, 0] = -omega**2 * tau  # v += tau a
@@ -170,10 +170,9 @@ def step_eigenvalue(method: str, omega, h: float) -> np.ndarray:
 STABILITY_AXES = ("h omega_max",)
 
 
-def axis_growth(method: str, axis: str, x: np.ndarray) -> np.ndarray:
+def axis_growth(method: Method, axis: str, x: np.ndarray) -> np.ndarray:
     """Growth factor per step of a normal mode at x = h omega on STABILITY_AXES[0]."""
     return np.abs(step_eigenvalue(method, x, 1.0))
-
 
 
 def stability_axis(values: dict[str, np.ndarray], constants: dict, h: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -182,7 +181,7 @@ def stability_axis(values: dict[str, np.ndarray], constants: dict, h: np.ndarray
     return np.full(highest.shape, STABILITY_AXES[0]), h * highest
 
 
-def step_growth(method: str, values: dict[str, np.ndarray], constants: dict, h: np.ndarray) -> np.ndarray:
+def step_growth(method: Method, values: dict[str, np.ndarray], constants: dict, h: np.ndarray) -> np.ndarray:
     """Theory: the growth factor per step of a member's fastest-growing normal mode; h (s) per member.
 
     A mode missing from the start still grows (or decays) from rounding, so
@@ -239,11 +238,6 @@ def kernel_rows(constants: dict) -> tuple[int, int]:
     return 2 * constants["n"], 2 * constants["n"]
 
 
-def kernel_key(constants: dict) -> tuple:
-    """What the chain kernels are compiled for: the number of masses and whether it is a ring."""
-    return constants["n"], constants["boundary"] == "periodic"
-
-
 def exact(values: dict[str, np.ndarray], constants: dict, t: np.ndarray) -> np.ndarray:
     """Modal superposition at times t (s); samples (len(t), 2n, members) as (x; v).
 
@@ -279,3 +273,10 @@ def observe(samples: np.ndarray, names, values: dict[str, np.ndarray], constants
     if "energy" in names:
         out["energy"] = energy(x, v, values["m"][:, None, :], values["k"][:, None, :], constants["boundary"])
     return out
+
+
+def conserved_energy(ds) -> np.ndarray:
+    """The saved energy (J, (member, t)): every chain conserves it. Raises KeyError naming it when not saved."""
+    if "energy" not in ds:
+        raise KeyError("energy")
+    return ds["energy"].values

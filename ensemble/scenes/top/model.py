@@ -1,4 +1,4 @@
-"""The torqued symmetric top (the flying ring): equations, exact solution, observables.
+"""The torqued symmetric top (the flying ring): equations, exact solution, observables, theory.
 
 Body frame, lambda1 = lambda2, air-drag torque -c omega:
 
@@ -9,20 +9,19 @@ Body frame, lambda1 = lambda2, air-drag torque -c omega:
 The state is the three body rates (rad/s) and nothing more. With
 p = (lambda3 - lambda1)/lambda1, r1 = c/lambda1 and r3 = c/lambda3 the
 equations read w1' = -p w3 w2 - r1 w1, w2' = p w3 w1 - r1 w2, w3' = -r3 w3.
+The compiled right-hand side and the kernels are in `kernels.py` beside this file.
 """
 from __future__ import annotations
 
-import math
-
 import numpy as np
-from numba import njit
 
-from ..inertia import EQUAL_RTOL, Body
-from ..methods import METHODS
-from ..parameter import Parameter
+from ...inertia import EQUAL_RTOL, Body
+from ...methods import DRAG_ROTATION, Method
+from ...parameter import Parameter, ParameterError
 
 NAME = "top"
-STATE_SIZE = 3
+PIECES = DRAG_ROTATION  # splitting methods: drag decay and free rotation, each solved exactly
+EVALUATING_PIECES = ()  # neither piece evaluates the right-hand side
 
 PARAMETERS = {
     "lambda1": Parameter("kg m2", "principal moment of inertia about the transverse axes e1, e2"),
@@ -46,41 +45,41 @@ _FLAT_BODY_RTOL = 1e-9
 
 
 def sizes(constants: dict) -> dict[str, int]:
-    """The top has no per-site or per-spring parameters."""
-    return {}
+    """Dimensions besides member and t: the three body axes."""
+    return {"axis": 3}
 
 
-def check_constants(constants: dict) -> list[tuple[str, str]]:
+def coordinates(constants: dict) -> dict[str, tuple[np.ndarray, str]]:
+    """Coordinate variables of the dimensions in `sizes`: values and long_name."""
+    return {"axis": (np.array([1, 2, 3], dtype=np.int32), "body-frame axis (3: symmetry axis)")}
+
+
+def check_constants(constants: dict) -> None:
     """The top has no run constants."""
-    return []
 
 
-def check(values: dict[str, np.ndarray]) -> list[tuple[str, str]]:
-    """Physical constraints on per-member parameters: [(parameter, problem), ...]."""
-    problems = []
+def check(values: dict[str, np.ndarray]) -> None:
+    """Physical constraints on per-member parameters; raises ParameterError for the first broken one."""
     for name in ("lambda1", "lambda3"):
         if np.any(values[name] <= 0):
-            problems.append((name, f"must be > 0 (got {values[name].min():g})"))
-    if np.any(values["c"] < 0):
-        problems.append(("c", f"must be >= 0 (got {values['c'].min():g})"))
-    if np.any(values["spin0"] < 0):
-        problems.append(("spin0", f"must be >= 0 (got {values['spin0'].min():g})"))
+            raise ParameterError(name, f"must be > 0 (got {values[name].min():g})")
+    for name in ("c", "spin0"):
+        if np.any(values[name] < 0):
+            raise ParameterError(name, f"must be >= 0 (got {values[name].min():g})")
     tilt0 = values["tilt0"]
     if np.any((tilt0 < 0) | (tilt0 > np.pi)):
-        problems.append(("tilt0", "must lie in [0, pi]"))
-    if not problems:
-        ratio = values["lambda3"] / values["lambda1"]
-        if np.any(ratio > 2 * (1 + _FLAT_BODY_RTOL)):
-            problems.append(("lambda3", f"lambda3 > 2 lambda1 (ratio {ratio.max():.6g}): no rigid body has that"))
-    return problems
+        raise ParameterError("tilt0", "must lie in [0, pi]")
+    ratio = values["lambda3"] / values["lambda1"]
+    if np.any(ratio > 2 * (1 + _FLAT_BODY_RTOL)):
+        raise ParameterError("lambda3", f"lambda3 > 2 lambda1 (ratio {ratio.max():.6g}): no rigid body has that")
 
 
-def from_body(body: Body) -> dict[str, np.ndarray]:
+def from_body(body: Body, source: str) -> dict[str, np.ndarray]:
     """lambda1 and lambda3 (kg m2, per member) of bodies that are symmetric tops about their centre of mass.
 
     Two of the three principal moments must be equal (to EQUAL_RTOL): they
-    are lambda1, the third is lambda3. A ValueError names the moments of the
-    first body that has no such pair.
+    are lambda1, the third is lambda3. A ParameterError on `source` (the shape
+    parameter) names the moments of the first body that has no such pair.
     """
     moments = np.linalg.eigvalsh(body.inertia).reshape(-1, 3)  # ascending, per member
     low, middle, high = moments.T
@@ -89,8 +88,9 @@ def from_body(body: Body) -> dict[str, np.ndarray]:
     if not np.all(low_pair | high_pair):
         i = int(np.argmin(low_pair | high_pair))
         which = f" (member {i})" if len(moments) > 1 else ""
-        raise ValueError(f"is not a symmetric top{which}: its principal moments about its centre of mass are "
-                         f"{low[i]:.6g}, {middle[i]:.6g}, {high[i]:.6g} kg m2, no two of them equal")
+        raise ParameterError(source, f"is not a symmetric top{which}: its principal moments about its centre of "
+                                     f"mass are {low[i]:.6g}, {middle[i]:.6g}, {high[i]:.6g} kg m2, no two of them "
+                                     f"equal")
     lambda1 = np.where(low_pair, (low + middle) / 2, (middle + high) / 2)
     lambda3 = np.where(low_pair, np.where(high_pair, middle, high), low)
     return {"lambda1": lambda1, "lambda3": lambda3}
@@ -110,27 +110,6 @@ def rates(values: dict[str, np.ndarray]) -> np.ndarray:
     return np.stack(((lambda3 - lambda1) / lambda1, c / lambda1, c / lambda3))
 
 
-@njit(inline="always", fastmath=True, error_model="numpy")
-def rhs(w1, w2, w3, p, r1, r3):
-    """Time derivative of the body rates (rad s-2)."""
-    return -p * w3 * w2 - r1 * w1, p * w3 * w1 - r1 * w2, -r3 * w3
-
-
-@njit(inline="always", fastmath=True, error_model="numpy")
-def rotate(w1, w2, w3, p, tau):
-    """Free symmetric-top rotation for time tau (s): (w1, w2) turns about e3 by p w3 tau."""
-    angle = p * w3 * tau
-    cos = math.cos(angle)
-    sin = math.sin(angle)
-    return cos * w1 - sin * w2, sin * w1 + cos * w2, w3
-
-
-@njit(inline="always", fastmath=True, error_model="numpy")
-def drag_decay(r, tau):
-    """Drag alone for time tau (s) scales a rate by exp(-r tau): r1 for w1, w2 and r3 for w3."""
-    return math.exp(-r * tau)
-
-
 def inputs(values: dict[str, np.ndarray], constants: dict) -> tuple[np.ndarray, np.ndarray]:
     """Kernel state and parameters: body rates (3, members) and (p, r1, r3) (3, members)."""
     return initial_state(values), rates(values)
@@ -139,11 +118,6 @@ def inputs(values: dict[str, np.ndarray], constants: dict) -> tuple[np.ndarray, 
 def kernel_rows(constants: dict) -> tuple[int, int]:
     """Rows of the kernel state and parameter arrays."""
     return 3, 3
-
-
-def kernel_key(constants: dict) -> tuple:
-    """The top's kernels are the same for every run."""
-    return ()
 
 
 def exact(values: dict[str, np.ndarray], constants: dict, t: np.ndarray) -> np.ndarray:
@@ -184,7 +158,7 @@ def tilt_theory(values: dict[str, np.ndarray], t: np.ndarray) -> np.ndarray:
     return np.arctan(np.tan(values["tilt0"])[:, None] * np.exp(-rate[:, None] * np.asarray(t)[None, :]))
 
 
-def tilt_rate_method(method: str, values: dict[str, np.ndarray], h: float, t: np.ndarray) -> np.ndarray:
+def tilt_rate_method(method: Method, values: dict[str, np.ndarray], h: float, t: np.ndarray) -> np.ndarray:
     """The tilt decay rate (1/s) that `method` with step h (s) shows over times t (s); shape (members,).
 
     Per step, w1 + i w2 is multiplied by R(h (i W - r1)) with W = p w3 the
@@ -194,7 +168,7 @@ def tilt_rate_method(method: str, values: dict[str, np.ndarray], h: float, t: np
     t finds. Exact and split methods solve both pieces exactly (they
     commute), so they show the course's rate.
     """
-    tableau = METHODS[method].tableau
+    tableau = method.tableau
     p, r1, r3 = (x[:, None] for x in rates(values))
     if tableau is None:
         return (r1 - r3)[:, 0]
@@ -218,14 +192,14 @@ def derive(values: dict[str, np.ndarray], constants: dict) -> dict[str, np.ndarr
 STABILITY_AXES = ("h Omega", "h c/lambda1")
 
 
-def _amplification(method: str, z: np.ndarray) -> np.ndarray:
+def _amplification(method: Method, z: np.ndarray) -> np.ndarray:
     """|factor| per step on w' = (z / h) w: |R(z)| for a tableau; exact and split methods solve the rotation and
     the decay exactly (each split piece has total fraction 1), so exp(Re z)."""
-    tableau = METHODS[method].tableau
+    tableau = method.tableau
     return np.abs(tableau.stability(z)) if tableau is not None else np.exp(np.real(z))
 
 
-def axis_growth(method: str, axis: str, x: np.ndarray) -> np.ndarray:
+def axis_growth(method: Method, axis: str, x: np.ndarray) -> np.ndarray:
     """Growth factor per step of the fastest motion at x on a stability axis.
 
     h Omega: no drag; (w1, w2) turns (z = i x) while w3 stays (factor 1), so
@@ -246,7 +220,7 @@ def stability_axis(values: dict[str, np.ndarray], constants: dict, h: np.ndarray
     return np.where(rotating, STABILITY_AXES[0], STABILITY_AXES[1]), h * np.where(rotating, omega, r1)
 
 
-def step_growth(method: str, values: dict[str, np.ndarray], constants: dict, h: np.ndarray) -> np.ndarray:
+def step_growth(method: Method, values: dict[str, np.ndarray], constants: dict, h: np.ndarray) -> np.ndarray:
     """Theory: the growth factor per step of a member's fastest-growing motion at the start, of the transverse
     rates (w1 + i w2 times R(h (i Omega - r1))) and of w3 (R(-h r3)); motions at zero amplitude do not count."""
     p, r1, r3 = rates(values)
@@ -264,6 +238,16 @@ def amplitudes(samples: np.ndarray, values: dict[str, np.ndarray], constants: di
 def kinetic_energy(omega: np.ndarray, lambda1, lambda3) -> np.ndarray:
     """1/2 (lambda1 (w1^2 + w2^2) + lambda3 w3^2) (J) of body rates omega (..., 3) rad/s; conserved when c = 0."""
     return 0.5 * (lambda1 * (omega[..., 0] ** 2 + omega[..., 1] ** 2) + lambda3 * omega[..., 2] ** 2)
+
+
+def conserved_energy(ds) -> np.ndarray:
+    """The kinetic energy (J, (member, t)) of a result's members without drag (c = 0); NaN for the others.
+    Raises KeyError naming the variable (omega) the result lacks."""
+    if "omega" not in ds:
+        raise KeyError("omega")
+    energy = kinetic_energy(ds["omega"].values, ds["lambda1"].values[:, None], ds["lambda3"].values[:, None])
+    energy[ds["c"].values != 0] = np.nan
+    return energy
 
 
 def observe(samples: np.ndarray, names, values: dict[str, np.ndarray], constants: dict) -> dict[str, np.ndarray]:

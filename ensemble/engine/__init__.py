@@ -1,0 +1,1 @@
+"""The scene-independent machinery: compiled block helpers (`blocks`) and the one launch (`launch`)."""

@@ -1,0 +1,216 @@
+"""Generic compiled helpers of the ensemble kernels: no scene lives here.
+
+Members run in blocks of B; prange goes over blocks and the innermost loop
+over the members of a block, which LLVM vectorizes. A kernel keeps everything
+a step touches in one work array per block, row r of member j at r * B + j:
+with a single base pointer LLVM proves the rows disjoint and emits only the
+vector loop (separate arrays add a runtime overlap check whose scalar fallback
+rounds differently, so results would depend on heap addresses).
+
+Kernel arrays are laid out by block: state0 and rate (blocks, rows, B) and
+samples (n_save, blocks, rows, B), so a block reads and writes contiguous
+memory (as (rows, members) arrays, each row of a block was a separate cache
+line far from the next: loading and saving a block of 16-mass chains cost
+about as much as 200 of its steps, measured). Per-member arrays (limit,
+status, failure_time, control, counts) are (..., members).
+
+Each scene's kernels (ensemble/scenes/<scene>/kernels.py) are generated per
+method by factories whose closures capture the method's data as constants;
+Numba caches each on disk. They call the helpers here directly: compiled
+functions passed as arguments, or held by a closure, defeat the disk cache.
+How the runner calls a kernel is in `ensemble.engine.launch`.
+"""
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+from ..methods import Method
+from ..results import ACCEPTED, NO_STEP, REJECTED, RHS_EVALS, UNDERFLOWED, Status
+
+FAST = dict(fastmath=True, error_model="numpy", boundscheck=False)
+# Code that tests for NaN and infinity is compiled without fastmath, on its own (not inlined at Numba level),
+# and tests the exponent bits: once LLVM inlines it into a fastmath kernel, it may assume that values made
+# by fastmath arithmetic are never NaN and fold a floating-point test away (measured: a NaN chain state passed
+# `not abs(x) <= limit`).
+CAREFUL = dict(error_model="numpy", boundscheck=False)
+_EXPONENT = 0x7FF0000000000000  # all ones in a float64's exponent: inf or NaN
+_MAGNITUDE = 0x7FFFFFFFFFFFFFFF  # a float64's bits but its sign
+OK, BLEW_UP, UNDERFLOW = int(Status.OK), int(Status.BLEW_UP), int(Status.STEP_SIZE_UNDERFLOW)
+
+
+@njit(inline="always", **CAREFUL)
+def _finite(bits, i):
+    """Whether the float64 whose int64 view is bits[i] is finite."""
+    return (bits[i] & _EXPONENT) != _EXPONENT
+
+@njit(**CAREFUL)
+def check_members(work, first, count, B, j0, limit, status, failure_time, t, step_row=-1):
+    """Fail, at time t (s), each running member of a block whose state rows [first, first + count) hold a value
+    that is not finite or exceeds its limit: status BLEW_UP, state NaN, and (adaptive kernels) step 0 in row
+    step_row, so it takes no more steps. Returns how many members still run."""
+    bits = work.view(np.int64)
+    limit_bits = limit.view(np.int64)
+    running = 0
+    for j in range(B):
+        if status[j0 + j] != OK:
+            continue
+        largest = 0  # bits of the largest |value|: for floats >= 0 bits order as values do, inf and NaN on top
+        for r in range(first, first + count):
+            largest = max(largest, bits[r * B + j] & _MAGNITUDE)
+        if largest < _EXPONENT and largest <= limit_bits[j0 + j]:
+            running += 1
+        else:
+            status[j0 + j] = BLEW_UP
+            failure_time[j0 + j] = t
+            for r in range(first, first + count):
+                work[r * B + j] = np.nan
+            if step_row >= 0:
+                work[step_row * B + j] = 0.0
+    return running
+
+
+@njit(inline="always", **FAST)
+def fill_failed(samples, first_save, block):
+    """NaN for the samples from first_save on of a block whose members have all failed."""
+    samples[first_save:, block] = np.nan
+
+
+@njit(inline="always", **FAST)
+def rows_in(work, row, source, first, count, B):
+    """Rows first .. first + count - 1 of a block's (rows, B) array into the work array from `row` on."""
+    for i in range(count):
+        for j in range(B):
+            work[(row + i) * B + j] = source[first + i, j]
+
+
+@njit(inline="always", **FAST)
+def rows_out(work, row, target, first, count, B):
+    """Work rows row .. row + count - 1 into rows first .. first + count - 1 of a block's (rows, B) array."""
+    for i in range(count):
+        for j in range(B):
+            target[first + i, j] = work[(row + i) * B + j]
+
+
+def method_constants(method: Method):
+    """A method's data as plain tuples for a kernel closure (unused parts get placeholders).
+
+    Returns (runge_kutta, stages, a (stages x stages, flat), b, entries, pieces, fractions); pieces are
+    numbers, in the order of method.splitting.pieces.
+    """
+    if method.tableau is not None:
+        t = method.tableau
+        return True, t.stages, t.square_a(), tuple(float(x) for x in t.b), 1, (0,), (0.0,)
+    sequence = method.splitting.sequence
+    return (False, 1, (0.0,), (0.0,), len(sequence),
+            tuple(p for p, _ in sequence), tuple(float(f) for _, f in sequence))
+
+
+def adaptive_constants(method: Method):
+    """An adaptive method's tableau and controller as plain constants for a kernel closure."""
+    t, control = method.tableau, method.control
+    assert t.fsal and t.error is not None, "adaptive kernels need an FSAL embedded pair"
+    return (t.stages, t.square_a(), tuple(float(x) for x in t.error), control.alpha, control.beta, control.safety,
+            control.min_factor, control.max_factor)
+
+
+# Rows of an adaptive kernel's per-member control block (after the scene's rows).
+H, TIME, STEP, ERR, ERR_PREVIOUS, REJECTED_LAST, RTOL, ATOL = range(8)
+CONTROL_ROWS = 8
+
+
+@njit(**CAREFUL)
+def control_step(work, c0, B, target, counts, j0, status, failure_time, new_stages, alpha, beta, safety,
+                  min_factor, max_factor):
+    """After a trial step of every member in a block: accept or reject each and choose its next step.
+
+    A trial step costs `new_stages` right-hand-side evaluations (an FSAL pair reuses its last stage).
+    A trial step whose error is not a number is rejected like one with a large error.
+
+    Afterwards ERR is NO_STEP for members that had no step to take,
+    UNDERFLOWED for members whose step underflowed (they stop: H = 0, status
+    UNDERFLOW at their time), and REJECTED_LAST is 0 for members whose step
+    was accepted; the caller moves those to their new state.
+    """
+    bits = work.view(np.int64)
+    for j in range(B):
+        step = work[(c0 + STEP) * B + j]
+        if step <= 0.0:
+            work[(c0 + ERR) * B + j] = NO_STEP
+            continue
+        finite = _finite(bits, (c0 + ERR) * B + j)
+        err = work[(c0 + ERR) * B + j]
+        counts[RHS_EVALS, j0 + j] += new_stages
+        if finite and err <= 1.0:
+            factor = safety * max(err, 1e-10) ** -alpha * work[(c0 + ERR_PREVIOUS) * B + j] ** beta
+            if work[(c0 + REJECTED_LAST) * B + j] > 0.0:
+                factor = min(factor, 1.0)
+            factor = min(max_factor, max(min_factor, factor))
+            remaining = target - work[(c0 + TIME) * B + j]
+            work[(c0 + TIME) * B + j] = target if step >= remaining else work[(c0 + TIME) * B + j] + step
+            # A step clipped to land on a saved time does not shrink the next one.
+            work[(c0 + H) * B + j] = max(step * factor, work[(c0 + H) * B + j] if step >= remaining else 0.0)
+            work[(c0 + ERR_PREVIOUS) * B + j] = max(err, 1e-4)
+            work[(c0 + REJECTED_LAST) * B + j] = 0.0
+            counts[ACCEPTED, j0 + j] += 1.0
+        else:
+            h = step * max(min_factor, safety * err ** -alpha) if finite else step * min_factor
+            if h <= 1e-14 * target:  # the step underflowed: give up
+                h = 0.0
+                work[(c0 + ERR) * B + j] = UNDERFLOWED
+                status[j0 + j] = UNDERFLOW
+                failure_time[j0 + j] = work[(c0 + TIME) * B + j]
+            work[(c0 + H) * B + j] = h
+            work[(c0 + REJECTED_LAST) * B + j] = 1.0
+            counts[REJECTED, j0 + j] += 1.0
+
+
+@njit(inline="always", **FAST)
+def first_step(size, slope, save_dt):
+    """Hairer's first guess from |y| and |y'| in units of the tolerance: 1% of their ratio, at most save_dt."""
+    return min(0.01 * size / slope if size > 1e-5 and slope > 1e-5 else 1e-6, save_dt)
+
+
+@njit(inline="always", **FAST)
+def trial_steps(work, c0, B, target):
+    """Each member's next trial step (STEP), clipped to land on `target`; 0 for members there. Returns how many move."""
+    left = 0
+    for j in range(B):
+        remaining = target - work[(c0 + TIME) * B + j]
+        step = min(work[(c0 + H) * B + j], remaining) if remaining > 0.0 else 0.0
+        work[(c0 + STEP) * B + j] = step
+        work[(c0 + ERR) * B + j] = 0.0
+        left += step > 0.0
+    return left
+
+
+@njit(**FAST)
+def splitting_schedule(pieces, fractions, h, steps_per_save, chunk):
+    """The pieces of one save interval of steps h (s): kinds (KICK or DRIFT), taus (s), and lags.
+
+    pieces and fractions: a splitting's sequence (piece numbers, fractions
+    of the step). Where a step ends with the piece the next begins with
+    (verlet: a half kick), the two merge into one. lags[p] is how many masses piece p runs
+    behind the first piece of its chunk (pieces in chunks of `chunk`): one
+    more at each change between kick and drift.
+    """
+    E = len(pieces)
+    merge = E > 1 and pieces[0] == pieces[E - 1]
+    kinds = np.empty(E * steps_per_save, np.int64)
+    taus = np.empty(E * steps_per_save)
+    count = 0
+    for step in range(steps_per_save):
+        for e in range(E):
+            if merge and e == 0 and step > 0:
+                continue  # done by the previous step's last piece
+            tau = h * fractions[e]
+            if merge and e == E - 1 and step < steps_per_save - 1:
+                tau += h * fractions[0]
+            kinds[count] = pieces[e]
+            taus[count] = tau
+            count += 1
+    lags = np.zeros(count, np.int64)
+    for p in range(count):
+        if p % chunk:
+            lags[p] = lags[p - 1] + (kinds[p] != kinds[p - 1])
+    return kinds[:count], taus[:count], lags

@@ -1,0 +1,152 @@
+"""The one way into the kernels: integrate(scene, method, values, constants, ...) -> Outcome.
+
+The runner, `prepare`, the tests and every benchmark call this. A scene's
+kernels module (ensemble/scenes/<scene>/kernels.py) provides
+block_size(constants) and kernel(method, constants); its kernels follow one of
+two call conventions, over arrays laid out by block (see engine.blocks):
+
+- fixed step: kernel(state0, rate, h, steps_per_save, limit, samples, status, failure_time);
+- adaptive:   kernel(state0, rate, control, save_dt, limit, samples, counts, status, failure_time),
+  control (3, members): first trial step (s; <= 0: estimate it), rtol, atol.
+
+state0 and rate are (blocks, rows, B) (rows from the scene's kernel_rows),
+limit (members,) the largest |state component| a member may reach, samples
+(n_save, blocks, state rows, B), counts (3, members) as results.COUNTS,
+status (members,) and failure_time (members,; s).
+"""
+from __future__ import annotations
+
+import importlib
+import math
+from types import ModuleType
+from typing import Callable
+
+import numpy as np
+
+from ..methods import Method
+from ..results import DEFAULT_BLOWUP_FACTOR, Outcome
+
+
+def kernels_of(scene) -> ModuleType:
+    """A scene's kernels module: `kernels` beside its model (imports Numba)."""
+    return importlib.import_module(f"{scene.__name__}.kernels")
+
+
+def block_size(scene, constants: dict) -> int:
+    """Members per kernel block of the scene's kernels for a run's constants."""
+    return kernels_of(scene).block_size(constants)
+
+
+def integrate(scene, method: Method, values: dict[str, np.ndarray], constants: dict, *, n_save: int,
+              save_dt: float, dt=None, rtol=None, atol=None,
+              blowup_factor: float = DEFAULT_BLOWUP_FACTOR) -> Outcome:
+    """Integrate the members described by `values` with `method`, saving n_save samples every save_dt (s).
+
+    Fixed-step methods take the step dt (s, one value; save_dt a whole multiple
+    of it). Adaptive methods take rtol and atol (per member or one value) and
+    dt as the first trial step (NaN or None: estimated). The closed form is
+    evaluated at the saved times. A member fails when its state is not finite
+    or a component outgrows blowup_factor times its largest component at the
+    start (checked at every saved sample), or when its adaptive step size
+    underflows; it stops there and its later samples are NaN. A member's result
+    depends only on its own values: never on how many members run with it,
+    the chunking or the thread count.
+    """
+    return launcher(scene, method, values, constants, n_save=n_save, save_dt=save_dt, dt=dt, rtol=rtol, atol=atol,
+                    blowup_factor=blowup_factor)()
+
+
+def launcher(scene, method: Method, values: dict[str, np.ndarray], constants: dict, *, n_save: int,
+             save_dt: float, dt=None, rtol=None, atol=None,
+             blowup_factor: float = DEFAULT_BLOWUP_FACTOR) -> Callable[[], Outcome]:
+    """`integrate` in two parts: this lays out the inputs in the kernel's blocks and returns a call that runs the
+    kernel on them (anew each time) and returns its Outcome. Timing that call times the kernel and not the layout."""
+    if method.closed_form:
+        step = save_dt if dt is None or not np.isfinite(dt) else float(dt)
+        t = np.arange(n_save) * (round(save_dt / step) * step)
+        return lambda: _closed_form(scene.exact(values, constants, t))
+    state0, rate = scene.inputs(values, constants)
+    n = state0.shape[1]
+    kernels = kernels_of(scene)
+    block = kernels.block_size(constants)
+    kernel = kernels.kernel(method, constants)
+    limit = _limits(state0, blowup_factor)
+    if method.adaptive:
+        control = np.stack([np.nan_to_num(np.broadcast_to(np.asarray(x, dtype=float), (n,)), nan=0.0)
+                            for x in (np.nan if dt is None else dt, rtol, atol)])
+        state0, rate, control, limit = _padded((state0, rate, control, limit[None]), block)
+    else:
+        state0, rate, limit = _padded((state0, rate, limit[None]), block)
+        steps_per_save = round(save_dt / dt)
+    members = state0.shape[1]
+    state0, rate, limit = blocked(state0, block), blocked(rate, block), limit[0]
+    samples = np.empty((n_save, members // block, state0.shape[1], block))
+
+    def run() -> Outcome:
+        status, failure_time = np.zeros(members), np.full(members, np.nan)
+        if method.adaptive:
+            counts = np.zeros((3, members))
+            kernel(state0, rate, control, float(save_dt), limit, samples, counts, status, failure_time)
+            counts = counts[:, :n].astype(np.int64)
+        else:
+            kernel(state0, rate, float(dt), int(steps_per_save), limit, samples, status, failure_time)
+            counts = _fixed_counts(method, scene, failure_time[:n], dt, steps_per_save * (n_save - 1))
+        return Outcome(unblocked(samples)[:, :, :n], counts, status[:n].astype(np.int8), failure_time[:n])
+
+    return run
+
+
+def _closed_form(samples: np.ndarray) -> Outcome:
+    n = samples.shape[2]
+    return Outcome(samples, np.zeros((3, n), dtype=np.int64), np.zeros(n, dtype=np.int8), np.full(n, np.nan))
+
+
+def _fixed_counts(method: Method, scene, failure_time: np.ndarray, dt: float, steps: int) -> np.ndarray:
+    """Step counts (3, members) of a fixed-step run: every step up to t_end, or up to a member's failure."""
+    taken = np.where(np.isnan(failure_time), steps, np.rint(failure_time / dt))
+    return np.stack([taken, np.zeros(taken.shape),
+                     taken * method.evaluations_per_step(scene.EVALUATING_PIECES)]).astype(np.int64)
+
+
+def prepare(scene, method: Method, constants: dict) -> None:
+    """Compile (or load from Numba's disk cache) the kernel of a stepping method, on one empty block."""
+    if method.closed_form:
+        return
+    kernels = kernels_of(scene)
+    state_rows, rate_rows = scene.kernel_rows(constants)
+    block = kernels.block_size(constants)
+    kernel = kernels.kernel(method, constants)
+    state0, rate = np.zeros((1, state_rows, block)), np.zeros((1, rate_rows, block))
+    samples = np.empty((1, 1, state_rows, block))
+    limit, status, failure_time = np.ones(block), np.zeros(block), np.zeros(block)
+    if method.adaptive:
+        kernel(state0, rate, np.ones((3, block)), 1.0, limit, samples, np.zeros((3, block)), status, failure_time)
+    else:
+        kernel(state0, rate, 1.0, 1, limit, samples, status, failure_time)
+
+
+def _limits(state0: np.ndarray, blowup_factor: float) -> np.ndarray:
+    """Each member's largest allowed |state component|: blowup_factor times its largest at the start."""
+    if math.isinf(blowup_factor):  # only non-finite states fail (inf * 0 would be NaN)
+        return np.full(state0.shape[1], np.inf)
+    return np.ascontiguousarray(blowup_factor * np.abs(state0).max(axis=0))
+
+
+def _padded(arrays, block: int) -> tuple[np.ndarray, ...]:
+    """(rows, members) arrays padded to a whole number of blocks with copies of the last member."""
+    n = arrays[0].shape[1]
+    extra = -(-n // block) * block - n
+    return tuple(np.ascontiguousarray(np.concatenate([x, np.repeat(x[:, -1:], extra, axis=1)], axis=1) if extra else x)
+                 for x in arrays)
+
+
+def blocked(x: np.ndarray, block: int) -> np.ndarray:
+    """A (rows, members) array, members a multiple of block, in a kernel's layout (members / block, rows, block)."""
+    rows, members = x.shape
+    return np.ascontiguousarray(x.reshape(rows, members // block, block).transpose(1, 0, 2))
+
+
+def unblocked(samples: np.ndarray) -> np.ndarray:
+    """A kernel's samples (n_save, blocks, rows, block) as (n_save, rows, members)."""
+    n_save, blocks, rows, block = samples.shape
+    return samples.transpose(0, 2, 1, 3).reshape(n_save, rows, blocks * block)

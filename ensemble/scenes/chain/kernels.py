@@ -1,0 +1,357 @@
+"""The chains' compiled kernels: forces from neighbours, ghost masses, kicks, drifts, tiles, and one kernel
+per (method, n, ring).
+
+Generic helpers (rows in and out, member checks, step control, the splitting
+schedule) are in ensemble.engine.blocks.
+"""
+from __future__ import annotations
+
+import math
+from functools import cache
+
+import numpy as np
+from numba import njit, prange
+
+from ...engine.blocks import (
+    ATOL,
+    CONTROL_ROWS,
+    ERR,
+    ERR_PREVIOUS,
+    FAST,
+    REJECTED_LAST,
+    RTOL,
+    STEP,
+    H,
+    adaptive_constants,
+    check_members,
+    control_step,
+    fill_failed,
+    first_step,
+    method_constants,
+    rows_in,
+    rows_out,
+    splitting_schedule,
+    trial_steps,
+)
+from ...methods import Method
+from ...results import RHS_EVALS, UNDERFLOWED
+from .model import PIECES
+
+TILE_ROWS, TILE_PIECES = 64, 32  # a long chain's splitting kernel: masses per tile, pieces per sweep
+KICK = PIECES.index("kick")
+
+
+@njit(inline="always", fastmath=True, error_model="numpy")
+def acceleration(x_left, x, x_right, c_left, c_right):
+    """Acceleration (m/s^2) of a mass at x between neighbours x_left, x_right (m).
+
+    c_left and c_right (1/s^2) are the springs' constants on each side over the mass.
+    """
+    return c_left * (x_left - x) + c_right * (x_right - x)
+
+
+def block_size(constants: dict) -> int:
+    """Members per kernel block for a chain of n masses.
+
+    From 16 masses on, a block is 8 members: each row is one 64-byte line (one
+    AVX-512 vector), so a row update is a single vector operation. Shorter
+    chains ran 2x slower in 8-member blocks than in 64-member ones (measured
+    side by side; our guess is too little independent work per step).
+    """
+    return 64 if constants["n"] < 16 else 8
+
+
+def kernel(method: Method, constants: dict):
+    """The compiled (or cache-loaded) kernel of a stepping method for the run's n and boundary."""
+    return _kernel(method, constants["n"], constants["boundary"] == "periodic")
+
+
+@cache
+def _kernel(method: Method, n: int, periodic: bool):
+    return _adaptive_kernel(method, n, periodic) if method.adaptive else _fixed_kernel(method, n, periodic)
+
+
+# Chain work arrays (B members a row) start with the rows X (n + 2: ghost, masses 1..n, ghost), V (n),
+# CL and CR (n each). The helpers below take n, B and the rows as arguments instead of closing over them:
+# a kernel closure that holds other compiled functions pickles differently in every process, so Numba's
+# disk cache never matches it. Inlined into a kernel, the arguments are the kernel's constants again.
+
+@njit(inline="always", **FAST)
+def _set_ghosts(work, x, n, B, periodic):
+    """Ring: the ghost sites of the positions at row x copy masses n and 1; walls and free ends keep 0."""
+    if periodic:
+        for j in range(B):
+            work[x * B + j] = work[(x + n) * B + j]
+            work[(x + n + 1) * B + j] = work[(x + 1) * B + j]
+
+
+@njit(inline="always", **FAST)
+def _store_chain_sample(work, samples, save, block, n, B):
+    rows_out(work, 1, samples[save, block], 0, n, B)
+    rows_out(work, n + 2, samples[save, block], n, n, B)
+
+
+@njit(inline="always", **FAST)
+def _load_chain_block(state0, rate, block, samples, n, B, rows, periodic):
+    """A block's work array (rows x B) with its state and parameters (CL and CR follow each other); also its
+    first sample."""
+    work = np.zeros(rows * B)
+    rows_in(work, 1, state0[block], 0, n, B)
+    rows_in(work, n + 2, state0[block], n, n, B)
+    rows_in(work, 2 * n + 2, rate[block], 0, 2 * n, B)
+    _store_chain_sample(work, samples, 0, block, n, B)
+    _set_ghosts(work, 0, n, B, periodic)
+    return work
+
+
+@njit(inline="always", **FAST)
+def _chain_saved(work, samples, save, block, limit, status, failure_time, t, step_row, n, B):
+    """End of a save interval at time t (s): fail the members that blew up, store sample `save`; when no member
+    of the block runs any more, fill its later samples with NaN and return True (the block is done)."""
+    running = check_members(work, 1, 2 * n + 1, B, block * B, limit, status, failure_time, t, step_row)
+    _store_chain_sample(work, samples, save, block, n, B)
+    if running == 0:
+        fill_failed(samples, save + 1, block)
+    return running == 0
+
+
+@njit(inline="always", **FAST)
+def _chain_acceleration(work, x, i, j, n, B):
+    """Acceleration (m s-2) of mass i + 1 of member j, from the positions at row x (with ghosts)."""
+    CL, CR = 2 * n + 2, 3 * n + 2
+    return acceleration(work[(x + i) * B + j], work[(x + 1 + i) * B + j], work[(x + 2 + i) * B + j],
+                              work[(CL + i) * B + j], work[(CR + i) * B + j])
+
+
+@njit(inline="always", **FAST)
+def _chain_slopes(work, zx, zv, kx, kv, n, B):
+    """A stage's slopes: velocities from row zv into row kx, accelerations from row zx into row kv."""
+    for i in range(n):
+        for j in range(B):
+            work[(kx + i) * B + j] = work[(zv + i) * B + j]
+            work[(kv + i) * B + j] = _chain_acceleration(work, zx, i, j, n, B)
+
+
+@njit(inline="always", **FAST)
+def _stage_sums(work, weights, S, KX, KV, i, j, n, B):
+    """sum_s weights[s] K_s for mass i + 1 of member j: its x part and its v part."""
+    dx = 0.0
+    dv = 0.0
+    for s in range(S):
+        dx += weights[s] * work[(KX + s * n + i) * B + j]
+        dv += weights[s] * work[(KV + s * n + i) * B + j]
+    return dx, dv
+
+
+@njit(inline="always", **FAST)
+def _chain_stage(work, s, S, a, h, step_row, rows, n, B, periodic):
+    """Runge-Kutta stage s: its state Z = Y + sum_r h a[s, r] K_r into rows ZX, ZV, then its slopes into KX_s,
+    KV_s. rows = (X, V, ZX, ZV, KX, KV) as in _fixed_kernel; the step is h, or each member's own from row
+    step_row when step_row >= 0 (adaptive kernels); a is the flat stages x stages tableau, zero from column s.
+    """
+    X, V, ZX, ZV, KX, KV = rows
+    for i in range(n):
+        for j in range(B):
+            hj = work[step_row * B + j] if step_row >= 0 else h
+            zx = work[(X + 1 + i) * B + j]
+            zv = work[(V + i) * B + j]
+            for r in range(S):
+                ha = hj * a[s * S + r]
+                zx += ha * work[(KX + r * n + i) * B + j]
+                zv += ha * work[(KV + r * n + i) * B + j]
+            work[(ZX + 1 + i) * B + j] = zx
+            work[(ZV + i) * B + j] = zv
+    _set_ghosts(work, ZX, n, B, periodic)
+    _chain_slopes(work, ZX, ZV, KX + s * n, KV + s * n, n, B)
+
+
+@njit(inline="always", **FAST)
+def _kick(work, tau, lo, hi, n, B, T):
+    """Kick masses lo + 1 .. hi (0 <= hi - lo <= T): v += tau (s) times their acceleration."""
+    w = work[lo * B:]  # rows from lo on, indexed from a loop of constant trip count T (see _fixed_kernel)
+    for i in range(T):
+        if i >= hi - lo:
+            break
+        for j in range(B):
+            w[(n + 2 + i) * B + j] += tau * _chain_acceleration(w, 0, i, j, n, B)
+
+
+@njit(inline="always", **FAST)
+def _drift(work, tau, lo, hi, n, B, T):
+    """Drift masses lo + 1 .. hi (0 <= hi - lo <= T): x += tau (s) times their velocity."""
+    w = work[lo * B:]
+    for i in range(T):
+        if i >= hi - lo:
+            break
+        for j in range(B):
+            w[(1 + i) * B + j] += tau * w[(n + 2 + i) * B + j]
+
+
+def _fixed_kernel(method: Method, n: int, periodic: bool):
+    """Chain kernel for n masses: a kick/drift splitting or an explicit Runge-Kutta tableau.
+
+    Work rows (B = block_size({"n": n}) members each): X (n + 2: ghost, masses
+    1..n, ghost), V (n), then CL and CR (n each: the springs' constants left
+    and right of each mass over its mass, see model.inputs); Runge-Kutta adds
+    the stage state ZX (n + 2), ZV (n) and slopes KX, KV (stages x n each).
+    Forces come from neighbours only: O(n) per step.
+
+    A long chain's rows outgrow the L1 cache, so its splitting kernel runs
+    TILE_PIECES pieces (kicks and drifts) at once over tiles of TILE_ROWS
+    masses, each piece one mass behind the piece before it where kick and
+    drift alternate (a wavefront): every mass still sees its neighbours as
+    the one-piece-at-a-time order has them, so results are bit for bit the
+    same. A ring's ghost masses need every piece to finish first, so rings
+    run one piece at a time. Kick and drift index rows from a loop of
+    constant trip count: with a variable start, Numba's negative-index
+    wraparound stays in the loop and LLVM does not vectorize it.
+    """
+    B = block_size({"n": n})
+    X, V = 0, n + 2
+    CL = V + n
+    CR = CL + n
+    runge_kutta, S, a, b, E, pieces, fractions = method_constants(method)
+    tiled = not periodic and n > 2 * TILE_ROWS
+    ZX = CR + n
+    ZV = ZX + n + 2
+    KX = ZV + n
+    KV = KX + S * n
+    rows = KV + S * n if runge_kutta else CR + n
+    stage_rows = (X, V, ZX, ZV, KX, KV)
+
+    @njit(parallel=True, cache=True, **FAST)
+    def splitting_kernel(state0, rate, h, steps_per_save, limit, samples, status, failure_time):
+        """state0 (blocks, 2n, B), rate (blocks, 2n, B), limit (M,) -> samples (n_save, blocks, 2n, B),
+        status (M,), failure_time (M,) (s; set only where a member fails); M = blocks x B."""
+        kinds, taus, lags = splitting_schedule(pieces, fractions, h, steps_per_save, TILE_PIECES)
+        count = len(kinds)
+        for block in prange(state0.shape[0]):
+            j0 = block * B
+            work = _load_chain_block(state0, rate, block, samples, n, B, rows, periodic)
+            check_members(work, X + 1, 2 * n + 1, B, j0, limit, status, failure_time, 0.0)  # a non-finite start
+            for save in range(1, samples.shape[0]):
+                if tiled:
+                    for c0 in range(0, count, TILE_PIECES):
+                        c1 = min(c0 + TILE_PIECES, count)
+                        for t0 in range(0, n + lags[c1 - 1], TILE_ROWS):
+                            for p in range(c0, c1):
+                                lo = max(t0 - lags[p], 0)
+                                hi = min(t0 + TILE_ROWS - lags[p], n)
+                                if kinds[p] == KICK:
+                                    _kick(work, taus[p], lo, hi, n, B, TILE_ROWS)
+                                else:
+                                    _drift(work, taus[p], lo, hi, n, B, TILE_ROWS)
+                else:
+                    for p in range(count):
+                        if kinds[p] == KICK:
+                            _kick(work, taus[p], 0, n, n, B, n)
+                        else:
+                            _drift(work, taus[p], 0, n, n, B, n)
+                            _set_ghosts(work, X, n, B, periodic)
+                if _chain_saved(work, samples, save, block, limit, status, failure_time, save * steps_per_save * h, -1,
+                                n, B):
+                    break
+
+    @njit(parallel=True, cache=True, **FAST)
+    def runge_kutta_kernel(state0, rate, h, steps_per_save, limit, samples, status, failure_time):
+        """As splitting_kernel."""
+        for block in prange(state0.shape[0]):
+            j0 = block * B
+            work = _load_chain_block(state0, rate, block, samples, n, B, rows, periodic)
+            check_members(work, X + 1, 2 * n + 1, B, j0, limit, status, failure_time, 0.0)  # a non-finite start
+            for save in range(1, samples.shape[0]):
+                for _ in range(steps_per_save):
+                    for s in range(S):
+                        _chain_stage(work, s, S, a, h, -1, stage_rows, n, B, periodic)
+                    for i in range(n):
+                        for j in range(B):
+                            dx, dv = _stage_sums(work, b, S, KX, KV, i, j, n, B)
+                            work[(X + 1 + i) * B + j] += h * dx
+                            work[(V + i) * B + j] += h * dv
+                if _chain_saved(work, samples, save, block, limit, status, failure_time, save * steps_per_save * h, -1,
+                                n, B):
+                    break
+
+    return runge_kutta_kernel if runge_kutta else splitting_kernel
+
+
+def _adaptive_kernel(method: Method, n: int, periodic: bool):
+    """Chain kernel for an adaptive embedded pair; rows as in _fixed_kernel's Runge-Kutta kernel, then control rows.
+
+    As for the top, every member of a block takes its own trial step at once,
+    clipped to land on the next saved time.
+    """
+    B = block_size({"n": n})
+    X, V = 0, n + 2
+    CL = V + n
+    CR = CL + n
+    ZX = CR + n
+    ZV = ZX + n + 2
+    S, a, e, alpha, beta, safety, min_factor, max_factor = adaptive_constants(method)
+    a_array = np.array(a)  # indexed by a loop variable: a constant array, not a tuple
+    KX = ZV + n
+    KV = KX + S * n
+    C0 = KV + S * n
+    rows = C0 + CONTROL_ROWS
+    stage_rows = (X, V, ZX, ZV, KX, KV)
+    @njit(parallel=True, cache=True, **FAST)
+    def kernel(state0, rate, control, save_dt, limit, samples, counts, status, failure_time):
+        """state0, rate (blocks, 2n, B); control (3, M): first step (s; <= 0: estimate it), rtol, atol;
+        limit (M,) -> samples (n_save, blocks, 2n, B), counts (3, M): accepted, rejected, right-hand-side evaluations;
+        status (M,) and failure_time (M,; s, set only where a member fails)."""
+        for block in prange(state0.shape[0]):
+            j0 = block * B
+            work = _load_chain_block(state0, rate, block, samples, n, B, rows, periodic)
+            _chain_slopes(work, X, V, KX, KV, n, B)
+            for j in range(B):
+                rtol, atol = control[1, j0 + j], control[2, j0 + j]
+                work[(C0 + RTOL) * B + j], work[(C0 + ATOL) * B + j] = rtol, atol
+                work[(C0 + ERR_PREVIOUS) * B + j] = 1e-4
+                counts[RHS_EVALS, j0 + j] = 1.0
+                h = control[0, j0 + j]
+                if h <= 0.0:
+                    size = 0.0
+                    slope = 0.0
+                    for i in range(n):
+                        x, v = work[(X + 1 + i) * B + j], work[(V + i) * B + j]
+                        size = max(size, abs(x) / (atol + rtol * abs(x)), abs(v) / (atol + rtol * abs(v)))
+                        slope = max(slope, abs(v) / (atol + rtol * abs(x)),
+                                    abs(work[(KV + i) * B + j]) / (atol + rtol * abs(v)))
+                    h = first_step(size, slope, save_dt)
+                work[(C0 + H) * B + j] = h
+            # a non-finite start
+            check_members(work, X + 1, 2 * n + 1, B, j0, limit, status, failure_time, 0.0, C0 + H)
+            for save in range(1, samples.shape[0]):
+                target = save * save_dt
+                while trial_steps(work, C0, B, target):
+                    for s in range(1, S):  # FSAL: stage 0 is the last step's final stage
+                        _chain_stage(work, s, S, a_array, 0.0, C0 + STEP, stage_rows, n, B, periodic)
+                    # FSAL: the last stage state ZX, ZV is the new state; estimate its error
+                    for i in range(n):
+                        for j in range(B):
+                            ex, ev = _stage_sums(work, e, S, KX, KV, i, j, n, B)
+                            h = work[(C0 + STEP) * B + j]
+                            rtol, atol = work[(C0 + RTOL) * B + j], work[(C0 + ATOL) * B + j]
+                            qx = h * ex / (atol + rtol * max(abs(work[(X + 1 + i) * B + j]),
+                                                             abs(work[(ZX + 1 + i) * B + j])))
+                            qv = h * ev / (atol + rtol * max(abs(work[(V + i) * B + j]), abs(work[(ZV + i) * B + j])))
+                            work[(C0 + ERR) * B + j] += qx * qx + qv * qv
+                    for j in range(B):
+                        work[(C0 + ERR) * B + j] = math.sqrt(work[(C0 + ERR) * B + j] / (2 * n))
+                    control_step(work, C0, B, target, counts, j0, status, failure_time, S - 1, alpha, beta, safety,
+                                  min_factor, max_factor)
+                    for i in range(n):
+                        for j in range(B):
+                            if work[(C0 + REJECTED_LAST) * B + j] == 0.0 and work[(C0 + ERR) * B + j] >= 0.0:
+                                work[(X + 1 + i) * B + j] = work[(ZX + 1 + i) * B + j]
+                                work[(V + i) * B + j] = work[(ZV + i) * B + j]
+                                work[(KX + i) * B + j] = work[(KX + (S - 1) * n + i) * B + j]
+                                work[(KV + i) * B + j] = work[(KV + (S - 1) * n + i) * B + j]
+                            elif work[(C0 + ERR) * B + j] == UNDERFLOWED:
+                                work[(X + 1 + i) * B + j] = np.nan
+                                work[(V + i) * B + j] = np.nan
+                    _set_ghosts(work, X, n, B, periodic)
+                if _chain_saved(work, samples, save, block, limit, status, failure_time, target, C0 + H, n, B):
+                    break
+
+    return kernel
