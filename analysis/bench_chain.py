@@ -59,11 +59,10 @@ def contenders(n, masses, rng, h, steps, numpy_steps):
     state, rate = chain.inputs(values, constants)
     verlet = METHODS["verlet"]
     launch.prepare(chain, verlet, constants)  # compile or load
-    kernel = launch.launcher(chain, verlet, values, constants, n_save=2, save_dt=h * steps, dt=h,
-                             blowup_factor=np.inf)
+    call = launch.Launch(chain, verlet, values, constants, n_save=2, save_dt=h * steps, dt=h, blowup_factor=np.inf)
 
     def fast():
-        kernel()
+        call.run()
         return members * n * steps
 
     def slow():

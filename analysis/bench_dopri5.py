@@ -47,17 +47,16 @@ def per_step(scene, values, constants, dt, save_dt, n_save, repeats):
     rk4, dopri5 = METHODS["rk4"], METHODS["dopri5"]
     for method in (rk4, dopri5):
         launch.prepare(scene, method, constants)
-    fixed = launch.launcher(scene, rk4, values, constants, n_save=n_save, save_dt=save_dt, dt=dt)
-    adaptive = launch.launcher(scene, dopri5, values, constants, n_save=n_save, save_dt=save_dt, rtol=1e-8,
-                               atol=1e-12)
+    fixed = launch.Launch(scene, rk4, values, constants, n_save=n_save, save_dt=save_dt, dt=dt)
+    adaptive = launch.Launch(scene, dopri5, values, constants, n_save=n_save, save_dt=save_dt, rtol=1e-8, atol=1e-12)
     rk4, dopri5 = [], []
     for _ in range(repeats):
-        start = time.perf_counter()
-        counts = fixed().counts
-        rk4.append((time.perf_counter() - start) / (counts[0].sum() + counts[1].sum()))
-        start = time.perf_counter()
-        counts = adaptive().counts
-        dopri5.append((time.perf_counter() - start) / (counts[0].sum() + counts[1].sum()))
+        for call, seconds in ((fixed, rk4), (adaptive, dopri5)):
+            start = time.perf_counter()
+            call.run()
+            elapsed = time.perf_counter() - start
+            counts = call.outcome().counts
+            seconds.append(elapsed / (counts[0].sum() + counts[1].sum()))
     return statistics.median(rk4), statistics.median(dopri5)
 
 

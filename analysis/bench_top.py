@@ -73,8 +73,8 @@ def main():
     for name in ("euler", "rk4"):
         method = METHODS[name]
         launch.prepare(top, method, {})  # compile or load
-        kernel = launch.launcher(top, method, table, {}, n_save=2, save_dt=h * args.steps, dt=h, blowup_factor=np.inf)
-        fast = median_rate(kernel, n, args.steps, args.repeats)
+        call = launch.Launch(top, method, table, {}, n_save=2, save_dt=h * args.steps, dt=h, blowup_factor=np.inf)
+        fast = median_rate(call.run, n, args.steps, args.repeats)
         slow = median_rate(lambda: numpy_rk(method.tableau, state, rate, h, args.numpy_steps),
                            n, args.numpy_steps, args.repeats)
         print(f"{name:<8} {fast:>21.3g} {slow:>21.3g} {fast / slow:>7.1f}")

@@ -19,7 +19,6 @@ from __future__ import annotations
 import importlib
 import math
 from types import ModuleType
-from typing import Callable
 
 import numpy as np
 
@@ -52,53 +51,71 @@ def integrate(scene, method: Method, values: dict[str, np.ndarray], constants: d
     depends only on its own values: never on how many members run with it,
     the chunking or the thread count.
     """
-    return launcher(scene, method, values, constants, n_save=n_save, save_dt=save_dt, dt=dt, rtol=rtol, atol=atol,
-                    blowup_factor=blowup_factor)()
+    call = Launch(scene, method, values, constants, n_save=n_save, save_dt=save_dt, dt=dt, rtol=rtol, atol=atol,
+                  blowup_factor=blowup_factor)
+    call.run()
+    return call.outcome()
 
 
-def launcher(scene, method: Method, values: dict[str, np.ndarray], constants: dict, *, n_save: int,
-             save_dt: float, dt=None, rtol=None, atol=None,
-             blowup_factor: float = DEFAULT_BLOWUP_FACTOR) -> Callable[[], Outcome]:
-    """`integrate` in two parts: this lays out the inputs in the kernel's blocks and returns a call that runs the
-    kernel on them (anew each time) and returns its Outcome. Timing that call times the kernel and not the layout."""
-    if method.closed_form:
-        step = save_dt if dt is None or not np.isfinite(dt) else float(dt)
-        t = np.arange(n_save) * (round(save_dt / step) * step)
-        return lambda: _closed_form(scene.exact(values, constants, t))
-    state0, rate = scene.inputs(values, constants)
-    n = state0.shape[1]
-    kernels = kernels_of(scene)
-    block = kernels.block_size(constants)
-    kernel = kernels.kernel(method, constants)
-    limit = _limits(state0, blowup_factor)
-    if method.adaptive:
-        control = np.stack([np.nan_to_num(np.broadcast_to(np.asarray(x, dtype=float), (n,)), nan=0.0)
-                            for x in (np.nan if dt is None else dt, rtol, atol)])
-        state0, rate, control, limit = _padded((state0, rate, control, limit[None]), block)
-    else:
-        state0, rate, limit = _padded((state0, rate, limit[None]), block)
-        steps_per_save = round(save_dt / dt)
-    members = state0.shape[1]
-    state0, rate, limit = blocked(state0, block), blocked(rate, block), limit[0]
-    samples = np.empty((n_save, members // block, state0.shape[1], block))
+class Launch:
+    """`integrate` in three parts: the constructor lays out the inputs in the kernel's blocks, `run` runs the
+    kernel on them (anew each time: time it to time the kernel alone), and `outcome` returns what it did."""
 
-    def run() -> Outcome:
-        status, failure_time = np.zeros(members), np.full(members, np.nan)
+    def __init__(self, scene, method: Method, values: dict[str, np.ndarray], constants: dict, *, n_save: int,
+                 save_dt: float, dt=None, rtol=None, atol=None, blowup_factor: float = DEFAULT_BLOWUP_FACTOR):
+        self.scene, self.method, self.n_save, self.save_dt, self.dt = scene, method, n_save, save_dt, dt
+        if method.closed_form:
+            step = save_dt if dt is None or not np.isfinite(dt) else float(dt)
+            self.exact = lambda: scene.exact(values, constants, np.arange(n_save) * (round(save_dt / step) * step))
+            return
+        state0, rate = scene.inputs(values, constants)
+        self.members = state0.shape[1]
+        kernels = kernels_of(scene)
+        block = kernels.block_size(constants)
+        self.kernel = kernels.kernel(method, constants)
+        limit = _limits(state0, blowup_factor)
         if method.adaptive:
-            counts = np.zeros((3, members))
-            kernel(state0, rate, control, float(save_dt), limit, samples, counts, status, failure_time)
-            counts = counts[:, :n].astype(np.int64)
+            control = np.stack([np.nan_to_num(np.broadcast_to(np.asarray(x, dtype=float), (self.members,)), nan=0.0)
+                                for x in (np.nan if dt is None else dt, rtol, atol)])
+            state0, rate, control, limit = _padded((state0, rate, control, limit[None]), block)
+            self.control = control
         else:
-            kernel(state0, rate, float(dt), int(steps_per_save), limit, samples, status, failure_time)
-            counts = _fixed_counts(method, scene, failure_time[:n], dt, steps_per_save * (n_save - 1))
-        return Outcome(unblocked(samples)[:, :, :n], counts, status[:n].astype(np.int8), failure_time[:n])
+            state0, rate, limit = _padded((state0, rate, limit[None]), block)
+            self.steps_per_save = round(save_dt / dt)
+        padded = state0.shape[1]
+        self.state0, self.rate, self.limit = blocked(state0, block), blocked(rate, block), limit[0]
+        self.samples = np.empty((n_save, padded // block, state0.shape[0], block))
+        self.status, self.failure_time, self.counts = np.zeros(padded), np.empty(padded), np.zeros((3, padded))
 
-    return run
+    def run(self) -> None:
+        """Run the kernel (or evaluate the closed form) on the laid-out inputs."""
+        if self.method.closed_form:
+            self.samples = self.exact()
+            return
+        self.status[:] = 0.0
+        self.failure_time[:] = np.nan
+        if self.method.adaptive:
+            self.counts[:] = 0.0
+            self.kernel(self.state0, self.rate, self.control, float(self.save_dt), self.limit, self.samples,
+                        self.counts, self.status, self.failure_time)
+        else:
+            self.kernel(self.state0, self.rate, float(self.dt), int(self.steps_per_save), self.limit, self.samples,
+                        self.status, self.failure_time)
 
-
-def _closed_form(samples: np.ndarray) -> Outcome:
-    n = samples.shape[2]
-    return Outcome(samples, np.zeros((3, n), dtype=np.int64), np.zeros(n, dtype=np.int8), np.full(n, np.nan))
+    def outcome(self) -> Outcome:
+        """What the last run did, per member."""
+        if self.method.closed_form:
+            n = self.samples.shape[2]
+            return Outcome(self.samples, np.zeros((3, n), dtype=np.int64), np.zeros(n, dtype=np.int8),
+                           np.full(n, np.nan))
+        n = self.members
+        failure_time = self.failure_time[:n].copy()
+        if self.method.adaptive:
+            counts = self.counts[:, :n].astype(np.int64)
+        else:
+            counts = _fixed_counts(self.method, self.scene, failure_time, self.dt,
+                                   self.steps_per_save * (self.n_save - 1))
+        return Outcome(unblocked(self.samples)[:, :, :n], counts, self.status[:n].astype(np.int8), failure_time)
 
 
 def _fixed_counts(method: Method, scene, failure_time: np.ndarray, dt: float, steps: int) -> np.ndarray:
