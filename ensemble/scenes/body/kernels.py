@@ -1,0 +1,227 @@
+"""The free body's compiled kernels: its right-hand side and one kernel per Runge-Kutta method.
+
+Work rows (BLOCK members each): the rates w1, w2, w3, then the parameters
+a1, a2, a3, r1, r2, r3 (see model.rates), then what the method needs. The
+layout and loops are the top's (ensemble/scenes/top/kernels.py) with six
+parameter rows. Generic helpers are in ensemble.engine.blocks.
+"""
+from __future__ import annotations
+
+import math
+from functools import cache
+
+import numpy as np
+from numba import njit, prange
+
+from ...engine.blocks import (
+    ATOL,
+    CONTROL_ROWS,
+    ERR,
+    ERR_PREVIOUS,
+    FAST,
+    REJECTED_LAST,
+    RTOL,
+    STEP,
+    H,
+    adaptive_constants,
+    check_members,
+    control_step,
+    fill_failed,
+    first_step,
+    method_constants,
+    rows_in,
+    rows_out,
+    trial_steps,
+)
+from ...methods import Method
+from ...results import RHS_EVALS, UNDERFLOWED
+
+BLOCK = 128  # members per block
+
+
+P = 6  # parameter rows: a1, a2, a3, r1, r2, r3
+
+
+@njit(inline="always", fastmath=True, error_model="numpy")
+def rhs(w1, w2, w3, work, j, B):
+    """Time derivative (rad s-2) of the body rates of member j, its parameters at work rows 3 .. 8."""
+    return (work[3 * B + j] * w2 * w3 - work[6 * B + j] * w1, work[4 * B + j] * w3 * w1 - work[7 * B + j] * w2,
+            work[5 * B + j] * w1 * w2 - work[8 * B + j] * w3)
+
+
+def block_size(constants: dict) -> int:
+    """Members per kernel block: the same for every body run."""
+    return BLOCK
+
+
+def kernel(method: Method, constants: dict):
+    """The compiled (or cache-loaded) kernel of a Runge-Kutta method; every body run shares it."""
+    return _kernel(method)
+
+
+@cache
+def _kernel(method: Method):
+    return _adaptive_kernel(method) if method.adaptive else _fixed_kernel(method)
+
+
+@njit(inline="always", **FAST)
+def _load_block(state0, rate, block, samples, rows):
+    """A block's work array (rows x BLOCK): rates w1, w2, w3, then the P parameters; also its first sample."""
+    work = np.zeros(rows * BLOCK)
+    rows_in(work, 0, state0[block], 0, 3, BLOCK)
+    rows_in(work, 3, rate[block], 0, P, BLOCK)
+    rows_out(work, 0, samples[0, block], 0, 3, BLOCK)
+    return work
+
+
+@njit(inline="always", **FAST)
+def _saved(work, samples, save, block, limit, status, failure_time, t, step_row):
+    """End of a save interval at time t (s): fail the members that blew up, store sample `save`; when no member
+    of the block runs any more, fill its later samples with NaN and return True (the block is done)."""
+    running = check_members(work, 0, 3, BLOCK, block * BLOCK, limit, status, failure_time, t, step_row)
+    rows_out(work, 0, samples[save, block], 0, 3, BLOCK)
+    if running == 0:
+        fill_failed(samples, save + 1, block)
+    return running == 0
+
+
+def _fixed_kernel(method: Method):
+    """Kernel for an explicit Runge-Kutta tableau.
+
+    Work rows: w1, w2, w3, the P parameters, then the stage slopes k[s, c] at
+    row K + 3 s + c. Stage loops have constant trip counts, so LLVM unrolls
+    them and folds the tableau's coefficients.
+    """
+    runge_kutta, S, a, b, _, _, _ = method_constants(method)
+    assert runge_kutta, "the body has no splitting methods yet"
+    K = 3 + P
+    rows = K + 3 * S
+
+    @njit(parallel=True, cache=True, **FAST)
+    def kernel(state0, rate, h, steps_per_save, limit, samples, status, failure_time):
+        """state0 (blocks, 3, BLOCK), rate (blocks, P, BLOCK), limit (M,) -> samples (n_save, blocks, 3, BLOCK),
+        status (M,), failure_time (M,) (s; set only where a member fails); M = blocks x BLOCK."""
+        n_save = samples.shape[0]
+        for block in prange(state0.shape[0]):
+            work = _load_block(state0, rate, block, samples, rows)
+            check_members(work, 0, 3, BLOCK, block * BLOCK, limit, status, failure_time, 0.0)  # a non-finite start
+            for i in range(1, n_save):
+                for _ in range(steps_per_save):
+                    for j in range(BLOCK):
+                        y1 = work[j]
+                        y2 = work[BLOCK + j]
+                        y3 = work[2 * BLOCK + j]
+                        s1 = 0.0
+                        s2 = 0.0
+                        s3 = 0.0
+                        for s in range(S):
+                            z1 = y1
+                            z2 = y2
+                            z3 = y3
+                            for r in range(S):
+                                ha = h * a[s * S + r]
+                                z1 += ha * work[(K + 3 * r) * BLOCK + j]
+                                z2 += ha * work[(K + 1 + 3 * r) * BLOCK + j]
+                                z3 += ha * work[(K + 2 + 3 * r) * BLOCK + j]
+                            d1, d2, d3 = rhs(z1, z2, z3, work, j, BLOCK)
+                            work[(K + 3 * s) * BLOCK + j] = d1
+                            work[(K + 1 + 3 * s) * BLOCK + j] = d2
+                            work[(K + 2 + 3 * s) * BLOCK + j] = d3
+                            s1 += b[s] * d1
+                            s2 += b[s] * d2
+                            s3 += b[s] * d3
+                        work[j] = y1 + h * s1
+                        work[BLOCK + j] = y2 + h * s2
+                        work[2 * BLOCK + j] = y3 + h * s3
+                if _saved(work, samples, i, block, limit, status, failure_time, i * steps_per_save * h, -1):
+                    break
+
+    return kernel
+
+
+def _adaptive_kernel(method: Method):
+    """Kernel for an adaptive embedded pair: every member controls its own step.
+
+    Work rows: w1, w2, w3, the P parameters, stage slopes k[s, c] at K + 3 s + c, the
+    new state (3 rows), then the control rows (H, TIME, ...). A trial step runs
+    for all members of a block at once, each with its own step, clipped so it
+    lands exactly on the next saved time; members already there take no step.
+    """
+    S, a, e, alpha, beta, safety, min_factor, max_factor = adaptive_constants(method)
+    a_array = np.array(a)  # indexed by a loop variable: a constant array, not a tuple
+    K = 3 + P
+    NEW = K + 3 * S
+    C0 = NEW + 3
+    rows = C0 + CONTROL_ROWS
+
+    @njit(parallel=True, cache=True, **FAST)
+    def kernel(state0, rate, control, save_dt, limit, samples, counts, status, failure_time):
+        """state0 (blocks, 3, BLOCK), rate (blocks, P, BLOCK); control (3, M): first step (s; <= 0: estimate it), rtol, atol;
+        limit (M,) -> samples (n_save, blocks, 3, BLOCK), counts (3, M): accepted, rejected, right-hand-side
+        evaluations; status (M,) and failure_time (M,; s, set only where a member fails)."""
+        n_save = samples.shape[0]
+        B = BLOCK
+        for block in prange(state0.shape[0]):
+            j0 = block * B
+            work = _load_block(state0, rate, block, samples, rows)
+            for j in range(B):
+                y1, y2, y3 = work[j], work[B + j], work[2 * B + j]
+                d1, d2, d3 = rhs(y1, y2, y3, work, j, B)
+                work[K * B + j], work[(K + 1) * B + j], work[(K + 2) * B + j] = d1, d2, d3
+                rtol, atol = control[1, j0 + j], control[2, j0 + j]
+                work[(C0 + RTOL) * B + j], work[(C0 + ATOL) * B + j] = rtol, atol
+                work[(C0 + ERR_PREVIOUS) * B + j] = 1e-4
+                h = control[0, j0 + j]
+                if h <= 0.0:
+                    scale = atol + rtol * max(abs(y1), abs(y2), abs(y3))
+                    h = first_step(max(abs(y1), abs(y2), abs(y3)) / scale, max(abs(d1), abs(d2), abs(d3)) / scale,
+                                    save_dt)
+                work[(C0 + H) * B + j] = h
+                counts[RHS_EVALS, j0 + j] = 1.0
+            check_members(work, 0, 3, B, j0, limit, status, failure_time, 0.0, C0 + H)  # a non-finite start
+            for i in range(1, n_save):
+                target = i * save_dt
+                while trial_steps(work, C0, B, target):
+                    for s in range(1, S):  # stages outside, members inside, as in the chain kernels
+                        for j in range(B):
+                            h = work[(C0 + STEP) * B + j]
+                            z1, z2, z3 = work[j], work[B + j], work[2 * B + j]
+                            for r in range(S):  # a is zero from column s on
+                                ha = h * a_array[s * S + r]
+                                z1 += ha * work[(K + 3 * r) * B + j]
+                                z2 += ha * work[(K + 3 * r + 1) * B + j]
+                                z3 += ha * work[(K + 3 * r + 2) * B + j]
+                            d1, d2, d3 = rhs(z1, z2, z3, work, j, B)
+                            work[(K + 3 * s) * B + j] = d1
+                            work[(K + 3 * s + 1) * B + j] = d2
+                            work[(K + 3 * s + 2) * B + j] = d3
+                            work[NEW * B + j], work[(NEW + 1) * B + j], work[(NEW + 2) * B + j] = z1, z2, z3
+                    for j in range(B):
+                        # FSAL: the last stage was evaluated at the new state NEW
+                        h = work[(C0 + STEP) * B + j]
+                        y1, y2, y3 = work[j], work[B + j], work[2 * B + j]
+                        z1, z2, z3 = work[NEW * B + j], work[(NEW + 1) * B + j], work[(NEW + 2) * B + j]
+                        e1, e2, e3 = 0.0, 0.0, 0.0
+                        for s in range(S):
+                            e1 += e[s] * work[(K + 3 * s) * B + j]
+                            e2 += e[s] * work[(K + 3 * s + 1) * B + j]
+                            e3 += e[s] * work[(K + 3 * s + 2) * B + j]
+                        rtol, atol = work[(C0 + RTOL) * B + j], work[(C0 + ATOL) * B + j]
+                        q1 = h * e1 / (atol + rtol * max(abs(y1), abs(z1)))
+                        q2 = h * e2 / (atol + rtol * max(abs(y2), abs(z2)))
+                        q3 = h * e3 / (atol + rtol * max(abs(y3), abs(z3)))
+                        work[(C0 + ERR) * B + j] = math.sqrt((q1 * q1 + q2 * q2 + q3 * q3) / 3.0)
+                    control_step(work, C0, B, target, counts, j0, status, failure_time, S - 1, alpha, beta, safety,
+                                  min_factor, max_factor)
+                    for j in range(B):
+                        if work[(C0 + REJECTED_LAST) * B + j] == 0.0 and work[(C0 + ERR) * B + j] >= 0.0:
+                            for c in range(3):
+                                work[c * B + j] = work[(NEW + c) * B + j]
+                                work[(K + c) * B + j] = work[(K + 3 * (S - 1) + c) * B + j]
+                        elif work[(C0 + ERR) * B + j] == UNDERFLOWED:
+                            for c in range(3):
+                                work[c * B + j] = np.nan
+                if _saved(work, samples, i, block, limit, status, failure_time, target, C0 + H):
+                    break
+
+    return kernel

@@ -1,0 +1,283 @@
+"""The free rigid body with three different principal moments, under air drag -c omega.
+
+Body frame, principal moments lambda1, lambda2, lambda3 (any order; recorded as given):
+
+    lambda1 w1' = (lambda2 - lambda3) w2 w3 - c w1
+    lambda2 w2' = (lambda3 - lambda1) w3 w1 - c w2
+    lambda3 w3' = (lambda1 - lambda2) w1 w2 - c w3
+
+The state is the three body rates (rad/s) and nothing more: with a drag torque
+-c omega the dynamics need no orientation. With a_i = (lambda_j - lambda_k) /
+lambda_i (i, j, k cyclic) and r_i = c / lambda_i the equations read
+w_i' = a_i w_j w_k - r_i w_i. About the largest and the smallest moment the
+rotation is stable and small tilts wobble; about the intermediate one they grow
+(the tennis-racket effect). The compiled right-hand side and the kernels are in
+`kernels.py` beside this file.
+"""
+from __future__ import annotations
+
+import numpy as np
+from scipy.special import ellipj, ellipkinc
+
+from ...inertia import Body
+from ...methods import Method
+from ...parameter import Parameter, ParameterError
+
+NAME = "body"
+PIECES = ()  # no splitting methods yet
+EVALUATING_PIECES = ()
+AXES = (1, 2, 3)
+
+PARAMETERS = {
+    "lambda1": Parameter("kg m2", "principal moment of inertia about body axis e1"),
+    "lambda2": Parameter("kg m2", "principal moment of inertia about body axis e2"),
+    "lambda3": Parameter("kg m2", "principal moment of inertia about body axis e3"),
+    "c": Parameter("kg m2 s-1", "air-drag torque coefficient (torque = -c omega)"),
+    "spin0": Parameter("rad s-1", "magnitude of the angular velocity at t = 0"),
+    "spin_axis": Parameter("1", "body axis (1, 2 or 3) the spin starts near", default=3, integer=True),
+    "tilt0": Parameter("rad", "angle between omega and the spin axis at t = 0"),
+    "azimuth0": Parameter("rad", "azimuth of omega about the spin axis at t = 0, from the next axis (cyclic)",
+                          default=0.0),
+    "body": Parameter("", "the body as a uniform shape, instead of lambda1, lambda2 and lambda3",
+                      derives=("lambda1", "lambda2", "lambda3")),
+}
+
+OBSERVABLES: dict[str, tuple[tuple[str, ...], str, str]] = {
+    "omega": (("member", "t", "axis"), "rad s-1", "body-frame angular velocity"),
+    "tilt": (("member", "t"), "rad", "angle between the angular velocity and the spin axis"),
+    "energy": (("member", "t"), "J", "kinetic energy 1/2 sum lambda_i w_i^2"),
+    "angular_momentum": (("member", "t"), "kg m2 s-1", "magnitude of the angular momentum |L|"),
+}
+
+_FLAT_BODY_RTOL = 1e-9  # a flat body sits exactly on the triangle inequality lambda3 = lambda1 + lambda2
+
+
+def sizes(constants: dict) -> dict[str, int]:
+    """Dimensions besides member and t: the three body axes."""
+    return {"axis": 3}
+
+
+def coordinates(constants: dict) -> dict[str, tuple[np.ndarray, str]]:
+    return {"axis": (np.array(AXES, dtype=np.int32), "body-frame principal axis")}
+
+
+def check_constants(constants: dict) -> None:
+    if constants["spin_axis"] not in AXES:
+        raise ParameterError("spin_axis", f"must be 1, 2 or 3, got {constants['spin_axis']}")
+
+
+def check(values: dict[str, np.ndarray]) -> None:
+    """Physical constraints on per-member parameters; raises ParameterError for the first broken one."""
+    moments = [values[f"lambda{i}"] for i in AXES]
+    for i, moment in zip(AXES, moments):
+        if np.any(moment <= 0):
+            raise ParameterError(f"lambda{i}", f"must be > 0 (got {moment.min():g})")
+    for name in ("c", "spin0"):
+        if np.any(values[name] < 0):
+            raise ParameterError(name, f"must be >= 0 (got {values[name].min():g})")
+    if np.any((values["tilt0"] < 0) | (values["tilt0"] > np.pi)):
+        raise ParameterError("tilt0", "must lie in [0, pi]")
+    for i in range(3):
+        others = moments[(i + 1) % 3] + moments[(i + 2) % 3]
+        broken = moments[i] > others * (1 + _FLAT_BODY_RTOL)
+        if np.any(broken):
+            m = int(np.argmax(broken))
+            raise ParameterError(f"lambda{i + 1}", f"exceeds the sum of the other two moments (member {m}: "
+                                                   f"{moments[0][m]:.6g}, {moments[1][m]:.6g}, {moments[2][m]:.6g} "
+                                                   f"kg m2): no rigid body has that")
+
+
+def check_exact(values: dict[str, np.ndarray]) -> None:
+    """The closed form holds without drag only."""
+    if np.any(values["c"] != 0):
+        raise ParameterError("c", "the closed form (method 'exact', [measure] error) holds only for c = 0")
+
+
+def derive(values: dict[str, np.ndarray], constants: dict) -> dict[str, np.ndarray]:
+    return {}
+
+
+def from_body(body: Body, source: str) -> dict[str, np.ndarray]:
+    """lambda1 <= lambda2 <= lambda3 (kg m2, per member): a body's principal moments about its centre of mass."""
+    moments = np.linalg.eigvalsh(body.inertia).reshape(-1, 3)
+    return {f"lambda{i}": moments[:, i - 1] for i in AXES}
+
+
+def _moments(values) -> np.ndarray:
+    return np.stack([values[f"lambda{i}"] for i in AXES])
+
+
+def initial_state(values: dict[str, np.ndarray], constants: dict) -> np.ndarray:
+    """Body rates at t = 0, shape (3, members), rad/s: spin0 cos tilt0 along the spin axis k, and spin0 sin
+    tilt0 (cos azimuth0, sin azimuth0) along the next two axes in cyclic order."""
+    spin, tilt, azimuth = values["spin0"], values["tilt0"], values["azimuth0"]
+    k = constants["spin_axis"] - 1
+    state = np.empty((3, spin.shape[0]))
+    state[(k + 1) % 3] = spin * np.sin(tilt) * np.cos(azimuth)
+    state[(k + 2) % 3] = spin * np.sin(tilt) * np.sin(azimuth)
+    state[k] = spin * np.cos(tilt)
+    return state
+
+
+def rates(values: dict[str, np.ndarray]) -> np.ndarray:
+    """Kernel parameters (a1, a2, a3, r1, r2, r3), shape (6, members): no division in the hot loop."""
+    lam = _moments(values)
+    a = np.stack([(lam[(i + 1) % 3] - lam[(i + 2) % 3]) / lam[i] for i in range(3)])
+    return np.concatenate((a, values["c"][None] / lam))
+
+
+def inputs(values: dict[str, np.ndarray], constants: dict) -> tuple[np.ndarray, np.ndarray]:
+    """Kernel state and parameters: body rates (3, members) and (a1, a2, a3, r1, r2, r3) (6, members)."""
+    return initial_state(values, constants), rates(values)
+
+
+def kernel_rows(constants: dict) -> tuple[int, int]:
+    return 3, 6
+
+
+def exact(values: dict[str, np.ndarray], constants: dict, t: np.ndarray) -> np.ndarray:
+    """Torque-free body rates at times t (s) in Jacobi elliptic functions; shape (len(t), 3, members).
+
+    Members must have c = 0 (see check_exact). Per member the axes are put in
+    the order (cn axis, intermediate axis, dn axis): the dn axis is the one
+    the rate vector circles, the largest moment when L^2 >= 2 E lambda_mid,
+    else the smallest. An odd reordering reverses the equations' sign, which
+    negating the rates undoes. Then (Landau and Lifshitz, Mechanics, 37)
+    w = (A1 cn u, A2 sn u, A3 dn u) with u = s Omega t + u0, where s carries
+    the sense of the rotation and u0 = F(phi0 | m) the initial phase. Near the
+    separatrix (a small tilt about the intermediate axis) m is within rounding
+    of 1 and the solution holds only to about eps / (1 - m).
+    """
+    lam = _moments(values)
+    w0 = initial_state(values, constants)
+    order = np.argsort(lam, axis=0, kind="stable")  # ascending moments, per member
+    middle = np.take_along_axis(lam, order[1:2], axis=0)[0]
+    about_largest = _spread(lam, w0, middle) >= 0  # L^2 >= 2 E lambda_mid
+    frame = np.where(about_largest, order, order[::-1])  # (cn, sn, dn) axes per member
+    parity = np.where(np.linalg.det(np.eye(3)[frame.T]) > 0, 1.0, -1.0)
+    lam_f = np.take_along_axis(lam, frame, axis=0)  # moments in the formula's frame
+    w = parity * np.take_along_axis(w0, frame, axis=0)
+    to_dn = np.abs(_spread(lam, w0, lam_f[2]))  # |2 E lam_f[2] - L^2|
+    to_cn = np.abs(_spread(lam, w0, lam_f[0]))  # |L^2 - 2 E lam_f[0]|
+    with np.errstate(divide="ignore", invalid="ignore"):
+        a1 = np.sqrt(to_dn / np.abs(lam_f[0] * (lam_f[2] - lam_f[0])))
+        a2 = np.sqrt(to_dn / np.abs(lam_f[1] * (lam_f[2] - lam_f[1])))
+        a3 = np.sqrt(to_cn / np.abs(lam_f[2] * (lam_f[2] - lam_f[0])))
+        rate = np.sqrt(np.abs((lam_f[2] - lam_f[1]) / (lam_f[0] * lam_f[1] * lam_f[2])) * to_cn)
+        m = np.clip(np.abs((lam_f[1] - lam_f[0]) / (lam_f[2] - lam_f[1])) * to_dn / to_cn, 0.0, 1.0)
+        phi0 = np.arctan2(np.where(a2 > 0, w[1] / a2, 0.0), np.where(a1 > 0, w[0] / a1, 0.0))
+    sense = np.where(w[2] < 0, -1.0, 1.0) * np.sign(lam_f[2] - lam_f[1])
+    moving = np.isfinite(rate) & (rate > 0) & np.isfinite(m)
+    u0 = ellipkinc(phi0, np.where(moving, m, 0.0))
+    u = np.where(moving, sense * rate, 0.0)[None, :] * np.asarray(t, dtype=float)[:, None] + u0
+    sn, cn, dn, _ = ellipj(u, np.where(moving, m, 0.0)[None, :])
+    spun = np.stack((a1 * cn, a2 * sn, np.where(w[2] < 0, -1.0, 1.0) * a3 * dn), axis=1)  # (t, 3, members)
+    spun = np.where(moving[None, None, :], spun, w[None])  # a body spinning about a principal axis stays
+    out = np.empty_like(spun)
+    np.put_along_axis(out, np.broadcast_to(frame[None], spun.shape), parity * spun, axis=1)
+    return out
+
+
+def _spread(lam: np.ndarray, w: np.ndarray, moment: np.ndarray) -> np.ndarray:
+    """L^2 - 2 E moment = sum_i lambda_i (lambda_i - moment) w_i^2, summed without the cancellation of the
+    difference (a start near a principal axis has both terms nearly equal)."""
+    return np.sum(lam * (lam - moment) * w**2, axis=0)
+
+
+def tilt(state: np.ndarray, axis: int, spin_axis: int) -> np.ndarray:
+    """Angle (rad) between omega and the spin axis; `axis` is the axis of `state` holding (w1, w2, w3)."""
+    w = np.moveaxis(state, axis, 0)
+    k = spin_axis - 1
+    return np.arctan2(np.hypot(w[(k + 1) % 3], w[(k + 2) % 3]), w[k])
+
+
+def kinetic_energy(omega: np.ndarray, lam: np.ndarray) -> np.ndarray:
+    """1/2 sum lambda_i w_i^2 (J); omega (..., 3) rad/s, lam (..., 3) kg m2."""
+    return 0.5 * np.sum(lam * omega**2, axis=-1)
+
+
+def angular_momentum(omega: np.ndarray, lam: np.ndarray) -> np.ndarray:
+    """|L| = |(lambda_i w_i)| (kg m2 s-1); omega (..., 3), lam (..., 3)."""
+    return np.sqrt(np.sum((lam * omega) ** 2, axis=-1))
+
+
+def observe(samples: np.ndarray, names, values: dict[str, np.ndarray], constants: dict) -> dict[str, np.ndarray]:
+    """Saved variables from kernel samples of shape (t, 3, members), member-major."""
+    omega = np.ascontiguousarray(samples.transpose(2, 0, 1))  # (members, t, 3)
+    lam = _moments(values).T[:, None, :]
+    out = {}
+    if "omega" in names:
+        out["omega"] = omega
+    if "tilt" in names:
+        out["tilt"] = tilt(omega, 2, constants["spin_axis"])
+    if "energy" in names:
+        out["energy"] = kinetic_energy(omega, lam)
+    if "angular_momentum" in names:
+        out["angular_momentum"] = angular_momentum(omega, lam)
+    return out
+
+
+def conserved_energy(ds) -> np.ndarray:
+    """The kinetic energy (J, (member, t)) of members without drag; NaN for the others."""
+    if "energy" not in ds:
+        raise KeyError("energy")
+    energy = ds["energy"].values.copy()
+    energy[ds["c"].values != 0] = np.nan
+    return energy
+
+
+# ---------------------------------------------------------------- linear theory about the spin axis
+
+def transverse_exponents(values: dict[str, np.ndarray], constants: dict) -> np.ndarray:
+    """Exponents mu (1/s, complex, shape (2, members)) of small tilts about the spin axis k at t = 0:
+    d(w_i, w_j)/dt = [[-r_i, a_i w_k], [a_j w_k, -r_j]] (w_i, w_j), so mu = -(r_i + r_j)/2 +- sqrt(((r_i -
+    r_j)/2)^2 + a_i a_j w_k^2). Without drag: +-i Omega_k about a stable axis, Omega_k = spin0 sqrt((lambda_i -
+    lambda_k)(lambda_j - lambda_k) / (lambda_i lambda_j)); +-sigma about the intermediate one."""
+    k = constants["spin_axis"] - 1
+    i, j = (k + 1) % 3, (k + 2) % 3
+    a, r = rates(values)[:3], rates(values)[3:]
+    wk = values["spin0"] * np.cos(values["tilt0"])
+    root = np.sqrt((((r[i] - r[j]) / 2) ** 2 + a[i] * a[j] * wk**2).astype(complex))
+    return np.stack((-(r[i] + r[j]) / 2 + root, -(r[i] + r[j]) / 2 - root))
+
+
+def wobble_frequency(values: dict[str, np.ndarray], constants: dict) -> np.ndarray:
+    """Omega_k (rad/s) of small tilts about a stable spin axis (NaN about the intermediate one), c = 0 theory."""
+    mu = transverse_exponents({**values, "c": np.zeros_like(values["c"])}, constants)[0]
+    return np.where(np.abs(mu.imag) > np.abs(mu.real), np.abs(mu.imag), np.nan)
+
+
+def growth_rate(values: dict[str, np.ndarray], constants: dict) -> np.ndarray:
+    """sigma (1/s) at which small tilts about the spin axis grow: the largest real exponent (with drag)."""
+    return transverse_exponents(values, constants).real.max(axis=0)
+
+
+STABILITY_AXES = ("h Omega",)
+
+
+def _amplification(method: Method, z: np.ndarray) -> np.ndarray:
+    tableau = method.tableau
+    return np.abs(tableau.stability(z)) if tableau is not None else np.exp(np.real(z))
+
+
+def axis_growth(method: Method, axis: str, x: np.ndarray) -> np.ndarray:
+    """Growth per step of a small wobble at x = h Omega (no drag): max(|R(i x)|, 1)."""
+    return np.maximum(_amplification(method, 1j * np.asarray(x, dtype=float)), 1.0)
+
+
+def stability_axis(values: dict[str, np.ndarray], constants: dict, h: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Each member's position h |mu| on the wobble axis (h in s)."""
+    mu = transverse_exponents(values, constants)[0]
+    return np.full(mu.shape, STABILITY_AXES[0]), h * np.abs(mu)
+
+
+def step_growth(method: Method, values: dict[str, np.ndarray], constants: dict, h: np.ndarray) -> np.ndarray:
+    """Theory: per-step factor of the fastest small tilt, max over the two exponents of |R(h mu)|."""
+    mu = transverse_exponents(values, constants)
+    return np.max(_amplification(method, h * mu), axis=0)
+
+
+def amplitudes(samples: np.ndarray, values: dict[str, np.ndarray], constants: dict) -> np.ndarray:
+    """The tilt's two motions: |rates across the spin axis| and |rate along it| (rad/s), (2, samples, members)."""
+    k = constants["spin_axis"] - 1
+    return np.stack((np.hypot(samples[:, (k + 1) % 3], samples[:, (k + 2) % 3]), np.abs(samples[:, k])))

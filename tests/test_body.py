@@ -1,0 +1,197 @@
+"""The free rigid body: the elliptic closed form against DOP853, conservation, linear theory, the kernels'
+orders, the symmetric body against the top, and bad input."""
+import json
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import xarray as xr
+from scipy.integrate import solve_ivp
+
+from ensemble import cli, runner
+from ensemble.engine import launch
+from ensemble.methods import METHODS
+from ensemble.scenes import body, top
+from ensemble.spec import parse
+
+RACKET = {"lambda1": 1.0, "lambda2": 2.0, "lambda3": 2.5}  # kg m2: three different moments, a valid body
+
+
+def members(n=6, seed=1, **fixed):
+    """n members with moments drawn inside the triangle inequality and random starts."""
+    rng = np.random.default_rng(seed)
+    lam = rng.uniform(1.0, 2.0, (3, n))  # any three values in [1, 2] obey lambda_i <= lambda_j + lambda_k
+    values = {"lambda1": lam[0], "lambda2": lam[1], "lambda3": lam[2], "c": np.zeros(n),
+              "spin0": rng.uniform(5, 20, n), "tilt0": rng.uniform(0, np.pi, n), "azimuth0": rng.uniform(0, 6.3, n)}
+    values.update({k: np.broadcast_to(np.asarray(v, dtype=float), (n,)).copy() for k, v in fixed.items()})
+    return values
+
+
+def euler_rhs(lam, c=0.0):
+    l1, l2, l3 = lam
+    return lambda _, w: [((l2 - l3) * w[1] * w[2] - c * w[0]) / l1, ((l3 - l1) * w[2] * w[0] - c * w[1]) / l2,
+                         ((l1 - l2) * w[0] * w[1] - c * w[2]) / l3]
+
+
+@pytest.mark.parametrize("spin_axis", [1, 2, 3])
+def test_closed_form_matches_dop853(spin_axis):
+    """Random bodies and starts about each axis (both branches, L^2 above and below 2 E lambda_mid, and odd and
+    even axis orders), over 20 s: tens of flips or wobbles."""
+    values, constants = members(8, seed=spin_axis), {"spin_axis": spin_axis}
+    t = np.linspace(0.0, 20.0, 401)
+    exact = body.exact(values, constants, t)
+    w0 = body.initial_state(values, constants)
+    for m in range(8):
+        lam = [values[f"lambda{i}"][m] for i in (1, 2, 3)]
+        ref = solve_ivp(euler_rhs(lam), (0, t[-1]), w0[:, m], method="DOP853", rtol=1e-12,
+                        atol=1e-12 * values["spin0"][m], t_eval=t).y
+        np.testing.assert_allclose(exact[:, :, m].T, ref, rtol=0, atol=1e-9 * values["spin0"][m])
+
+
+def test_closed_form_keeps_energy_and_angular_momentum():
+    values, constants = members(20, seed=4), {"spin_axis": 2}
+    w = body.exact(values, constants, np.linspace(0, 50, 101)).transpose(2, 0, 1)  # (members, t, 3)
+    lam = np.stack([values[f"lambda{i}"] for i in (1, 2, 3)]).T[:, None, :]
+    for conserved in (body.kinetic_energy(w, lam), body.angular_momentum(w, lam)):
+        # measured: 3.3e-13 at worst over 50 s (scipy's ellipj near m = 1)
+        np.testing.assert_allclose(conserved, np.broadcast_to(conserved[:, :1], conserved.shape), rtol=1e-12)
+
+
+def test_intermediate_axis_tilt_grows_at_sigma():
+    """About the middle moment a small tilt grows as exp(sigma t), sigma = spin0 sqrt((lambda3 - lambda2)(lambda2
+    - lambda1) / (lambda1 lambda3)): rk4 at h sigma = 4.5e-3 (its error ~ (h sigma)^4 / 120), fitted where the
+    decaying part has died (sigma t > 9) and the tilt is still below 1e-4."""
+    values = members(1, **RACKET, spin0=10.0, tilt0=1e-12, azimuth0=0.7)
+    sigma = 10.0 * np.sqrt((2.5 - 2.0) * (2.0 - 1.0) / (1.0 * 2.5))
+    assert body.growth_rate(values, {"spin_axis": 2})[0] == pytest.approx(sigma, rel=1e-12)
+    h, steps = 1e-3, 100
+    samples = run("rk4", values, {"spin_axis": 2}, h, steps, n_save=41)
+    t = np.arange(41) * h * steps
+    tilt = body.tilt(samples, 1, 2)[:, 0]
+    fitted = (sigma * t > 9) & (tilt < 1e-4)
+    assert fitted.sum() >= 10
+    slope = np.polyfit(t[fitted], np.log(tilt[fitted]), 1)[0]
+    assert slope == pytest.approx(sigma, rel=1e-6)
+
+
+@pytest.mark.parametrize("axis, i, j, k", [(1, 2.0, 2.5, 1.0), (3, 1.0, 2.0, 2.5)])
+def test_stable_axes_wobble_at_omega_k(axis, i, j, k):
+    """About the smallest and the largest moment the rates across the axis circle (on an ellipse) at Omega_k =
+    w_k sqrt((lambda_i - lambda_k)(lambda_j - lambda_k) / (lambda_i lambda_j)): 10 turns in 10 periods, from
+    the closed form at a tilt of 1e-4 (the wobble's own correction is of order tilt^2)."""
+    values = members(1, **RACKET, spin0=10.0, tilt0=1e-4, azimuth0=0.7)
+    omega_k = 10.0 * np.cos(1e-4) * np.sqrt((i - k) * (j - k) / (i * j))  # the rate along the axis
+    assert body.wobble_frequency(values, {"spin_axis": axis})[0] == pytest.approx(omega_k, rel=1e-12)
+    w = body.exact(values, {"spin_axis": axis}, np.linspace(0, 20 * np.pi / omega_k, 4001))[:, :, 0]
+    turns = np.unwrap(np.angle(w[:, axis % 3] + 1j * w[:, (axis + 1) % 3]))
+    assert abs(turns[-1] - turns[0]) / (2 * np.pi) == pytest.approx(10.0, abs=1e-6)
+
+
+def run(method, values, constants, dt, steps, n_save=2):
+    return launch.integrate(body, METHODS[method], values, constants, n_save=n_save, save_dt=dt * steps,
+                            dt=dt).samples
+
+
+@pytest.mark.parametrize("method, dts", [("euler", (4e-4, 2e-4, 1e-4)), ("rk4", (1e-1, 5e-2, 2.5e-2))])
+def test_convergence_order(method, dts):
+    values, constants = members(4, seed=5, c=0.3, spin0=3.0), {"spin_axis": 1}
+    t_end = 1.0
+    lam = [[values[f"lambda{i}"][m] for i in (1, 2, 3)] for m in range(4)]
+    w0 = body.initial_state(values, constants)
+    ref = np.stack([solve_ivp(euler_rhs(lam[m], 0.3), (0, t_end), w0[:, m], method="DOP853", rtol=1e-13,
+                              atol=1e-14).y[:, -1] for m in range(4)], axis=1)
+    errors = [np.abs(run(method, values, constants, dt, round(t_end / dt))[-1] - ref).max(axis=0) for dt in dts]
+    slopes = np.diff(np.log(errors), axis=0) / np.diff(np.log(dts))[:, None]
+    np.testing.assert_allclose(slopes, METHODS[method].order, atol=0.15)
+
+
+def test_dopri5_meets_its_tolerance_against_the_closed_form():
+    values, constants = members(16, seed=6), {"spin_axis": 2}
+    outcome = launch.integrate(body, METHODS["dopri5"], values, constants, n_save=9, save_dt=0.25, rtol=1e-9,
+                               atol=1e-12)
+    exact = body.exact(values, constants, np.arange(9) * 0.25)
+    scale = np.abs(exact).max(axis=(0, 1))
+    assert np.all(np.abs(outcome.samples - exact).max(axis=(0, 1)) / scale < 1e-7)
+    assert np.all(outcome.counts[2] == 1 + 6 * (outcome.counts[0] + outcome.counts[1]))
+
+
+def test_symmetric_body_is_the_top():
+    """lambda1 = lambda2 and spin about axis 3: the top scene's equations, to rounding."""
+    values = members(5, seed=7, c=2e-4, lambda2=None)
+    values["lambda2"] = values["lambda1"]
+    tops = {"lambda1": values["lambda1"], "lambda3": values["lambda3"], **{k: values[k] for k in
+                                                                           ("c", "spin0", "tilt0", "azimuth0")}}
+    for method in ("rk4", "dopri5"):
+        kw = {"dt": 1e-3} if method == "rk4" else {"rtol": 1e-10, "atol": 1e-12}
+        mine = launch.integrate(body, METHODS[method], values, {"spin_axis": 3}, n_save=11, save_dt=0.1, **kw)
+        theirs = launch.integrate(top, METHODS[method], tops, {}, n_save=11, save_dt=0.1, **kw)
+        scale = np.abs(theirs.samples).max()
+        np.testing.assert_allclose(mine.samples, theirs.samples, rtol=0, atol=1e-12 * scale)
+
+
+BOX_RUN = """scene = "body"
+method = "rk4"
+dt = 1e-3
+t_end = 1.0
+save_dt = 0.1
+members = 4
+seed = 1
+[parameters]
+body = { shape = "box", mass = 0.2, width = 0.02, height = 0.08, depth = 0.16 }
+c = 0.0
+spin0 = 20.0
+spin_axis = 2
+tilt0 = 0.02
+"""
+
+
+def test_box_from_its_shape_runs_and_writes_its_moments(tmp_path):
+    path = tmp_path / "box.nc"
+    runner.run(parse(BOX_RUN), path, progress=False)
+    ds = xr.load_dataset(path)
+    lam = [float(ds[f"lambda{i}"][0]) for i in (1, 2, 3)]
+    mass, sides = 0.2, np.array([0.02, 0.08, 0.16])
+    expected = sorted(mass / 12 * np.array([sides[1] ** 2 + sides[2] ** 2, sides[0] ** 2 + sides[2] ** 2,
+                                            sides[0] ** 2 + sides[1] ** 2]))
+    np.testing.assert_allclose(lam, expected, rtol=1e-12)
+    assert ds.attrs["spin_axis"] == 2 and set(ds.data_vars) >= {"omega", "tilt", "energy", "angular_momentum"}
+    executable = shutil.which("compliance-checker", path=str(Path(sys.executable).parent)) or "compliance-checker"
+    checker = subprocess.run([executable, "--test=cf:1.8", "-f", "json", "-o", "-", str(path)], capture_output=True,
+                             text=True)
+    assert json.loads(checker.stdout)["cf:1.8"]["high_count"] == 0
+
+
+@pytest.mark.parametrize("change, key", [
+    ({"lambda1": 1.0, "lambda2": 1.0, "lambda3": 2.5}, "parameters.lambda3"),  # 2.5 > 1 + 1: no such body
+    ({"lambda1": 1.0, "lambda2": -2.0, "lambda3": 2.5}, "parameters.lambda2"),
+    ({"lambda1": 1.0, "lambda2": 2.0, "lambda3": 2.5, "spin_axis": 4}, "parameters.spin_axis"),
+])
+def test_bad_body_input_is_one_line_and_exit_2(change, key, tmp_path, capsys):
+    params = "\n".join(f"{k} = {v}" for k, v in change.items())
+    text = BOX_RUN.replace('body = { shape = "box", mass = 0.2, width = 0.02, height = 0.08, depth = 0.16 }',
+                           params)
+    if "spin_axis" in change:
+        text = text.replace("spin_axis = 2\n", "")
+    path = tmp_path / "bad.toml"
+    path.write_text(text)
+    assert cli.main(["run", str(path), "-o", str(tmp_path / "bad.nc")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and f"{key}:" in err[0]
+    assert not list(tmp_path.glob("bad.nc*"))
+
+
+def test_exact_with_drag_is_refused(tmp_path, capsys):
+    path = tmp_path / "drag.toml"
+    path.write_text(BOX_RUN.replace('method = "rk4"\ndt = 1e-3', 'method = "exact"').replace("c = 0.0", "c = 1e-4"))
+    assert cli.main(["run", str(path), "-o", str(tmp_path / "drag.nc")]) == 2
+    assert "parameters.c:" in capsys.readouterr().err
+
+
+def test_an_asymmetric_top_is_pointed_to_the_body_scene(tmp_path, capsys):
+    path = tmp_path / "top.toml"
+    path.write_text(BOX_RUN.replace('scene = "body"', 'scene = "top"').replace("spin_axis = 2\n", ""))
+    assert cli.main(["run", str(path), "-o", str(tmp_path / "top.nc")]) == 2
+    assert 'scene = "body"' in capsys.readouterr().err
