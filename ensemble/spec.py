@@ -537,9 +537,12 @@ def _build_table(spec: Spec) -> dict[str, np.ndarray]:
     for source, parameter in scene.PARAMETERS.items():
         if f"{source}_shape" in spec.constants:
             table.update(_from_shape(spec, source, table))
+    closed_form = spec.measure["error"] or any(METHODS[m].closed_form for m in set(table["method"]))
     try:
         scene.check(table)
         table.update(scene.derive(table, spec.constants))
+        if closed_form and hasattr(scene, "check_exact"):
+            scene.check_exact(table)
     except ParameterError as e:
         raise SpecError(f"{'sweep' if e.name in spec.sweep else 'parameters'}.{e.name}", e.problem) from None
     for name, mode in modes.items():

@@ -10,7 +10,7 @@ import numpy as np
 
 from ..methods import METHODS, Method
 from ..parameter import Parameter
-from . import chain, top
+from . import body, chain, top
 
 
 class Scene(Protocol):
@@ -42,9 +42,11 @@ class Scene(Protocol):
     def stability_axis(self, values: dict, constants: dict, h: np.ndarray) -> tuple[np.ndarray, np.ndarray]: ...
     def step_growth(self, method: Method, values: dict, constants: dict, h: np.ndarray) -> np.ndarray: ...
     def conserved_energy(self, ds) -> np.ndarray: ...  # (member, t), NaN where not conserved
+    # Optional: check_exact(values) raises ParameterError where the closed form does not hold (runs that use
+    # `exact` or [measure] error call it); from_body(body, source) for a parameter that `derives` others.
 
 
-SCENES: dict[str, Scene] = {"top": top, "chain": chain}
+SCENES: dict[str, Scene] = {"top": top, "chain": chain, "body": body}
 
 
 def applies(method: Method, scene: Scene) -> bool:

@@ -90,7 +90,7 @@ def from_body(body: Body, source: str) -> dict[str, np.ndarray]:
         which = f" (member {i})" if len(moments) > 1 else ""
         raise ParameterError(source, f"is not a symmetric top{which}: its principal moments about its centre of "
                                      f"mass are {low[i]:.6g}, {middle[i]:.6g}, {high[i]:.6g} kg m2, no two of them "
-                                     f"equal")
+                                     f"equal; fly it as scene = \"body\"")
     lambda1 = np.where(low_pair, (low + middle) / 2, (middle + high) / 2)
     lambda3 = np.where(low_pair, np.where(high_pair, middle, high), low)
     return {"lambda1": lambda1, "lambda3": lambda3}
