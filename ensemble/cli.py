@@ -115,10 +115,12 @@ def _methods() -> int:
     from .scenes import scenes_of
 
     width = max(len(name) for name in METHODS)
-    print(f"{'method':<{width}} {'order':>5}  {'symplectic':<10}  {'scenes':<12} description")
+    scenes = {name: ",".join(scenes_of(m)) for name, m in METHODS.items()}
+    across = max(len("scenes"), *map(len, scenes.values()))
+    print(f"{'method':<{width}} {'order':>5}  {'symplectic':<10}  {'scenes':<{across}} description")
     for m in METHODS.values():
         order = "exact" if m.order is None else str(m.order)
-        print(f"{m.name:<{width}} {order:>5}  {'yes' if m.symplectic else 'no':<10}  {','.join(scenes_of(m)):<12} "
+        print(f"{m.name:<{width}} {order:>5}  {'yes' if m.symplectic else 'no':<10}  {scenes[m.name]:<{across}} "
               f"{m.summary}")
     return 0
 
