@@ -105,7 +105,7 @@ def test_version_help_and_methods(tmp_path):
     for name, m in METHODS.items():
         order = "exact" if m.order is None else str(m.order)
         assert rows[name] == [order, "yes" if m.symplectic else "no", ",".join(scenes_of(m))]
-    assert rows["verlet"] == ["2", "yes", "chain"] and rows["rk4"] == ["4", "no", "top,chain"]
+    assert rows["verlet"] == ["2", "yes", "chain"] and rows["rk4"] == ["4", "no", "top,chain,body"]
 
 
 def test_results_do_not_depend_on_chunk_size(write_runfile):
