@@ -3,9 +3,11 @@
     python analysis/bench_top.py [--members 65536] [--steps 1000] [--repeats 7]
 
 Both run in this process, side by side; the script prints medians and their
-ratio (these machines are shared: quote ratios, not single times). It also
-times a small run file through the command line twice, so the second run
-shows the warm-cache start-up cost.
+ratio (these machines are shared: quote ratios, not single times). Then the
+free body's rk4 kernel (three moments, six parameters a member) against the
+top's, in rounds that time each once, with the median of the ratios taken
+within a round. It also times a small run file through the command line
+three times, so the later runs show the warm-cache start-up cost.
 """
 from __future__ import annotations
 
@@ -22,7 +24,7 @@ import numpy as np
 from ensemble.arguments import OneLineParser, positive_int
 from ensemble.engine import launch
 from ensemble.methods import METHODS
-from ensemble.scenes import top
+from ensemble.scenes import body, top
 from ensemble.scenes.top.kernels import BLOCK, rhs
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -53,6 +55,26 @@ def median_rate(fn, members, steps, repeats):
     return members * steps / statistics.median(times)
 
 
+def body_against_top(table, h, args):
+    """rk4 on free bodies (lambda2 between lambda1 and lambda3) against rk4 on the same tops, in rounds."""
+    n = len(table["c"])
+    rk4 = METHODS["rk4"]
+    bodies = {**table, "lambda2": 0.5 * (table["lambda1"] + table["lambda3"])}
+    calls = {}
+    for scene, values, constants in ((top, table, {}), (body, bodies, {"spin_axis": 3})):
+        launch.prepare(scene, rk4, constants)
+        calls[scene.NAME] = launch.Launch(scene, rk4, values, constants, n_save=2, save_dt=h * args.steps, dt=h,
+                                          blowup_factor=np.inf).run
+    rates = {name: [] for name in calls}
+    for _ in range(args.repeats):
+        for name, call in calls.items():
+            rates[name].append(median_rate(call, n, args.steps, 1))
+    ratios = [b / t for b, t in zip(rates["body"], rates["top"])]
+    print(f"rk4, body {statistics.median(rates['body']):.3g} against top {statistics.median(rates['top']):.3g} "
+          f"member-steps/s: ratio {statistics.median(ratios):.2f} (range {min(ratios):.2f}..{max(ratios):.2f}, "
+          f"within rounds)")
+
+
 def main():
     parser = OneLineParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--members", type=positive_int, default=65536)
@@ -78,6 +100,7 @@ def main():
         slow = median_rate(lambda: numpy_rk(method.tableau, state, rate, h, args.numpy_steps),
                            n, args.numpy_steps, args.repeats)
         print(f"{name:<8} {fast:>21.3g} {slow:>21.3g} {fast / slow:>7.1f}")
+    body_against_top(table, h, args)
 
     with tempfile.TemporaryDirectory() as tmp:
         walls = []

@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .inertia import SHAPES
+from .inertia import SHAPES, polygon
 from .methods import METHODS
 from .parameter import Mode, Parameter, ParameterError
 from .results import DEFAULT_BLOWUP_FACTOR
@@ -51,6 +51,7 @@ SETTINGS = ("method", "dt", "rtol", "atol")
 DEFAULT_TOLERANCES = {"rtol": 1e-6, "atol": 1e-9}  # for adaptive methods
 DISTRIBUTIONS = ("uniform", "normal", "loguniform")
 _STEP_RTOL = 1e-9  # how close save_dt / dt and t_end / save_dt must be to whole numbers
+POLYGON = "polygon"  # a shape given by its mass and its vertices (a run constant), not by lengths
 
 
 @dataclass(frozen=True)
@@ -329,7 +330,11 @@ def _shape_parameter(name: str, given: dict, grids: list[dict], labels: list[str
                                                    f"{' and '.join(parameter.derives)}, or {name}, not both")
     shape, dimensions = _shape(f"parameters.{name}", given.pop(name))
     constants[f"{name}_shape"] = shape
-    lengths = ("mass", *SHAPES[shape].lengths)
+    if shape == POLYGON:
+        if "vertices" not in dimensions:
+            raise SpecError(f"parameters.{name}.vertices", "missing (a polygon needs its vertices)")
+        constants[f"{name}_vertices"] = _vertices(f"parameters.{name}.vertices", dimensions.pop("vertices"))
+    lengths = ("mass", *(() if shape == POLYGON else SHAPES[shape].lengths))
     for dim in lengths:
         flat = f"{name}_{dim}"
         if flat in given or any(flat in grid for grid in grids):
@@ -449,9 +454,17 @@ def _shape(key: str, value) -> tuple[str, dict]:
                              f'r_outer = 0.13 }}, got {value!r}')
     value = dict(value)
     shape = value.pop("shape")
-    if not isinstance(shape, str) or shape not in SHAPES:
-        raise SpecError(f"{key}.shape", f"unknown shape {shape!r}; shapes: {', '.join(SHAPES)}")
+    if not isinstance(shape, str) or (shape not in SHAPES and shape != POLYGON):
+        raise SpecError(f"{key}.shape", f"unknown shape {shape!r}; shapes: {', '.join(SHAPES)}, {POLYGON}")
     return shape, value
+
+
+def _vertices(key: str, value) -> str:
+    """A polygon's vertices [[x1, y1], [x2, y2], ...] (m), as the text "x1,y1 x2,y2 ..." the dataset records."""
+    if not isinstance(value, list) or not all(isinstance(v, list) and len(v) == 2 for v in value):
+        raise SpecError(key, f"must be a list of [x, y] pairs in m, such as [[0, 0], [0.3, 0], [0, 0.3]], got {value!r}")
+    pairs = [[_expect(key, x, float) for x in v] for v in value]
+    return " ".join(f"{x!r},{y!r}" for x, y in pairs)
 
 
 def _noise(observe: dict, save: tuple[str, ...], module) -> dict[str, float]:
@@ -554,10 +567,14 @@ def _build_table(spec: Spec) -> dict[str, np.ndarray]:
 
 def _from_shape(spec: Spec, source: str, table: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     """The parameters that shape parameter `source` derives, for every member."""
-    shape = SHAPES[spec.constants[f"{source}_shape"]]
-    dimensions = {dim: table[f"{source}_{dim}"] for dim in ("mass", *shape.lengths)}
+    name = spec.constants[f"{source}_shape"]
     try:
-        body = shape.build(**dimensions)
+        if name == POLYGON:
+            vertices = [[float(x) for x in pair.split(",")] for pair in spec.constants[f"{source}_vertices"].split()]
+            body = polygon(table[f"{source}_mass"], vertices)
+        else:
+            shape = SHAPES[name]
+            body = shape.build(**{dim: table[f"{source}_{dim}"] for dim in ("mass", *shape.lengths)})
     except ParameterError as e:
         where = "sweep" if f"{source}_{e.name}" in spec.sweep else "parameters"
         raise SpecError(f"{where}.{source}.{e.name}", e.problem) from None

@@ -195,3 +195,33 @@ def test_an_asymmetric_top_is_pointed_to_the_body_scene(tmp_path, capsys):
     path.write_text(BOX_RUN.replace('scene = "body"', 'scene = "top"').replace("spin_axis = 2\n", ""))
     assert cli.main(["run", str(path), "-o", str(tmp_path / "top.nc")]) == 2
     assert 'scene = "body"' in capsys.readouterr().err
+
+
+def test_the_course_plate_from_its_vertices():
+    """The 45-degree right triangle of mass M and legs a: about its centre of mass, moments (1/3, 1, 4/3) M a^2/12
+    (the corner's (1, 3, 4) M a^2 / 12 less the parallel-axis shift), recorded with its vertices."""
+    spec = parse(BOX_RUN.replace('body = { shape = "box", mass = 0.2, width = 0.02, height = 0.08, depth = 0.16 }',
+                                 'body = { shape = "polygon", mass = 2.0, vertices = [[0, 0], [0.3, 0], [0, 0.3]] }'))
+    ds = runner.simulate(spec)
+    scale = 2.0 * 0.3**2 / 12
+    np.testing.assert_allclose([float(ds[f"lambda{i}"][0]) / scale for i in (1, 2, 3)], [1 / 3, 1, 4 / 3],
+                               rtol=1e-12)
+    assert ds.attrs["body_shape"] == "polygon" and ds.attrs["body_vertices"] == "0.0,0.0 0.3,0.0 0.0,0.3"
+    values = {name: ds[name].values for name in ("lambda1", "lambda2", "lambda3", "c", "spin0", "tilt0")}
+    # sigma = w_2 sqrt((4/3 - 1)(1 - 1/3) / (1/3 4/3)) = w_2 / sqrt(2), with w_2 = spin0 cos(tilt0)
+    np.testing.assert_allclose(body.growth_rate(values, {"spin_axis": 2}), 20.0 * np.cos(0.02) / np.sqrt(2),
+                               rtol=1e-12)
+
+
+@pytest.mark.parametrize("vertices, key", [("[[0, 0], [1, 0], [2, 0]]", "parameters.body.vertices"),
+                                           ("[[0, 0], [1]]", "parameters.body.vertices"),
+                                           ("[[0, 0], [1, 0], [0, 1]], width = 0.1", "parameters.body.width")])
+def test_bad_polygon_is_one_line_and_exit_2(vertices, key, tmp_path, capsys):
+    text = BOX_RUN.replace('body = { shape = "box", mass = 0.2, width = 0.02, height = 0.08, depth = 0.16 }',
+                           f'body = {{ shape = "polygon", mass = 1.0, vertices = {vertices} }}')
+    path = tmp_path / "bad.toml"
+    path.write_text(text)
+    assert cli.main(["run", str(path), "-o", str(tmp_path / "bad.nc")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and f"{key}:" in err[0], err
+    assert not list(tmp_path.glob("bad.nc*"))
