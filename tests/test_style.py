@@ -11,6 +11,7 @@ LONGEST = 60
 KERNEL_BODIES = {
     "ensemble/scenes/top/kernels.py": {"_fixed_kernel", "_adaptive_kernel", "kernel"},
     "ensemble/scenes/chain/kernels.py": {"_fixed_kernel", "_adaptive_kernel"},
+    "ensemble/scenes/body/kernels.py": {"_adaptive_kernel", "kernel"},
 }
 
 
