@@ -127,9 +127,15 @@ class StepControl:
 KICK_DRIFT = ("kick", "drift")
 #: A torque-free rotation and a linear drag, each solved exactly.
 DRAG_ROTATION = ("drag", "rotate")
+#: A free rigid body's kinetic energy as three pieces L_i^2 / (2 lambda_i), each a rotation of L about body axis
+#: i, and a linear drag.
+AXIS_ROTATIONS = ("rotate1", "rotate2", "rotate3", "drag")
 SYMPLECTIC_EULER = Splitting(KICK_DRIFT, ((0, 1.0), (1, 1.0)))
 VERLET = Splitting(KICK_DRIFT, ((0, 0.5), (1, 1.0), (0, 0.5)))
 STRANG_DRAG_ROTATION = Splitting(DRAG_ROTATION, ((0, 0.5), (1, 1.0), (0, 0.5)))
+#: Symmetric: half drag, half turns about axes 1 and 2, a whole turn about 3, then back.
+SYMMETRIC_ROTATIONS = Splitting(AXIS_ROTATIONS, ((3, 0.5), (0, 0.5), (1, 0.5), (2, 1.0), (1, 0.5), (0, 0.5),
+                                                 (3, 0.5)))
 
 
 @dataclass(frozen=True)
@@ -170,6 +176,10 @@ METHODS: dict[str, Method] = {
                splitting=STRANG_DRAG_ROTATION),
         Method("split4", 4, False, "Yoshida's fourth-order composition of split2",
                splitting=STRANG_DRAG_ROTATION.composed(YOSHIDA4)),
+        Method("rotations2", 2, False, "free-body rotations about each body axis in turn, symmetric, and drag "
+               "(Poisson; keeps |L| when c = 0)", splitting=SYMMETRIC_ROTATIONS),
+        Method("rotations4", 4, False, "Yoshida's fourth-order composition of rotations2",
+               splitting=SYMMETRIC_ROTATIONS.composed(YOSHIDA4)),
         Method("dopri5", 5, False, "Dormand-Prince 5(4), adaptive: each member controls its step to rtol and atol",
                tableau=DOPRI5, control=StepControl(alpha=0.7 / 5 - 0.75 * 0.04, beta=0.04)),
         Method("exact", None, False, "closed-form solution at the saved times (no stepping)", closed_form=True),

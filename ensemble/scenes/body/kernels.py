@@ -1,4 +1,4 @@
-"""The free body's compiled kernels: its right-hand side and one kernel per Runge-Kutta method.
+"""The free body's compiled kernels: its right-hand side, its turns about the body axes, one kernel per method.
 
 Work rows (BLOCK members each): the rates w1, w2, w3, then the parameters
 a1, a2, a3, r1, r2, r3 (see model.rates), then what the method needs. The
@@ -35,11 +35,14 @@ from ...engine.blocks import (
 )
 from ...methods import Method
 from ...results import RHS_EVALS, UNDERFLOWED
+from .model import PIECES
 
 BLOCK = 128  # members per block
 
 
-P = 6  # parameter rows: a1, a2, a3, r1, r2, r3
+P = 12  # parameter rows: a1, a2, a3, r1, r2, r3, lambda1..3, 1/lambda1..3 (see model.rates)
+LAMBDA, INVERSE = 9, 12  # work rows of lambda_1 and 1/lambda_1
+DRAG = PIECES.index("drag")  # pieces 0, 1, 2 turn L about body axes 1, 2, 3
 
 
 @njit(inline="always", fastmath=True, error_model="numpy")
@@ -61,7 +64,77 @@ def kernel(method: Method, constants: dict):
 
 @cache
 def _kernel(method: Method):
-    return _adaptive_kernel(method) if method.adaptive else _fixed_kernel(method)
+    if method.adaptive:
+        return _adaptive_kernel(method)
+    return _fixed_kernel(method) if method.tableau is not None else _splitting_kernel(method)
+
+
+@njit(inline="always", fastmath=True, error_model="numpy")
+def turn(x, y, angle):
+    """(x, y) turned by -angle: the pair of L across a body axis under that axis' piece L_i^2 / (2 lambda_i)."""
+    cos = math.cos(angle)
+    sin = math.sin(angle)
+    return cos * x + sin * y, cos * y - sin * x
+
+
+@njit(inline="always", **FAST)
+def _scale_rows(work, first, B):
+    """Rows 0 .. 2 (w or L) times rows first .. first + 2 (lambda, to L; 1/lambda, back to w)."""
+    for c in range(3):
+        for j in range(B):
+            work[c * B + j] *= work[(first + c) * B + j]
+
+
+def _splitting_kernel(method: Method):
+    """Kernel for a splitting into turns of L about each body axis and drag (method.splitting over PIECES).
+
+    Work rows: w1, w2, w3 (L = lambda w within a save interval), the P
+    parameters, then the drag factors exp(-r_c h f_e) of sequence entry e at
+    rows K + 3 e + c. Piece i < 3 keeps L_i and turns (L_j, L_k) by (L_i /
+    lambda_i) tau: |L| is kept to rounding.
+    """
+    _, _, _, _, E, pieces, fractions = method_constants(method)
+    K = 3 + P
+    rows = K + 3 * E
+
+    @njit(parallel=True, cache=True, **FAST)
+    def kernel(state0, rate, h, steps_per_save, limit, samples, status, failure_time):
+        """As _fixed_kernel's."""
+        n_save = samples.shape[0]
+        for block in prange(state0.shape[0]):
+            work = _load_block(state0, rate, block, samples, rows)
+            check_members(work, 0, 3, BLOCK, block * BLOCK, limit, status, failure_time, 0.0)  # a non-finite start
+            for e in range(E):
+                for c in range(3):
+                    for j in range(BLOCK):
+                        work[(K + 3 * e + c) * BLOCK + j] = math.exp(-work[(6 + c) * BLOCK + j] * h * fractions[e])
+            for i in range(1, n_save):
+                _scale_rows(work, LAMBDA, BLOCK)
+                for _ in range(steps_per_save):
+                    for j in range(BLOCK):
+                        y1 = work[j]
+                        y2 = work[BLOCK + j]
+                        y3 = work[2 * BLOCK + j]
+                        for e in range(E):
+                            tau = h * fractions[e]
+                            if pieces[e] == DRAG:
+                                y1 *= work[(K + 3 * e) * BLOCK + j]
+                                y2 *= work[(K + 3 * e + 1) * BLOCK + j]
+                                y3 *= work[(K + 3 * e + 2) * BLOCK + j]
+                            elif pieces[e] == 0:
+                                y2, y3 = turn(y2, y3, y1 * work[INVERSE * BLOCK + j] * tau)
+                            elif pieces[e] == 1:
+                                y3, y1 = turn(y3, y1, y2 * work[(INVERSE + 1) * BLOCK + j] * tau)
+                            else:
+                                y1, y2 = turn(y1, y2, y3 * work[(INVERSE + 2) * BLOCK + j] * tau)
+                        work[j] = y1
+                        work[BLOCK + j] = y2
+                        work[2 * BLOCK + j] = y3
+                _scale_rows(work, INVERSE, BLOCK)
+                if _saved(work, samples, i, block, limit, status, failure_time, i * steps_per_save * h, -1):
+                    break
+
+    return kernel
 
 
 @njit(inline="always", **FAST)
@@ -92,8 +165,7 @@ def _fixed_kernel(method: Method):
     row K + 3 s + c. Stage loops have constant trip counts, so LLVM unrolls
     them and folds the tableau's coefficients.
     """
-    runge_kutta, S, a, b, _, _, _ = method_constants(method)
-    assert runge_kutta, "the body has no splitting methods yet"
+    _, S, a, b, _, _, _ = method_constants(method)
     K = 3 + P
     rows = K + 3 * S
 

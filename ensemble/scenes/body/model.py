@@ -20,11 +20,11 @@ import numpy as np
 from scipy.special import ellipj, ellipkinc
 
 from ...inertia import Body
-from ...methods import Method
+from ...methods import AXIS_ROTATIONS, Method
 from ...parameter import Parameter, ParameterError
 
 NAME = "body"
-PIECES = ()  # no splitting methods yet
+PIECES = AXIS_ROTATIONS  # splitting methods: L turned about each body axis in turn, and drag, each exact
 EVALUATING_PIECES = ()
 AXES = (1, 2, 3)
 
@@ -120,19 +120,20 @@ def initial_state(values: dict[str, np.ndarray], constants: dict) -> np.ndarray:
 
 
 def rates(values: dict[str, np.ndarray]) -> np.ndarray:
-    """Kernel parameters (a1, a2, a3, r1, r2, r3), shape (6, members): no division in the hot loop."""
+    """Kernel parameters, shape (12, members): a1, a2, a3 (1), r1, r2, r3 (1/s), lambda1..3 and 1/lambda1..3
+    (the splitting works in L = lambda w). No division in the hot loop."""
     lam = _moments(values)
     a = np.stack([(lam[(i + 1) % 3] - lam[(i + 2) % 3]) / lam[i] for i in range(3)])
-    return np.concatenate((a, values["c"][None] / lam))
+    return np.concatenate((a, values["c"][None] / lam, lam, 1.0 / lam))
 
 
 def inputs(values: dict[str, np.ndarray], constants: dict) -> tuple[np.ndarray, np.ndarray]:
-    """Kernel state and parameters: body rates (3, members) and (a1, a2, a3, r1, r2, r3) (6, members)."""
+    """Kernel state and parameters: body rates (3, members) and `rates` (12, members)."""
     return initial_state(values, constants), rates(values)
 
 
 def kernel_rows(constants: dict) -> tuple[int, int]:
-    return 3, 6
+    return 3, 12
 
 
 def exact(values: dict[str, np.ndarray], constants: dict, t: np.ndarray) -> np.ndarray:
@@ -235,7 +236,7 @@ def transverse_exponents(values: dict[str, np.ndarray], constants: dict) -> np.n
     lambda_k)(lambda_j - lambda_k) / (lambda_i lambda_j)); +-sigma about the intermediate one."""
     k = constants["spin_axis"] - 1
     i, j = (k + 1) % 3, (k + 2) % 3
-    a, r = rates(values)[:3], rates(values)[3:]
+    a, r = rates(values)[:3], rates(values)[3:6]
     wk = values["spin0"] * np.cos(values["tilt0"])
     root = np.sqrt((((r[i] - r[j]) / 2) ** 2 + a[i] * a[j] * wk**2).astype(complex))
     return np.stack((-(r[i] + r[j]) / 2 + root, -(r[i] + r[j]) / 2 - root))
