@@ -17,7 +17,7 @@ rotation is stable and small tilts wobble; about the intermediate one they grow
 from __future__ import annotations
 
 import numpy as np
-from scipy.special import ellipj, ellipkinc
+from scipy.special import ellipj, ellipk, ellipkinc
 
 from ...inertia import Body
 from ...methods import AXIS_ROTATIONS, Method
@@ -177,6 +177,23 @@ def exact(values: dict[str, np.ndarray], constants: dict, t: np.ndarray) -> np.n
     out = np.empty_like(spun)
     np.put_along_axis(out, np.broadcast_to(frame[None], spun.shape), parity * spun, axis=1)
     return out
+
+
+def flip_period(values: dict[str, np.ndarray], constants: dict) -> np.ndarray:
+    """Period (s) of the torque-free motion of the rates, 4 K(m) / Omega (see exact): started near the
+    intermediate axis, the time in which the body flips over and back (its tilt from the spin axis goes to
+    near pi and returns). c = 0 theory; inf for a body spinning exactly about a principal axis."""
+    lam = _moments(values)
+    w0 = initial_state(values, constants)
+    order = np.argsort(lam, axis=0, kind="stable")
+    middle = np.take_along_axis(lam, order[1:2], axis=0)[0]
+    frame = np.where(_spread(lam, w0, middle) >= 0, order, order[::-1])
+    lam_f = np.take_along_axis(lam, frame, axis=0)
+    to_dn, to_cn = np.abs(_spread(lam, w0, lam_f[2])), np.abs(_spread(lam, w0, lam_f[0]))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        rate = np.sqrt(np.abs((lam_f[2] - lam_f[1]) / (lam_f[0] * lam_f[1] * lam_f[2])) * to_cn)
+        m = np.clip(np.abs((lam_f[1] - lam_f[0]) / (lam_f[2] - lam_f[1])) * to_dn / to_cn, 0.0, 1.0)
+        return np.where(rate > 0, 4 * ellipk(m) / rate, np.inf)
 
 
 def _spread(lam: np.ndarray, w: np.ndarray, moment: np.ndarray) -> np.ndarray:
