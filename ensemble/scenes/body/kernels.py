@@ -46,10 +46,16 @@ DRAG = PIECES.index("drag")  # pieces 0, 1, 2 turn L about body axes 1, 2, 3
 
 
 @njit(inline="always", fastmath=True, error_model="numpy")
-def rhs(w1, w2, w3, work, j, B):
-    """Time derivative (rad s-2) of the body rates of member j, its parameters at work rows 3 .. 8."""
-    return (work[3 * B + j] * w2 * w3 - work[6 * B + j] * w1, work[4 * B + j] * w3 * w1 - work[7 * B + j] * w2,
-            work[5 * B + j] * w1 * w2 - work[8 * B + j] * w3)
+def rhs(w1, w2, w3, a1, a2, a3, r1, r2, r3):
+    """Time derivative of the body rates (rad s-2): w_i' = a_i w_j w_k - r_i w_i."""
+    return a1 * w2 * w3 - r1 * w1, a2 * w3 * w1 - r2 * w2, a3 * w1 * w2 - r3 * w3
+
+
+@njit(inline="always", fastmath=True, error_model="numpy")
+def _rhs_of(w1, w2, w3, work, j, B):
+    """rhs for member j of a block, its parameters at work rows 3 .. 8."""
+    return rhs(w1, w2, w3, work[3 * B + j], work[4 * B + j], work[5 * B + j], work[6 * B + j], work[7 * B + j],
+               work[8 * B + j])
 
 
 def block_size(constants: dict) -> int:
@@ -183,6 +189,8 @@ def _fixed_kernel(method: Method):
                         y1 = work[j]
                         y2 = work[BLOCK + j]
                         y3 = work[2 * BLOCK + j]
+                        a1, a2, a3 = work[3 * BLOCK + j], work[4 * BLOCK + j], work[5 * BLOCK + j]
+                        r1, r2, r3 = work[6 * BLOCK + j], work[7 * BLOCK + j], work[8 * BLOCK + j]
                         s1 = 0.0
                         s2 = 0.0
                         s3 = 0.0
@@ -195,7 +203,7 @@ def _fixed_kernel(method: Method):
                                 z1 += ha * work[(K + 3 * r) * BLOCK + j]
                                 z2 += ha * work[(K + 1 + 3 * r) * BLOCK + j]
                                 z3 += ha * work[(K + 2 + 3 * r) * BLOCK + j]
-                            d1, d2, d3 = rhs(z1, z2, z3, work, j, BLOCK)
+                            d1, d2, d3 = rhs(z1, z2, z3, a1, a2, a3, r1, r2, r3)
                             work[(K + 3 * s) * BLOCK + j] = d1
                             work[(K + 1 + 3 * s) * BLOCK + j] = d2
                             work[(K + 2 + 3 * s) * BLOCK + j] = d3
@@ -238,7 +246,7 @@ def _adaptive_kernel(method: Method):
             work = _load_block(state0, rate, block, samples, rows)
             for j in range(B):
                 y1, y2, y3 = work[j], work[B + j], work[2 * B + j]
-                d1, d2, d3 = rhs(y1, y2, y3, work, j, B)
+                d1, d2, d3 = _rhs_of(y1, y2, y3, work, j, B)
                 work[K * B + j], work[(K + 1) * B + j], work[(K + 2) * B + j] = d1, d2, d3
                 rtol, atol = control[1, j0 + j], control[2, j0 + j]
                 work[(C0 + RTOL) * B + j], work[(C0 + ATOL) * B + j] = rtol, atol
@@ -263,7 +271,7 @@ def _adaptive_kernel(method: Method):
                                 z1 += ha * work[(K + 3 * r) * B + j]
                                 z2 += ha * work[(K + 3 * r + 1) * B + j]
                                 z3 += ha * work[(K + 3 * r + 2) * B + j]
-                            d1, d2, d3 = rhs(z1, z2, z3, work, j, B)
+                            d1, d2, d3 = _rhs_of(z1, z2, z3, work, j, B)
                             work[(K + 3 * s) * B + j] = d1
                             work[(K + 3 * s + 1) * B + j] = d2
                             work[(K + 3 * s + 2) * B + j] = d3
