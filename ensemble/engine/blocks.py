@@ -22,6 +22,8 @@ How the runner calls a kernel is in `ensemble.engine.launch`.
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from numba import njit
 
@@ -214,3 +216,40 @@ def splitting_schedule(pieces, fractions, h, steps_per_save, chunk):
         if p % chunk:
             lags[p] = lags[p - 1] + (kinds[p] != kinds[p - 1])
     return kinds[:count], taus[:count], lags
+
+
+# Adaptive kernels of a scene whose state is three rates (rows 0, 1, 2), stage slopes at rows K + 3 s + c and the
+# trial step's new state at rows NEW + c, as the top's and the body's.
+
+@njit(inline="always", **FAST)
+def rates_error(work, K, NEW, C0, S, e, B):
+    """Each member's error norm of its trial step into row C0 + ERR: the RMS over the three rates of h sum_s e_s
+    k_s over atol + rtol max(|y|, |y_new|). FSAL: the last stage was evaluated at the new state NEW."""
+    for j in range(B):
+        h = work[(C0 + STEP) * B + j]
+        y1, y2, y3 = work[j], work[B + j], work[2 * B + j]
+        z1, z2, z3 = work[NEW * B + j], work[(NEW + 1) * B + j], work[(NEW + 2) * B + j]
+        e1, e2, e3 = 0.0, 0.0, 0.0
+        for s in range(S):
+            e1 += e[s] * work[(K + 3 * s) * B + j]
+            e2 += e[s] * work[(K + 3 * s + 1) * B + j]
+            e3 += e[s] * work[(K + 3 * s + 2) * B + j]
+        rtol, atol = work[(C0 + RTOL) * B + j], work[(C0 + ATOL) * B + j]
+        q1 = h * e1 / (atol + rtol * max(abs(y1), abs(z1)))
+        q2 = h * e2 / (atol + rtol * max(abs(y2), abs(z2)))
+        q3 = h * e3 / (atol + rtol * max(abs(y3), abs(z3)))
+        work[(C0 + ERR) * B + j] = math.sqrt((q1 * q1 + q2 * q2 + q3 * q3) / 3.0)
+
+
+@njit(inline="always", **FAST)
+def rates_accept(work, K, NEW, C0, S, B):
+    """After control_step: members whose step was accepted move to the new state (its last stage is the next
+    step's first); members whose step underflowed become NaN."""
+    for j in range(B):
+        if work[(C0 + REJECTED_LAST) * B + j] == 0.0 and work[(C0 + ERR) * B + j] >= 0.0:
+            for c in range(3):
+                work[c * B + j] = work[(NEW + c) * B + j]
+                work[(K + c) * B + j] = work[(K + 3 * (S - 1) + c) * B + j]
+        elif work[(C0 + ERR) * B + j] == UNDERFLOWED:
+            for c in range(3):
+                work[c * B + j] = np.nan

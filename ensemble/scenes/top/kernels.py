@@ -15,10 +15,8 @@ from numba import njit, prange
 from ...engine.blocks import (
     ATOL,
     CONTROL_ROWS,
-    ERR,
     ERR_PREVIOUS,
     FAST,
-    REJECTED_LAST,
     RTOL,
     STEP,
     H,
@@ -28,12 +26,14 @@ from ...engine.blocks import (
     fill_failed,
     first_step,
     method_constants,
+    rates_accept,
+    rates_error,
     rows_in,
     rows_out,
     trial_steps,
 )
 from ...methods import Method
-from ...results import RHS_EVALS, UNDERFLOWED
+from ...results import RHS_EVALS
 from .model import PIECES
 
 BLOCK = 128  # members per block
@@ -231,31 +231,10 @@ def _adaptive_kernel(method: Method):
                             work[(K + 3 * s + 1) * B + j] = d2
                             work[(K + 3 * s + 2) * B + j] = d3
                             work[NEW * B + j], work[(NEW + 1) * B + j], work[(NEW + 2) * B + j] = z1, z2, z3
-                    for j in range(B):
-                        # FSAL: the last stage was evaluated at the new state NEW
-                        h = work[(C0 + STEP) * B + j]
-                        y1, y2, y3 = work[j], work[B + j], work[2 * B + j]
-                        z1, z2, z3 = work[NEW * B + j], work[(NEW + 1) * B + j], work[(NEW + 2) * B + j]
-                        e1, e2, e3 = 0.0, 0.0, 0.0
-                        for s in range(S):
-                            e1 += e[s] * work[(K + 3 * s) * B + j]
-                            e2 += e[s] * work[(K + 3 * s + 1) * B + j]
-                            e3 += e[s] * work[(K + 3 * s + 2) * B + j]
-                        rtol, atol = work[(C0 + RTOL) * B + j], work[(C0 + ATOL) * B + j]
-                        q1 = h * e1 / (atol + rtol * max(abs(y1), abs(z1)))
-                        q2 = h * e2 / (atol + rtol * max(abs(y2), abs(z2)))
-                        q3 = h * e3 / (atol + rtol * max(abs(y3), abs(z3)))
-                        work[(C0 + ERR) * B + j] = math.sqrt((q1 * q1 + q2 * q2 + q3 * q3) / 3.0)
+                    rates_error(work, K, NEW, C0, S, e, B)
                     control_step(work, C0, B, target, counts, j0, status, failure_time, S - 1, alpha, beta, safety,
                                   min_factor, max_factor)
-                    for j in range(B):
-                        if work[(C0 + REJECTED_LAST) * B + j] == 0.0 and work[(C0 + ERR) * B + j] >= 0.0:
-                            for c in range(3):
-                                work[c * B + j] = work[(NEW + c) * B + j]
-                                work[(K + c) * B + j] = work[(K + 3 * (S - 1) + c) * B + j]
-                        elif work[(C0 + ERR) * B + j] == UNDERFLOWED:
-                            for c in range(3):
-                                work[c * B + j] = np.nan
+                    rates_accept(work, K, NEW, C0, S, B)
                 if _saved(work, samples, i, block, limit, status, failure_time, target, C0 + H):
                     break
 
