@@ -183,10 +183,11 @@ def test_default_chunk_keeps_kernel_samples_and_saved_data_near_the_budget(text)
 
 
 def test_a_run_imports_no_analysis_and_parsing_no_numba(write_runfile, tmp_path):
-    """Start-up: `ensemble run` loads neither the fits nor scipy.signal or scipy.stats; reading a run file loads no
-    Numba (run files are checked before any kernel is loaded)."""
+    """Start-up: `ensemble run` loads neither the fits nor scipy.signal or scipy.stats; reading a run file loads
+    neither Numba nor scipy (run files are checked before any kernel is loaded)."""
     runfile = write_runfile(top_runfile(members=10))
-    probe = ("import sys\nfrom ensemble import spec\nspec.load(sys.argv[1])\nassert 'numba' not in sys.modules\n"
+    probe = ("import sys\nfrom ensemble import spec\nspec.load(sys.argv[1])\n"
+             "assert 'numba' not in sys.modules and 'scipy' not in sys.modules\n"
              "from ensemble import cli\nassert cli.main(['run', sys.argv[1], '-o', sys.argv[2], '--quiet']) == 0\n"
              "loaded = [m for m in ('ensemble.fit', 'ensemble.stability', 'ensemble.report', 'scipy.signal', "
              "'scipy.stats', 'xarray') if m in sys.modules]\nassert not loaded, loaded\nassert 'numba' in sys.modules\n")

@@ -17,7 +17,6 @@ rotation is stable and small tilts wobble; about the intermediate one they grow
 from __future__ import annotations
 
 import numpy as np
-from scipy.special import ellipj, ellipk, ellipkinc
 
 from ...inertia import Body
 from ...methods import AXIS_ROTATIONS, Method
@@ -149,6 +148,8 @@ def exact(values: dict[str, np.ndarray], constants: dict, t: np.ndarray) -> np.n
     separatrix (a small tilt about the intermediate axis) m is within rounding
     of 1 and the solution holds only to about eps / (1 - m).
     """
+    from scipy.special import ellipj, ellipkinc  # here: scipy.special costs every run 0.2 s to import
+
     lam = _moments(values)
     w0 = initial_state(values, constants)
     order = np.argsort(lam, axis=0, kind="stable")  # ascending moments, per member
@@ -183,6 +184,8 @@ def flip_period(values: dict[str, np.ndarray], constants: dict) -> np.ndarray:
     """Period (s) of the torque-free motion of the rates, 4 K(m) / Omega (see exact): started near the
     intermediate axis, the time in which the body flips over and back (its tilt from the spin axis goes to
     near pi and returns). c = 0 theory; inf for a body spinning exactly about a principal axis."""
+    from scipy.special import ellipk
+
     lam = _moments(values)
     w0 = initial_state(values, constants)
     order = np.argsort(lam, axis=0, kind="stable")
