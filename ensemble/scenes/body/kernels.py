@@ -236,7 +236,8 @@ def _adaptive_kernel(method: Method):
 
     @njit(parallel=True, cache=True, **FAST)
     def kernel(state0, rate, control, save_dt, limit, samples, counts, status, failure_time):
-        """state0 (blocks, 3, BLOCK), rate (blocks, P, BLOCK); control (3, M): first step (s; <= 0: estimate it), rtol, atol;
+        """state0 (blocks, 3, BLOCK), rate (blocks, P, BLOCK); control (3, M): first step (s; <= 0: estimate
+        it), rtol, atol;
         limit (M,) -> samples (n_save, blocks, 3, BLOCK), counts (3, M): accepted, rejected, right-hand-side
         evaluations; status (M,) and failure_time (M,; s, set only where a member fails)."""
         n_save = samples.shape[0]
