@@ -79,7 +79,8 @@ def main() -> None:
             "numba floor (one cached @njit function)": [sys.executable, str(floor)],
             "ensemble run, 10 tops": [sys.executable, "-m", "ensemble", "run", str(runfile), "-o",
                                       f"{tmp}/ten.nc", "--force", "--quiet"],
-            "parse the run file only": [sys.executable, "-c", f"from ensemble import spec; spec.load({str(runfile)!r})"],
+            "parse the run file only": [sys.executable, "-c",
+                                        f"from ensemble import spec; spec.load({str(runfile)!r})"],
         }
         for command in commands.values():  # warm the caches
             wall(command)

@@ -28,7 +28,8 @@ def draw(plt, ds, fits, rows, stem, sample):
         color = f"C{i % 10}"
         ax.semilogy(t, np.tan(ds["tilt"].values[member]), ".", ms=2, color=color, alpha=0.5)
         line = np.exp(fits["log_tan_tilt0"].values[member] - fits["rate"].values[member] * t)
-        ax.semilogy(t, line, "-", color=color, lw=1, label=f"member {member}: rate {fits['rate'].values[member]:.4g} 1/s")
+        rate = fits["rate"].values[member]
+        ax.semilogy(t, line, "-", color=color, lw=1, label=f"member {member}: rate {rate:.4g} 1/s")
     ax.set_xlabel("t (s)")
     ax.set_ylabel("tan(tilt)")
     ax.set_title("tilt of sample members (dots) and fitted lines")

@@ -142,7 +142,8 @@ def _inertia(args) -> int:
             shape = inertia.SHAPES[args.shape]
             body = shape.build(args.mass, **{length: getattr(args, length) for length in shape.lengths})
     except inertia.ShapeError as e:
-        return _error(f"inertia {args.shape}: --{e.name.replace('_', '-')}: {e.problem.replace('r_outer', '--r-outer')}")
+        problem = e.problem.replace("r_outer", "--r-outer")
+        return _error(f"inertia {args.shape}: --{e.name.replace('_', '-')}: {problem}")
     tensor = body.tensor(args.origin)
     moments, axes = inertia.principal(tensor)
     if args.json:

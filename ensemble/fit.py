@@ -37,7 +37,8 @@ class FitError(ValueError):
 def _require(ds: xr.Dataset, scene: str, variables: tuple[str, ...], fit: str) -> None:
     found = ds.attrs.get("scene")
     if found != scene:
-        raise FitError(f"{fit} needs a {scene} result; this one is {'a ' + repr(found) if found else 'not from ensemble'}"
+        what = "a " + repr(found) if found else "not from ensemble"
+        raise FitError(f"{fit} needs a {scene} result; this one is {what}"
                        f" result")
     missing = [v for v in variables if v not in ds.variables]
     if missing:

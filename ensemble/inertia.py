@@ -36,7 +36,8 @@ class Body:
     inertia: np.ndarray
 
     def tensor(self, origin=(0.0, 0.0, 0.0)) -> np.ndarray:
-        """Inertia tensor about `origin` (m, body coordinates): the centre-of-mass tensor plus the parallel-axis shift."""
+        """Inertia tensor about `origin` (m, body coordinates): the centre-of-mass tensor plus the parallel-axis
+        shift."""
         return self.inertia + parallel_axis_shift(self.mass, self.centre - np.asarray(origin, dtype=float))
 
     def placed(self, rotation=None, position=(0.0, 0.0, 0.0)) -> Body:
@@ -205,7 +206,8 @@ def cylinder(mass, radius, height) -> Body:
 
 
 def hollow_cylinder(mass, r_inner, r_outer, height) -> Body:
-    """Uniform thick-walled tube along z, centred: M (3 (R1^2 + R2^2) + h^2) / 12 about x, y; M (R1^2 + R2^2) / 2 about z."""
+    """Uniform thick-walled tube along z, centred: M (3 (R1^2 + R2^2) + h^2) / 12 about x, y;
+    M (R1^2 + R2^2) / 2 about z."""
     mass, r_inner, r_outer = _hollow(mass, r_inner, r_outer)
     height = _positive("height", height)
     squares = r_inner**2 + r_outer**2

@@ -25,7 +25,7 @@ class Tableau:
     a: tuple[tuple[float, ...], ...]
     b: tuple[float, ...]
     c: tuple[float, ...]
-    error: tuple[float, ...] | None = None  # b - b_hat of an embedded pair: h sum(error_s k_s) estimates the local error
+    error: tuple[float, ...] | None = None  # b - b_hat of an embedded pair: h sum(error_s k_s) is the local error
 
     @property
     def fsal(self) -> bool:

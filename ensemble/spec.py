@@ -462,7 +462,8 @@ def _shape(key: str, value) -> tuple[str, dict]:
 def _vertices(key: str, value) -> str:
     """A polygon's vertices [[x1, y1], [x2, y2], ...] (m), as the text "x1,y1 x2,y2 ..." the dataset records."""
     if not isinstance(value, list) or not all(isinstance(v, list) and len(v) == 2 for v in value):
-        raise SpecError(key, f"must be a list of [x, y] pairs in m, such as [[0, 0], [0.3, 0], [0, 0.3]], got {value!r}")
+        raise SpecError(key, f"must be a list of [x, y] pairs in m, such as [[0, 0], [0.3, 0], [0, 0.3]], "
+                             f"got {value!r}")
     pairs = [[_expect(key, x, float) for x in v] for v in value]
     return " ".join(f"{x!r},{y!r}" for x, y in pairs)
 

@@ -56,7 +56,8 @@ def test_normal_modes_script_on_the_two_mass_chain(tmp_path):
 
 def test_check_fails_when_the_method_moves_the_frequency(tmp_path):
     # Verlet at w h = 0.5: the fitted frequency (2/h) asin(w h / 2) is 1% above the physics.
-    result = run_small("two_mass.toml", tmp_path, 2, **{"dt = 1e-3": "dt = 0.1", "k = 1.0 ": "k = 0.08333333333333333 "})
+    result = run_small("two_mass.toml", tmp_path, 2,
+                       **{"dt = 1e-3": "dt = 0.1", "k = 1.0 ": "k = 0.08333333333333333 "})
     done = script("normal_modes.py", result, "--check")
     assert done.returncode == 1 and "FAIL" in done.stdout
 

@@ -115,8 +115,8 @@ def test_exact_matches_the_matrix_exponential(boundary):
 
 def run(method, values, constants, dt, steps_per_save, n_save, blowup_factor=np.inf):
     """Samples (n_save, 2n, members); members never fail unless blowup_factor is given."""
-    return launch.integrate(chain, METHODS[method], values, constants, n_save=n_save, save_dt=dt * steps_per_save, dt=dt,
-                            blowup_factor=blowup_factor).samples
+    return launch.integrate(chain, METHODS[method], values, constants, n_save=n_save, save_dt=dt * steps_per_save,
+                            dt=dt, blowup_factor=blowup_factor).samples
 
 
 @pytest.mark.parametrize("boundary", ["fixed", "periodic"])

@@ -190,7 +190,8 @@ def test_a_run_imports_no_analysis_and_parsing_no_numba(write_runfile, tmp_path)
              "assert 'numba' not in sys.modules and 'scipy' not in sys.modules\n"
              "from ensemble import cli\nassert cli.main(['run', sys.argv[1], '-o', sys.argv[2], '--quiet']) == 0\n"
              "loaded = [m for m in ('ensemble.fit', 'ensemble.stability', 'ensemble.report', 'scipy.signal', "
-             "'scipy.stats', 'xarray') if m in sys.modules]\nassert not loaded, loaded\nassert 'numba' in sys.modules\n")
+             "'scipy.stats', 'xarray') if m in sys.modules]\nassert not loaded, loaded\n"
+             "assert 'numba' in sys.modules\n")
     done = subprocess.run([sys.executable, "-c", probe, str(runfile), str(tmp_path / "out.nc")], capture_output=True,
                           text=True)
     assert done.returncode == 0, done.stderr

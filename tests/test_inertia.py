@@ -334,7 +334,8 @@ def test_an_annulus_top_decays_at_the_course_rate_and_records_its_body():
     lambda1 = 0.1 * (0.1**2 + 0.13**2) / 4
     np.testing.assert_allclose(ds.lambda1, lambda1, rtol=1e-14)
     rates = fit.tilt_decay(ds)
-    np.testing.assert_allclose(rates.rate, 1e-4 / (2 * lambda1), rtol=1e-9)  # flat: 1/lambda1 - 1/lambda3 = 1/(2 lambda1)
+    # flat: 1/lambda1 - 1/lambda3 = 1/(2 lambda1)
+    np.testing.assert_allclose(rates.rate, 1e-4 / (2 * lambda1), rtol=1e-9)
 
 
 def test_the_ring_run_file_sweeps_the_outer_radius():
