@@ -51,6 +51,7 @@ SETTINGS = ("method", "dt", "rtol", "atol")
 DEFAULT_TOLERANCES = {"rtol": 1e-6, "atol": 1e-9}  # for adaptive methods
 DISTRIBUTIONS = ("uniform", "normal", "loguniform")
 _STEP_RTOL = 1e-9  # how close save_dt / dt and t_end / save_dt must be to whole numbers
+MAY_BE_INFINITE = ("blowup_factor",)  # inf: only a non-finite state fails a member
 POLYGON = "polygon"  # a shape given by its mass and its vertices (a run constant), not by lengths
 
 
@@ -133,12 +134,16 @@ def _type_name(kind) -> str:
 
 
 def _expect(key: str, value, kind):
-    """Check the TOML type of a value; ints count as numbers, bools as nothing else."""
+    """Check the TOML type of a value; ints count as numbers, bools as nothing else. Every number a run file gives
+    passes here, so this is the one place that refuses NaN and infinity (TOML has both): a number must be finite
+    unless its key is in MAY_BE_INFINITE."""
     ok = isinstance(value, kind) and (kind is bool or not isinstance(value, bool))
     if kind is float:
         ok = isinstance(value, (int, float)) and not isinstance(value, bool)
     if not ok:
         raise SpecError(key, f"must be {_type_name(kind)}, got {type(value).__name__} {value!r}")
+    if kind is float and not math.isfinite(value) and not (math.isinf(value) and key in MAY_BE_INFINITE):
+        raise SpecError(key, f"must be a finite number, got {value!r}")
     return float(value) if kind is float else value
 
 

@@ -101,3 +101,45 @@ def test_a_member_keeps_its_draws_when_the_ensemble_grows():
     small = members_table(parse(top_runfile(members=5)))
     large = members_table(parse(top_runfile(members=50)))
     np.testing.assert_array_equal(small["tilt0"], large["tilt0"][:5])
+
+
+SENTINEL = 12345.678  # stands for a raw TOML value (nan, inf, a table) that top_runfile would quote
+
+
+def raw(text: str, value: str) -> str:
+    return text.replace(repr(SENTINEL), value)
+
+
+CHAIN_TEXT = ("scene = 'chain'\nmethod = 'verlet'\ndt = 0.01\nt_end = 1.0\nsave_dt = 0.1\nmembers = 2\nseed = 1\n"
+              "[parameters]\nn = 2\nm = 1.0\nk = 1.0\nx0 = 0.1\n")
+
+
+@pytest.mark.parametrize("text, key", [
+    (raw(top_runfile({"c": SENTINEL}), "nan"), "parameters.c"),
+    (raw(top_runfile({"c": SENTINEL}), "inf"), "parameters.c"),
+    (raw(top_runfile({"lambda1": SENTINEL}), "nan"), "parameters.lambda1"),
+    (raw(top_runfile({"tilt0": SENTINEL}), "nan"), "parameters.tilt0"),
+    (raw(top_runfile({"spin0": SENTINEL}), "inf"), "parameters.spin0"),
+    (raw(top_runfile({"azimuth0": SENTINEL}), "-inf"), "parameters.azimuth0"),
+    (raw(top_runfile({"tilt0": SENTINEL}), "{ uniform = [nan, 1] }"), "parameters.tilt0.uniform"),
+    (raw(top_runfile({"c": SENTINEL}), "{ loguniform = [1e-3, inf] }"), "parameters.c.loguniform"),
+    (raw(top_runfile(dt=SENTINEL), "nan"), "dt"),
+    (raw(top_runfile(sweep={"c": [1e-4, SENTINEL]}, parameters={"c": None}), "nan"), "sweep.c"),
+    (CHAIN_TEXT.replace("m = 1.0", "m = [1.0, nan]"), "parameters.m[1]"),
+    (CHAIN_TEXT.replace("k = 1.0", "k = [1.0, inf, 1.0]"), "parameters.k[1]"),
+    (CHAIN_TEXT.replace("x0 = 0.1", "x0 = [0.1, nan]"), "parameters.x0[1]"),
+    (CHAIN_TEXT.replace("x0 = 0.1", "x0 = { mode = 1, amplitude = nan }"), "parameters.x0.amplitude"),
+    (CHAIN_TEXT + "omega_max = nan\n", "parameters.omega_max"),
+    (raw(top_runfile(blowup_factor=SENTINEL), "nan"), "blowup_factor"),
+])
+def test_nan_and_infinity_are_refused_in_one_line(text, key, write_runfile, tmp_path, capsys):
+    """NaN and infinity passed every `<= 0` check; now every number must be finite (blowup_factor may be inf)."""
+    out = tmp_path / "out.nc"
+    assert cli.main(["run", str(write_runfile(text)), "-o", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and f" {key}: must be a finite number" in err[0], err
+    assert not list(tmp_path.glob("out.nc*"))
+
+
+def test_blowup_factor_may_be_infinite():
+    assert parse(raw(top_runfile(blowup_factor=SENTINEL), "inf")).blowup_factor == float("inf")
