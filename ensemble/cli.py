@@ -103,8 +103,10 @@ def _run(args) -> int:
     try:
         summary = run(spec, out, chunk=args.chunk, progress=not args.quiet)
     except KeyboardInterrupt:
-        print(f"ensemble: interrupted; the members finished so far are in {part_path(out)} "
-              f"(not a complete result)", file=sys.stderr)
+        part = part_path(out)
+        where = (f"the members finished so far are in {part} (not a complete result)" if part.exists()
+                 else "before the output file was opened; nothing was written")
+        print(f"ensemble: interrupted; {where}", file=sys.stderr)
         return EXIT_INTERRUPTED
     print(f"wrote {out}: {summary}")
     return 0

@@ -34,12 +34,13 @@ class Summary:
     steps_each: int | None = None  # when every member took the same number of steps
     blew_up: int = 0  # failed members (status BLEW_UP)
     underflowed: int = 0  # failed members (status STEP_SIZE_UNDERFLOW)
+    closed_form: bool = False  # every member was evaluated in closed form (no steps)
 
     def __str__(self) -> str:
         failed = self.blew_up + self.underflowed
         failures = (f"; {failed} of {self.members} members failed ({self.blew_up} blew up, {self.underflowed} "
                     f"step size underflow)" if failed else "")
-        if self.member_steps == 0:
+        if self.closed_form:
             return f"{self.members} members (closed form) in {self.seconds:.3g} s" + failures
         rate = self.member_steps / self.seconds if self.seconds > 0 else float("inf")
         steps = (f"{self.members} members x {self.steps_each} steps" if self.steps_each is not None
@@ -141,7 +142,8 @@ def run(spec: Spec, out: str | Path, *, chunk: int | None = None, progress: bool
                 writer.write(k0, data)
                 bar.update(k1 - k0)
     return Summary(n, member_steps, time.perf_counter() - start, step_counts.pop() if len(step_counts) == 1 else None,
-                   blew_up=int(failed[Status.BLEW_UP]), underflowed=int(failed[Status.STEP_SIZE_UNDERFLOW]))
+                   blew_up=int(failed[Status.BLEW_UP]), underflowed=int(failed[Status.STEP_SIZE_UNDERFLOW]),
+                   closed_form=all(METHODS[name].closed_form for name in spec.methods))
 
 
 def simulate(spec: Spec, *, chunk: int | None = None):

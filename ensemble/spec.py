@@ -384,7 +384,11 @@ def _parameter_axes(grids: list[dict], labels: list[str], keys: dict, declared: 
 def _axis(key: str, axis, kind) -> tuple:
     if not isinstance(axis, list) or not axis:
         raise SpecError(key, f"a sweep axis must be a non-empty list, got {axis!r}")
-    return tuple(_expect(key, x, kind) for x in axis)
+    values = tuple(_expect(key, x, kind) for x in axis)
+    repeated = [x for i, x in enumerate(values) if x in values[:i]]
+    if repeated:
+        raise SpecError(key, f"repeats the value {repeated[0]!r}: each sweep point once")
+    return values
 
 
 def _settings(top: dict, axes: dict, label: str, scene: str, save_dt: float) -> dict[str, tuple]:

@@ -195,3 +195,16 @@ def test_a_run_imports_no_analysis_and_parsing_no_numba(write_runfile, tmp_path)
     done = subprocess.run([sys.executable, "-c", probe, str(runfile), str(tmp_path / "out.nc")], capture_output=True,
                           text=True)
     assert done.returncode == 0, done.stderr
+
+
+def test_interrupt_before_the_file_opens_names_no_file(write_runfile, tmp_path, monkeypatch, capsys):
+    """Ctrl-C while kernels load: no .part exists, so the message must not point to one."""
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(launch, "prepare", interrupted)
+    out = tmp_path / "out.nc"
+    assert cli.main(["run", str(write_runfile(top_runfile())), "-o", str(out)]) == 130
+    err = capsys.readouterr().err
+    assert "nothing was written" in err and ".part" not in err
+    assert not list(tmp_path.glob("out.nc*"))

@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from ensemble import cli
+from ensemble import cli, runner
 from ensemble.spec import SpecError, members_table, parse
 from tests.conftest import top_runfile
 
@@ -143,3 +143,24 @@ def test_nan_and_infinity_are_refused_in_one_line(text, key, write_runfile, tmp_
 
 def test_blowup_factor_may_be_infinite():
     assert parse(raw(top_runfile(blowup_factor=SENTINEL), "inf")).blowup_factor == float("inf")
+
+
+@pytest.mark.parametrize("text, key", [
+    (top_runfile(sweep={"c": [1e-4, 1e-4]}, parameters={"c": None}), "sweep.c"),  # a sweep point twice
+    (CHAIN_TEXT.replace("n = 2", 'n = 1\nboundary = "periodic"'), "parameters.n"),  # a spring from a mass to itself
+    (top_runfile({"spin0": 0.0}), "parameters.spin0"),  # a top at rest has no tilt
+])
+def test_nonsense_that_used_to_pass_is_one_line(text, key, write_runfile, tmp_path, capsys):
+    out = tmp_path / "out.nc"
+    assert cli.main(["run", str(write_runfile(text)), "-o", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and f" {key}: " in err[0], err
+    assert not list(tmp_path.glob("out.nc*"))
+
+
+def test_summary_says_closed_form_only_for_the_closed_form():
+    """A stepping run whose members all failed before their first step took 0 member-steps, like a closed-form
+    run; the summary used to call it closed form."""
+    failed_at_once = str(runner.Summary(4, 0, 0.1, blew_up=4))
+    assert "closed form" not in failed_at_once and "4 of 4 members failed" in failed_at_once
+    assert "(closed form)" in str(runner.Summary(4, 0, 0.1, closed_form=True))

@@ -71,9 +71,11 @@ def check(values: dict[str, np.ndarray]) -> None:
     for i, moment in zip(AXES, moments):
         if np.any(moment <= 0):
             raise ParameterError(f"lambda{i}", f"must be > 0 (got {moment.min():g})")
-    for name in ("c", "spin0"):
-        if np.any(values[name] < 0):
-            raise ParameterError(name, f"must be >= 0 (got {values[name].min():g})")
+    if np.any(values["c"] < 0):
+        raise ParameterError("c", f"must be >= 0 (got {values['c'].min():g})")
+    if np.any(values["spin0"] <= 0):
+        raise ParameterError("spin0", f"must be > 0: the tilt of a body at rest is undefined (got "
+                                      f"{values['spin0'].min():g})")
     if np.any((values["tilt0"] < 0) | (values["tilt0"] > np.pi)):
         raise ParameterError("tilt0", "must lie in [0, pi]")
     for i in range(3):

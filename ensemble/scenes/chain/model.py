@@ -61,6 +61,8 @@ def check_constants(constants: dict) -> None:
         raise ParameterError("n", f"must be >= 1, got {constants['n']}")
     if constants["boundary"] == "free" and constants["n"] < 2:
         raise ParameterError("n", "a free chain needs at least 2 masses (it has n - 1 springs)")
+    if constants["boundary"] == "periodic" and constants["n"] < 2:
+        raise ParameterError("n", "a ring needs at least 2 masses (with one, its spring would join the mass to itself)")
 
 
 def check(values: dict[str, np.ndarray]) -> None:

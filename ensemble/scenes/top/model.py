@@ -63,9 +63,11 @@ def check(values: dict[str, np.ndarray]) -> None:
     for name in ("lambda1", "lambda3"):
         if np.any(values[name] <= 0):
             raise ParameterError(name, f"must be > 0 (got {values[name].min():g})")
-    for name in ("c", "spin0"):
-        if np.any(values[name] < 0):
-            raise ParameterError(name, f"must be >= 0 (got {values[name].min():g})")
+    if np.any(values["c"] < 0):
+        raise ParameterError("c", f"must be >= 0 (got {values['c'].min():g})")
+    if np.any(values["spin0"] <= 0):
+        raise ParameterError("spin0", f"must be > 0: the tilt of a body at rest is undefined (got "
+                                      f"{values['spin0'].min():g})")
     tilt0 = values["tilt0"]
     if np.any((tilt0 < 0) | (tilt0 > np.pi)):
         raise ParameterError("tilt0", "must lie in [0, pi]")
