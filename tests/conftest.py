@@ -40,3 +40,17 @@ def write_runfile(tmp_path):
         path.write_text(text)
         return path
     return write
+
+
+def refused(text: str, folder, capsys, expected: str) -> str:
+    """Run `ensemble run` on run-file text in `folder` and check the promise to users for bad input: exit
+    status 2, one line on stderr containing `expected`, and no output file (not even a .part). Returns the line."""
+    from ensemble import cli
+
+    path = folder / "bad.toml"
+    path.write_text(text)
+    assert cli.main(["run", str(path), "-o", str(folder / "bad.nc")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and expected in err[0], err
+    assert not list(folder.glob("bad.nc*"))
+    return err[0]
