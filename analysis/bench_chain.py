@@ -16,6 +16,7 @@ import statistics
 import time
 
 import numpy as np
+from hostinfo import host
 
 from ensemble.arguments import OneLineParser, positive_int
 from ensemble.engine import launch
@@ -80,6 +81,7 @@ def main():
     parser.add_argument("--steps", type=positive_int, default=200,
                         help="Numba steps per kernel call (one saved sample)")
     args = parser.parse_args()
+    print(host())
     rng = np.random.default_rng(2026)
     h = 1e-2
     runs = {n: contenders(n, args.masses, rng, h, args.steps, numpy_steps=10) for n in args.n}

@@ -17,6 +17,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from hostinfo import host
 
 from ensemble.arguments import OneLineParser, positive_int
 from ensemble.engine import launch
@@ -88,6 +89,7 @@ def main():
     parser = OneLineParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--repeats", type=positive_int, default=3)
     args = parser.parse_args()
+    print(host())
     spec = parse((RUNS / "aerobie.toml").read_text().replace("members = 200", "members = 4096"))
     tops = {name: v[:8192] for name, v in members_table(spec).items()}
     rk4, dopri5 = per_step(top, tops, {}, 1e-3, 0.1, 31, args.repeats)

@@ -20,6 +20,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from hostinfo import host
 
 from ensemble.arguments import OneLineParser, positive_int
 from ensemble.engine import launch
@@ -82,6 +83,7 @@ def main():
     parser.add_argument("--numpy-steps", type=positive_int, default=20)
     parser.add_argument("--repeats", type=positive_int, default=7)
     args = parser.parse_args()
+    print(host())
 
     rng = np.random.default_rng(2026)
     n = max(args.members // BLOCK, 1) * BLOCK  # whole kernel blocks

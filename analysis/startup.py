@@ -11,14 +11,14 @@ fresh install (the first run compiles).
 from __future__ import annotations
 
 import argparse
-import os
-import platform
 import statistics
 import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
+
+from hostinfo import host
 
 from ensemble.arguments import OneLineParser, positive_int
 
@@ -42,22 +42,6 @@ def f(x):
     return x + 1.0
 f(1.0)
 """
-
-
-def host() -> str:
-    """CPU model, widest vector extension and Numba's thread count."""
-    model, flags = platform.processor() or "unknown CPU", set()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                model = line.split(":", 1)[1].strip()
-            elif line.startswith("flags"):
-                flags = set(line.split(":", 1)[1].split())
-    except OSError:
-        pass
-    widest = next((f for f in ("avx512f", "avx2", "avx", "sse4_2", "neon") if f in flags), "unknown")
-    threads = os.environ.get("NUMBA_NUM_THREADS") or str(os.cpu_count())
-    return f"host: {model}, widest vectors {widest}, {threads} threads"
 
 
 def wall(command: list[str]) -> float:
