@@ -152,23 +152,11 @@ def exact(values: dict[str, np.ndarray], constants: dict, t: np.ndarray) -> np.n
     """
     from scipy.special import ellipj, ellipkinc  # here: scipy.special costs every run 0.2 s to import
 
-    lam = _moments(values)
-    w0 = initial_state(values, constants)
-    order = np.argsort(lam, axis=0, kind="stable")  # ascending moments, per member
-    middle = np.take_along_axis(lam, order[1:2], axis=0)[0]
-    about_largest = _spread(lam, w0, middle) >= 0  # L^2 >= 2 E lambda_mid
-    frame = np.where(about_largest, order, order[::-1])  # (cn, sn, dn) axes per member
-    parity = np.where(np.linalg.det(np.eye(3)[frame.T]) > 0, 1.0, -1.0)
-    lam_f = np.take_along_axis(lam, frame, axis=0)  # moments in the formula's frame
-    w = parity * np.take_along_axis(w0, frame, axis=0)
-    to_dn = np.abs(_spread(lam, w0, lam_f[2]))  # |2 E lam_f[2] - L^2|
-    to_cn = np.abs(_spread(lam, w0, lam_f[0]))  # |L^2 - 2 E lam_f[0]|
+    frame, parity, lam_f, w, to_dn, to_cn, rate, m = _elliptic(values, constants)
     with np.errstate(divide="ignore", invalid="ignore"):
         a1 = np.sqrt(to_dn / np.abs(lam_f[0] * (lam_f[2] - lam_f[0])))
         a2 = np.sqrt(to_dn / np.abs(lam_f[1] * (lam_f[2] - lam_f[1])))
         a3 = np.sqrt(to_cn / np.abs(lam_f[2] * (lam_f[2] - lam_f[0])))
-        rate = np.sqrt(np.abs((lam_f[2] - lam_f[1]) / (lam_f[0] * lam_f[1] * lam_f[2])) * to_cn)
-        m = np.clip(np.abs((lam_f[1] - lam_f[0]) / (lam_f[2] - lam_f[1])) * to_dn / to_cn, 0.0, 1.0)
         phi0 = np.arctan2(np.where(a2 > 0, w[1] / a2, 0.0), np.where(a1 > 0, w[0] / a1, 0.0))
     sense = np.where(w[2] < 0, -1.0, 1.0) * np.sign(lam_f[2] - lam_f[1])
     moving = np.isfinite(rate) & (rate > 0) & np.isfinite(m)
@@ -188,17 +176,29 @@ def flip_period(values: dict[str, np.ndarray], constants: dict) -> np.ndarray:
     near pi and returns). c = 0 theory; inf for a body spinning exactly about a principal axis."""
     from scipy.special import ellipk
 
+    *_, rate, m = _elliptic(values, constants)
+    with np.errstate(divide="ignore"):
+        return np.where(rate > 0, 4 * ellipk(m) / rate, np.inf)
+
+
+def _elliptic(values: dict[str, np.ndarray], constants: dict):
+    """What the elliptic solution needs, per member (see exact): the axes in the formula's order (cn, sn, dn)
+    `frame` (3, members), its `parity` (+-1), the moments `lam_f` and rates `w` (times parity) in that order,
+    |2 E lam_f[2] - L^2| and |L^2 - 2 E lam_f[0]|, the rate Omega (1/s) and the parameter m."""
     lam = _moments(values)
     w0 = initial_state(values, constants)
-    order = np.argsort(lam, axis=0, kind="stable")
+    order = np.argsort(lam, axis=0, kind="stable")  # ascending moments, per member
     middle = np.take_along_axis(lam, order[1:2], axis=0)[0]
-    frame = np.where(_spread(lam, w0, middle) >= 0, order, order[::-1])
+    frame = np.where(_spread(lam, w0, middle) >= 0, order, order[::-1])  # about the largest: L^2 >= 2 E lam_mid
+    parity = np.where(np.linalg.det(np.eye(3)[frame.T]) > 0, 1.0, -1.0)
     lam_f = np.take_along_axis(lam, frame, axis=0)
-    to_dn, to_cn = np.abs(_spread(lam, w0, lam_f[2])), np.abs(_spread(lam, w0, lam_f[0]))
+    w = parity * np.take_along_axis(w0, frame, axis=0)
+    to_dn = np.abs(_spread(lam, w0, lam_f[2]))
+    to_cn = np.abs(_spread(lam, w0, lam_f[0]))
     with np.errstate(divide="ignore", invalid="ignore"):
         rate = np.sqrt(np.abs((lam_f[2] - lam_f[1]) / (lam_f[0] * lam_f[1] * lam_f[2])) * to_cn)
         m = np.clip(np.abs((lam_f[1] - lam_f[0]) / (lam_f[2] - lam_f[1])) * to_dn / to_cn, 0.0, 1.0)
-        return np.where(rate > 0, 4 * ellipk(m) / rate, np.inf)
+    return frame, parity, lam_f, w, to_dn, to_cn, rate, m
 
 
 def _spread(lam: np.ndarray, w: np.ndarray, moment: np.ndarray) -> np.ndarray:
@@ -258,7 +258,7 @@ def transverse_exponents(values: dict[str, np.ndarray], constants: dict) -> np.n
     lambda_k)(lambda_j - lambda_k) / (lambda_i lambda_j)); +-sigma about the intermediate one."""
     k = constants["spin_axis"] - 1
     i, j = (k + 1) % 3, (k + 2) % 3
-    a, r = rates(values)[:3], rates(values)[3:6]
+    a, r = np.split(rates(values)[:6], 2)
     wk = values["spin0"] * np.cos(values["tilt0"])
     root = np.sqrt((((r[i] - r[j]) / 2) ** 2 + a[i] * a[j] * wk**2).astype(complex))
     return np.stack((-(r[i] + r[j]) / 2 + root, -(r[i] + r[j]) / 2 - root))
