@@ -85,7 +85,8 @@ class Launch:
         padded = state0.shape[1]
         self.state0, self.rate, self.limit = blocked(state0, block), blocked(rate, block), limit[0]
         self.samples = np.empty((n_save, padded // block, state0.shape[0], block))
-        self.status, self.failure_time, self.counts = np.zeros(padded), np.empty(padded), np.zeros((3, padded))
+        self.status, self.failure_time = np.zeros(padded), np.empty(padded)
+        self.counts = np.zeros((3, padded)) if method.adaptive else None  # fixed steps are counted afterwards
 
     def run(self) -> None:
         """Run the kernel (or evaluate the closed form) on the laid-out inputs."""
