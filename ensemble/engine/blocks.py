@@ -218,8 +218,30 @@ def splitting_schedule(pieces, fractions, h, steps_per_save, chunk):
     return kinds[:count], taus[:count], lags
 
 
-# Adaptive kernels of a scene whose state is three rates (rows 0, 1, 2), stage slopes at rows K + 3 s + c and the
-# trial step's new state at rows NEW + c, as the top's and the body's.
+# Kernels of a scene whose state is three rates (rows 0, 1, 2) followed by its parameters, as the top's and the
+# body's; adaptive ones keep stage slopes at rows K + 3 s + c and the trial step's new state at rows NEW + c.
+
+@njit(inline="always", **FAST)
+def rates_load(state0, rate, block, samples, rows, parameters, B):
+    """A block's work array (rows x B): the three rates, then `parameters` rows of parameters; also its first
+    sample."""
+    work = np.zeros(rows * B)
+    rows_in(work, 0, state0[block], 0, 3, B)
+    rows_in(work, 3, rate[block], 0, parameters, B)
+    rows_out(work, 0, samples[0, block], 0, 3, B)
+    return work
+
+
+@njit(inline="always", **FAST)
+def rates_saved(work, samples, save, block, limit, status, failure_time, t, step_row, B):
+    """End of a save interval at time t (s): fail the members that blew up, store sample `save`; when no member
+    of the block runs any more, fill its later samples with NaN and return True (the block is done)."""
+    running = check_members(work, 0, 3, B, block * B, limit, status, failure_time, t, step_row)
+    rows_out(work, 0, samples[save, block], 0, 3, B)
+    if running == 0:
+        fill_failed(samples, save + 1, block)
+    return running == 0
+
 
 @njit(inline="always", **FAST)
 def rates_error(work, K, NEW, C0, S, e, B):

@@ -24,13 +24,12 @@ from ...engine.blocks import (
     adaptive_constants,
     check_members,
     control_step,
-    fill_failed,
     first_step,
     method_constants,
     rates_accept,
     rates_error,
-    rows_in,
-    rows_out,
+    rates_load,
+    rates_saved,
     trial_steps,
 )
 from ...methods import Method
@@ -108,7 +107,7 @@ def _splitting_kernel(method: Method):
         """As _fixed_kernel's."""
         n_save = samples.shape[0]
         for block in prange(state0.shape[0]):
-            work = _load_block(state0, rate, block, samples, rows)
+            work = rates_load(state0, rate, block, samples, rows, P, BLOCK)
             check_members(work, 0, 3, BLOCK, block * BLOCK, limit, status, failure_time, 0.0)  # a non-finite start
             for e in range(E):
                 for c in range(3):
@@ -137,31 +136,10 @@ def _splitting_kernel(method: Method):
                         work[BLOCK + j] = y2
                         work[2 * BLOCK + j] = y3
                 _scale_rows(work, INVERSE, BLOCK)
-                if _saved(work, samples, i, block, limit, status, failure_time, i * steps_per_save * h, -1):
+                if rates_saved(work, samples, i, block, limit, status, failure_time, i * steps_per_save * h, -1, BLOCK):
                     break
 
     return kernel
-
-
-@njit(inline="always", **FAST)
-def _load_block(state0, rate, block, samples, rows):
-    """A block's work array (rows x BLOCK): rates w1, w2, w3, then the P parameters; also its first sample."""
-    work = np.zeros(rows * BLOCK)
-    rows_in(work, 0, state0[block], 0, 3, BLOCK)
-    rows_in(work, 3, rate[block], 0, P, BLOCK)
-    rows_out(work, 0, samples[0, block], 0, 3, BLOCK)
-    return work
-
-
-@njit(inline="always", **FAST)
-def _saved(work, samples, save, block, limit, status, failure_time, t, step_row):
-    """End of a save interval at time t (s): fail the members that blew up, store sample `save`; when no member
-    of the block runs any more, fill its later samples with NaN and return True (the block is done)."""
-    running = check_members(work, 0, 3, BLOCK, block * BLOCK, limit, status, failure_time, t, step_row)
-    rows_out(work, 0, samples[save, block], 0, 3, BLOCK)
-    if running == 0:
-        fill_failed(samples, save + 1, block)
-    return running == 0
 
 
 def _fixed_kernel(method: Method):
@@ -181,7 +159,7 @@ def _fixed_kernel(method: Method):
         status (M,), failure_time (M,) (s; set only where a member fails); M = blocks x BLOCK."""
         n_save = samples.shape[0]
         for block in prange(state0.shape[0]):
-            work = _load_block(state0, rate, block, samples, rows)
+            work = rates_load(state0, rate, block, samples, rows, P, BLOCK)
             check_members(work, 0, 3, BLOCK, block * BLOCK, limit, status, failure_time, 0.0)  # a non-finite start
             for i in range(1, n_save):
                 for _ in range(steps_per_save):
@@ -213,7 +191,7 @@ def _fixed_kernel(method: Method):
                         work[j] = y1 + h * s1
                         work[BLOCK + j] = y2 + h * s2
                         work[2 * BLOCK + j] = y3 + h * s3
-                if _saved(work, samples, i, block, limit, status, failure_time, i * steps_per_save * h, -1):
+                if rates_saved(work, samples, i, block, limit, status, failure_time, i * steps_per_save * h, -1, BLOCK):
                     break
 
     return kernel
@@ -244,7 +222,7 @@ def _adaptive_kernel(method: Method):
         B = BLOCK
         for block in prange(state0.shape[0]):
             j0 = block * B
-            work = _load_block(state0, rate, block, samples, rows)
+            work = rates_load(state0, rate, block, samples, rows, P, BLOCK)
             for j in range(B):
                 y1, y2, y3 = work[j], work[B + j], work[2 * B + j]
                 d1, d2, d3 = _rhs_of(y1, y2, y3, work, j, B)
@@ -281,7 +259,7 @@ def _adaptive_kernel(method: Method):
                     control_step(work, C0, B, target, counts, j0, status, failure_time, S - 1, alpha, beta, safety,
                                   min_factor, max_factor)
                     rates_accept(work, K, NEW, C0, S, B)
-                if _saved(work, samples, i, block, limit, status, failure_time, target, C0 + H):
+                if rates_saved(work, samples, i, block, limit, status, failure_time, target, C0 + H, BLOCK):
                     break
 
     return kernel

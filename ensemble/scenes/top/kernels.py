@@ -23,13 +23,12 @@ from ...engine.blocks import (
     adaptive_constants,
     check_members,
     control_step,
-    fill_failed,
     first_step,
     method_constants,
     rates_accept,
     rates_error,
-    rows_in,
-    rows_out,
+    rates_load,
+    rates_saved,
     trial_steps,
 )
 from ...methods import Method
@@ -76,27 +75,6 @@ def _kernel(method: Method):
     return _adaptive_kernel(method) if method.adaptive else _fixed_kernel(method)
 
 
-@njit(inline="always", **FAST)
-def _load_block(state0, rate, block, samples, rows):
-    """A top block's work array (rows x BLOCK): rates w1, w2, w3, then p, r1, r3; also its first sample."""
-    work = np.zeros(rows * BLOCK)
-    rows_in(work, 0, state0[block], 0, 3, BLOCK)
-    rows_in(work, 3, rate[block], 0, 3, BLOCK)
-    rows_out(work, 0, samples[0, block], 0, 3, BLOCK)
-    return work
-
-
-@njit(inline="always", **FAST)
-def _saved(work, samples, save, block, limit, status, failure_time, t, step_row):
-    """End of a save interval at time t (s): fail the members that blew up, store sample `save`; when no member
-    of the block runs any more, fill its later samples with NaN and return True (the block is done)."""
-    running = check_members(work, 0, 3, BLOCK, block * BLOCK, limit, status, failure_time, t, step_row)
-    rows_out(work, 0, samples[save, block], 0, 3, BLOCK)
-    if running == 0:
-        fill_failed(samples, save + 1, block)
-    return running == 0
-
-
 def _fixed_kernel(method: Method):
     """Top kernel for an explicit Runge-Kutta tableau or a drag/rotation splitting.
 
@@ -116,7 +94,7 @@ def _fixed_kernel(method: Method):
         n_save = samples.shape[0]
         for block in prange(state0.shape[0]):
             j0 = block * BLOCK
-            work = _load_block(state0, rate, block, samples, rows)
+            work = rates_load(state0, rate, block, samples, rows, 3, BLOCK)
             check_members(work, 0, 3, BLOCK, j0, limit, status, failure_time, 0.0)  # a non-finite start
             if not runge_kutta:
                 for e in range(E):
@@ -168,7 +146,7 @@ def _fixed_kernel(method: Method):
                         work[j] = y1
                         work[BLOCK + j] = y2
                         work[2 * BLOCK + j] = y3
-                if _saved(work, samples, i, block, limit, status, failure_time, i * steps_per_save * h, -1):
+                if rates_saved(work, samples, i, block, limit, status, failure_time, i * steps_per_save * h, -1, BLOCK):
                     break
 
     return kernel
@@ -198,7 +176,7 @@ def _adaptive_kernel(method: Method):
         B = BLOCK
         for block in prange(state0.shape[0]):
             j0 = block * B
-            work = _load_block(state0, rate, block, samples, rows)
+            work = rates_load(state0, rate, block, samples, rows, 3, BLOCK)
             for j in range(B):
                 y1, y2, y3 = work[j], work[B + j], work[2 * B + j]
                 d1, d2, d3 = rhs(y1, y2, y3, work[3 * B + j], work[4 * B + j], work[5 * B + j])
@@ -235,7 +213,7 @@ def _adaptive_kernel(method: Method):
                     control_step(work, C0, B, target, counts, j0, status, failure_time, S - 1, alpha, beta, safety,
                                   min_factor, max_factor)
                     rates_accept(work, K, NEW, C0, S, B)
-                if _saved(work, samples, i, block, limit, status, failure_time, target, C0 + H):
+                if rates_saved(work, samples, i, block, limit, status, failure_time, target, C0 + H, BLOCK):
                     break
 
     return kernel
