@@ -24,13 +24,17 @@ _THEORY_SLACK = 1e-9  # a factor this close to 1 is neutral (rounding in the one
 
 
 def theoretical_limit(growth, upper: float = 10.0, points: int = 20001) -> float:
-    """Smallest x in (0, upper] with growth(x) > 1: 0 if growing from the start, inf if never.
+    """Smallest x in (0, upper] with growth(x) > 1: 0 if growing from the start, inf if never, NaN if growth
+    is NaN throughout (no limit on this axis alone).
 
     growth: vectorized factor per step along a stability axis. The first
     crossing is bracketed on a grid of `points` and refined with brentq.
     """
     x = np.linspace(0.0, upper, points)[1:]
-    over = growth(x) > 1.0 + _THEORY_SLACK
+    factor = growth(x)
+    if np.isnan(factor).all():
+        return np.nan
+    over = factor > 1.0 + _THEORY_SLACK
     if not over.any():
         return np.inf
     first = int(np.argmax(over))

@@ -173,12 +173,16 @@ def exact(values: dict[str, np.ndarray], constants: dict, t: np.ndarray) -> np.n
 def flip_period(values: dict[str, np.ndarray], constants: dict) -> np.ndarray:
     """Period (s) of the torque-free motion of the rates, 4 K(m) / Omega (see exact): started near the
     intermediate axis, the time in which the body flips over and back (its tilt from the spin axis goes to
-    near pi and returns). c = 0 theory; inf for a body spinning exactly about a principal axis."""
-    from scipy.special import ellipk
+    near pi and returns). c = 0 theory; inf for a body spinning exactly about a principal axis. K is evaluated
+    from 1 - m, which near the separatrix is computed without cancellation."""
+    from scipy.special import ellipkm1
 
-    *_, rate, m = _elliptic(values, constants)
-    with np.errstate(divide="ignore"):
-        return np.where(rate > 0, 4 * ellipk(m) / rate, np.inf)
+    _, _, lam_f, w, _, _, rate, _ = _elliptic(values, constants)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        complement = (lam_f[2] - lam_f[0]) * (lam_f[2] * (lam_f[2] - lam_f[1]) * w[2] ** 2
+                                              - lam_f[0] * (lam_f[1] - lam_f[0]) * w[0] ** 2) / (
+            (lam_f[2] - lam_f[1]) * _spread(_moments(values), initial_state(values, constants), lam_f[0]))
+        return np.where(rate > 0, 4 * ellipkm1(np.clip(complement, 0.0, 1.0)) / rate, np.inf)
 
 
 def _elliptic(values: dict[str, np.ndarray], constants: dict):
@@ -251,17 +255,73 @@ def conserved_energy(ds) -> np.ndarray:
 
 # ---------------------------------------------------------------- linear theory about the spin axis
 
-def transverse_exponents(values: dict[str, np.ndarray], constants: dict) -> np.ndarray:
-    """Exponents mu (1/s, complex, shape (2, members)) of small tilts about the spin axis k at t = 0:
+def transverse_exponents(values: dict[str, np.ndarray], constants: dict, spin: np.ndarray | None = None) -> np.ndarray:
+    """Exponents mu (1/s, complex, shape (2, members)) of small tilts about the spin axis k:
     d(w_i, w_j)/dt = [[-r_i, a_i w_k], [a_j w_k, -r_j]] (w_i, w_j), so mu = -(r_i + r_j)/2 +- sqrt(((r_i -
-    r_j)/2)^2 + a_i a_j w_k^2). Without drag: +-i Omega_k about a stable axis, Omega_k = spin0 sqrt((lambda_i -
-    lambda_k)(lambda_j - lambda_k) / (lambda_i lambda_j)); +-sigma about the intermediate one."""
+    r_j)/2)^2 + a_i a_j w_k^2), with w_k = `spin` (rad/s; default the start's, spin0 cos tilt0). Without drag:
+    +-i Omega_k about a stable axis, Omega_k = spin0 sqrt((lambda_i - lambda_k)(lambda_j - lambda_k) / (lambda_i
+    lambda_j)); +-sigma about the intermediate one."""
     k = constants["spin_axis"] - 1
     i, j = (k + 1) % 3, (k + 2) % 3
     a, r = np.split(rates(values)[:6], 2)
-    wk = values["spin0"] * np.cos(values["tilt0"])
+    wk = values["spin0"] * np.cos(values["tilt0"]) if spin is None else spin
     root = np.sqrt((((r[i] - r[j]) / 2) ** 2 + a[i] * a[j] * wk**2).astype(complex))
     return np.stack((-(r[i] + r[j]) / 2 + root, -(r[i] + r[j]) / 2 - root))
+
+
+def spin_at(values: dict[str, np.ndarray], constants: dict, t: np.ndarray) -> np.ndarray:
+    """The spin-axis rate w_k (rad/s) at times t (s, per member) of the linear motion: decaying at c / lambda_k."""
+    lam = values[f"lambda{constants['spin_axis']}"]
+    return values["spin0"] * np.cos(values["tilt0"]) * np.exp(-values["c"] * t / lam)
+
+
+def step_exponents(method: Method, values: dict[str, np.ndarray], constants: dict, h: np.ndarray,
+                   spin: np.ndarray | None = None) -> np.ndarray:
+    """What a fixed-step method of step h (s) shows of the exponents mu (see transverse_exponents): log(R(h mu)) / h
+    for a Runge-Kutta method; for a splitting, log of the eigenvalues of its one-step map on small tilts, over h.
+    Complex, shape (2, members), 1/s; the imaginary part is the wobble frequency the method shows."""
+    if method.splitting is None:
+        with np.errstate(divide="ignore", invalid="ignore"):
+            factor = method.tableau.stability(h * transverse_exponents(values, constants, spin))
+            return np.log(factor.astype(complex)) / h
+    step = _linear_split_step(method, values, constants, h, spin)
+    trace, det = step[0, 0] + step[1, 1], step[0, 0] * step[1, 1] - step[0, 1] * step[1, 0]
+    root = np.sqrt((trace**2 / 4 - det).astype(complex))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.log(np.stack((trace / 2 + root, trace / 2 - root))) / h
+
+
+def _linear_split_step(method: Method, values, constants, h, spin) -> np.ndarray:
+    """A splitting's one-step map (2, 2, members) on L across the spin axis k, (L_i, L_j) with i, j = k + 1, k + 2
+    (cyclic), linearized about the spin L_k = lambda_k w_k. The turn about axis k turns (L_i, L_j) by -L_k tau /
+    lambda_k; the turn about axis i, by the small angle L_i tau / lambda_i, moves L_j by +L_k L_i tau / lambda_i,
+    the turn about j moves L_i by -L_k L_j tau / lambda_j (as L' = L x omega); drag scales each L_a by exp(-c tau /
+    lambda_a)."""
+    k = constants["spin_axis"] - 1
+    i, j = (k + 1) % 3, (k + 2) % 3
+    lam = _moments(values)
+    spin_l = lam[k] * (values["spin0"] * np.cos(values["tilt0"]) if spin is None else spin)
+    n = spin_l.shape[0]
+    step = np.broadcast_to(np.eye(2)[:, :, None], (2, 2, n)).copy()
+    for piece, fraction in method.splitting.sequence:
+        tau = h * fraction
+        name = method.splitting.pieces[piece]
+        if name == "drag":
+            decay = np.exp(-values["c"] * tau / lam)
+            piece_map = np.array([[decay[i], np.zeros(n)], [np.zeros(n), decay[j]]])
+            spin_l = spin_l * decay[k]
+        else:
+            axis = int(name[-1]) - 1
+            angle = spin_l * tau / lam[axis]
+            zero, one = np.zeros(n), np.ones(n)
+            if axis == k:
+                piece_map = np.array([[np.cos(angle), np.sin(angle)], [-np.sin(angle), np.cos(angle)]])
+            elif axis == i:
+                piece_map = np.array([[one, zero], [angle, one]])
+            else:
+                piece_map = np.array([[one, -angle], [zero, one]])
+        step = np.einsum("abm,bcm->acm", piece_map, step)
+    return step
 
 
 def wobble_frequency(values: dict[str, np.ndarray], constants: dict) -> np.ndarray:
@@ -278,14 +338,13 @@ def growth_rate(values: dict[str, np.ndarray], constants: dict) -> np.ndarray:
 STABILITY_AXES = ("h Omega",)
 
 
-def _amplification(method: Method, z: np.ndarray) -> np.ndarray:
-    tableau = method.tableau
-    return np.abs(tableau.stability(z)) if tableau is not None else np.exp(np.real(z))
-
-
 def axis_growth(method: Method, axis: str, x: np.ndarray) -> np.ndarray:
-    """Growth per step of a small wobble at x = h Omega (no drag): max(|R(i x)|, 1)."""
-    return np.maximum(_amplification(method, 1j * np.asarray(x, dtype=float)), 1.0)
+    """Growth per step of a small wobble at x = h Omega (no drag): max(|R(i x)|, 1). NaN for a splitting, whose
+    one-step map depends on the moments and not on h Omega alone (see step_exponents)."""
+    x = np.asarray(x, dtype=float)
+    if method.tableau is None:
+        return np.full(x.shape, np.nan)
+    return np.maximum(np.abs(method.tableau.stability(1j * x)), 1.0)
 
 
 def stability_axis(values: dict[str, np.ndarray], constants: dict, h: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -295,9 +354,8 @@ def stability_axis(values: dict[str, np.ndarray], constants: dict, h: np.ndarray
 
 
 def step_growth(method: Method, values: dict[str, np.ndarray], constants: dict, h: np.ndarray) -> np.ndarray:
-    """Theory: per-step factor of the fastest small tilt, max over the two exponents of |R(h mu)|."""
-    mu = transverse_exponents(values, constants)
-    return np.max(_amplification(method, h * mu), axis=0)
+    """Theory: per-step factor of the fastest small tilt, the largest |exp(h mu)| the method shows."""
+    return np.max(np.abs(np.exp(h * step_exponents(method, values, constants, h))), axis=0)
 
 
 def amplitudes(samples: np.ndarray, values: dict[str, np.ndarray], constants: dict) -> np.ndarray:
