@@ -78,7 +78,8 @@ def rows(fits: xr.Dataset, value: str, label_of, against: str = "theory") -> lis
         for mode in modes:
             sel = chosen if mode is None else chosen.sel(mode=mode)
             v, e = sel[value].values, sel[f"{value}_stderr"].values
-            theory, method = sel[f"{value}_theory"].values, sel[f"{value}_method"].values
+            theory = sel[f"{value}_theory"].values
+            method = sel[f"{value}_method"].values if f"{value}_method" in sel else np.full(v.shape, np.nan)
             ok = np.isfinite(v) & np.isfinite(e)
             miss, error = mean_with_error((v - (method if against == "method" else theory))[ok], e[ok])
             out.append(Row(label_of(sel, point, mode), float(np.mean(v[ok])) if ok.any() else np.nan,
@@ -134,12 +135,15 @@ def parser(doc: str) -> argparse.ArgumentParser:
     return out
 
 
-def run_script(args, fit_function, *, name: str, value: str, units: str, title: str, label, draw,
+def run_script(args, fit_function, *, name: str, value, units: str, title: str, label, draw,
                validate=None) -> int:
     """Fit a result, print the table, write the fits and charts; the exit status of a script.
 
-    draw(plt, ds, fits, rows, stem) returns the paths of the script's own charts;
-    the z histogram is added here. Bad input prints one line and returns 2.
+    value: the fitted variable, or several (value, units, title) triples, each
+    tabled when some member has it (one without `<value>_method` is compared
+    with theory only). draw(plt, ds, fits, rows, stem) returns the paths of the
+    script's own charts; the z histogram is added here. Bad input prints one
+    line and returns 2.
     """
     loaded = load_result(args.result, fit_function, validate)
     if loaded is None:
@@ -148,9 +152,14 @@ def run_script(args, fit_function, *, name: str, value: str, units: str, title: 
     import matplotlib
     for axis in ds.attrs.get("sweep_axes", "").split():
         fits[axis] = ds[axis]
-    table = rows(fits, value, label, args.against)
     step = f"dt = {ds.attrs['dt']} s" if "dt" in ds.attrs else "dt per member"
-    print_table(f"{title} of {args.result} ({ds.attrs['method']}, {step})", table, units)
+    table = []
+    for variable, variable_units, variable_title in [(value, units, title)] if isinstance(value, str) else value:
+        if not np.isfinite(fits[variable].values).any() and not isinstance(value, str):
+            continue
+        against = args.against if f"{variable}_method" in fits else "theory"
+        table += (found := rows(fits, variable, label, against))
+        print_table(f"{variable_title} of {args.result} ({ds.attrs['method']}, {step})", found, variable_units)
     if fits.attrs["members_failed"]:
         print(f"{fits.attrs['members_failed']} members could not be fitted and are left out")
     out, stem = outputs(args.result, name)

@@ -11,7 +11,7 @@ import pytest
 import xarray as xr
 from scipy.integrate import solve_ivp
 
-from ensemble import runner
+from ensemble import fit, runner
 from ensemble.engine import launch
 from ensemble.methods import METHODS
 from ensemble.scenes import body, top
@@ -247,3 +247,115 @@ def test_flip_period_is_the_elliptic_formula():
         crossings.append(roots[0])
     assert len(crossings) >= 3
     np.testing.assert_allclose(np.diff(crossings), period, rtol=1e-6)
+
+
+# ---------------------------------------------------------------- fits: body_rates and analysis/rigid_body.py
+
+FIT_RUN = """
+scene = "body"
+method = "{method}"
+dt = {dt}
+t_end = {t_end}
+save_dt = {save_dt}
+members = {members}
+seed = 7
+[parameters]
+lambda1 = 1.0
+lambda2 = 2.0
+lambda3 = 2.5
+c = {c}
+spin0 = 3.0
+spin_axis = {axis}
+tilt0 = {tilt0}
+azimuth0 = {{ uniform = [0.0, 6.283185307179586] }}
+{observe}
+"""
+
+
+def fitted(tmp_path, method="rk4", dt=1e-3, t_end=12.0, members=6, c=0.0, axis=2,
+           tilt0="{ loguniform = [1e-8, 1e-7] }", observe="", save_dt=0.005, **kw):
+    path = tmp_path / f"fit_{method}_{axis}_{members}.nc"
+    text = FIT_RUN.format(method=method, dt=dt, t_end=t_end, members=members, c=c, axis=axis, tilt0=tilt0,
+                          observe=observe, save_dt=save_dt)
+    runner.run(parse(text, "fit.toml"), path, progress=False)
+    return fit.body_rates(xr.load_dataset(path), **kw)
+
+
+@pytest.mark.parametrize("axis, name", [(1, "wobble_frequency"), (2, "growth_rate"), (3, "wobble_frequency")])
+def test_noise_free_rates_are_the_linear_theory(tmp_path, axis, name):
+    """rk4 at h mu = 3e-3: the method's own shift (1e-12) is far below the 1e-6 asked of the fit."""
+    fits = fitted(tmp_path, axis=axis, max_tilt=1e-3)
+    other = "wobble_frequency" if name == "growth_rate" else "growth_rate"
+    assert np.isnan(fits[other]).all() and fits["samples_used"].min() >= 100
+    np.testing.assert_allclose(fits[name], fits[f"{name}_theory"], rtol=1e-6)
+    theory = body.growth_rate if name == "growth_rate" else body.wobble_frequency
+    values = {k: np.full(1, v) for k, v in (*RACKET.items(), ("c", 0.0), ("spin0", 3.0), ("tilt0", 0.0))}
+    np.testing.assert_allclose(fits[f"{name}_theory"], theory(values, {"spin_axis": axis})[0], rtol=1e-7)
+
+
+@pytest.mark.parametrize("method, dt", [("rk4", 0.25), ("rotations2", 0.05), ("rotations4", 0.1)])
+def test_fits_show_each_methods_own_rate(tmp_path, method, dt):
+    """At steps where the method's wobble frequency or growth rate misses the physics by 1e-4 to 1e-2, the fits
+    equal what body.step_exponents predicts (stability function, or the splitting's linearized one-step map)."""
+    for axis, name in ((3, "wobble_frequency"), (2, "growth_rate")):
+        fits = fitted(tmp_path, method, dt, t_end=50 * dt if axis == 2 else 40.0, axis=axis, max_tilt=1e-3,
+                      save_dt=dt)
+        shown, theory = fits[f"{name}_method"].values, fits[f"{name}_theory"].values
+        assert np.all(np.abs(shown / theory - 1) > 1e-5)
+        np.testing.assert_allclose(fits[name], shown, rtol=1e-6 * np.abs(shown / theory - 1).min() / 1e-5)
+
+
+def test_splitting_one_step_map_on_small_tilts_is_the_kernels():
+    """The linearized map step_exponents uses is what the rotations kernels do to a 1e-9 rad tilt, with drag."""
+    from ensemble.scenes.body import model
+    for axis in (1, 2, 3):
+        values, constants = members(3, seed=axis, c=0.05, tilt0=1e-9), {"spin_axis": axis}
+        for method in ("rotations2", "rotations4"):
+            samples = launch.integrate(body, METHODS[method], values, constants, n_save=2, dt=0.2, save_dt=0.2).samples
+            lam = np.stack([values[f"lambda{a}"] for a in (1, 2, 3)])
+            across = [(axis) % 3, (axis + 1) % 3]
+            start, end = samples[0][across] * lam[across], samples[1][across] * lam[across]
+            step = model._linear_split_step(METHODS[method], values, constants, 0.2, None)
+            np.testing.assert_allclose(np.einsum("abm,bm->am", step, start), end, rtol=1e-7, atol=1e-22)
+
+
+def test_flip_period_fit_is_the_elliptic_formula(tmp_path):
+    fits = fitted(tmp_path, "rk4", 1e-3, t_end=30.0, tilt0="{ uniform = [0.01, 0.1] }")
+    assert fits["flips"].min() >= 3
+    np.testing.assert_allclose(fits["flip_period"], fits["flip_period_theory"], rtol=1e-6)
+
+
+def test_noisy_z_values_follow_the_standard_normal(tmp_path):
+    """300 members per axis with 0.003 rad/s of noise on omega: z of the growth rate, the wobble frequency and
+    the flip period pass a KS test against N(0, 1)."""
+    from scipy.stats import kstest
+    noise = '[observe]\nnoise = { omega = 0.003 }'
+    for axis, columns in ((2, ("z", "flip_z")), (3, ("z",))):
+        fits = fitted(tmp_path, "rk4", 0.01, t_end=30.0, members=300, axis=axis, tilt0="{ uniform = [0.003, 0.01] }",
+                      observe=noise, save_dt=0.01)
+        for column in columns:
+            z = fits[column].values[np.isfinite(fits[column].values)]
+            assert z.size >= 250 and kstest(z, "norm").pvalue > 1e-3, (axis, column, z.mean(), z.std())
+
+
+def test_body_rates_refuses_a_top_result(tmp_path):
+    path = tmp_path / "top.nc"
+    text = BOX_RUN.replace('scene = "body"', 'scene = "top"')
+    text = text.replace('body = { shape = "box", mass = 0.2, width = 0.02, height = 0.08, depth = 0.16 }',
+                        "lambda1 = 1.0\nlambda3 = 2.0").replace("spin_axis = 2\n", "")
+    runner.run(parse(text, "top.toml"), path, progress=False)
+    with pytest.raises(fit.FitError, match="body_rates needs a body result; this one is a 'top' result"):
+        fit.body_rates(xr.load_dataset(path))
+
+
+def test_rigid_body_script_checks_the_course_plate(tmp_path):
+    result = tmp_path / "plate.nc"
+    text = (Path(__file__).parent.parent / "runs" / "triangle_plate.toml").read_text().replace("members = 100",
+                                                                                           "members = 8")
+    runner.run(parse(text, "triangle_plate.toml"), result, progress=False)
+    done = subprocess.run([sys.executable, "analysis/rigid_body.py", str(result), "--check"], capture_output=True,
+                          text=True, cwd=Path(__file__).parent.parent)
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert done.stdout.startswith("growth rates of small tilts") and "FAIL" not in done.stdout
+    for chart in ("tilt", "rates", "z"):
+        assert (tmp_path / f"plate_rigid_body_{chart}.png").stat().st_size > 10_000

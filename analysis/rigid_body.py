@@ -1,0 +1,92 @@
+"""Fit how free bodies move about their spin axis and test it against theory.
+
+    python analysis/rigid_body.py RESULT.nc [--check] [--against theory|method] [--sample 6]
+
+Prints, per sweep point, the mean fitted growth rate of small tilts (spun
+about the intermediate axis) or their wobble frequency (about a stable axis)
++- its standard error, the linear theory, what the run's method shows, z, and
+pass or fail; then the flip period against the elliptic formula where the
+records hold at least three flips. Writes the fits to RESULT_rigid_body.nc
+and the charts RESULT_rigid_body_{tilt,rates,z}.png (and _flips, _flip_z when
+bodies flip). With --check the exit status is 1 when a sweep point fails; bad
+input exits 2 with one line.
+"""
+from __future__ import annotations
+
+import sys
+
+import numpy as np
+
+from ensemble import arguments, fit, report
+
+QUANTITIES = (("growth_rate", "1/s", "growth rates of small tilts"),
+              ("wobble_frequency", "rad/s", "wobble frequencies of small tilts"),
+              ("flip_period", "s", "flip periods"))
+
+
+def label(sel, point, mode) -> str:
+    return (report.point_label(sel) if point is not None else "") or "all members"
+
+
+def draw(plt, ds, fits, rows, stem, sample):
+    growing = np.isfinite(fits["growth_rate"].values).any()
+    value = "growth_rate" if growing else "wobble_frequency"
+    paths = [_tilt_chart(plt, ds, fits, stem, sample, growing)]
+    theory, fitted = fits[f"{value}_theory"].values, fits[value].values
+    ok = np.isfinite(fitted)
+    what = "growth rate (1/s)" if growing else "wobble frequency (rad/s)"
+    paths.append(report.save_against_theory(
+        plt, stem, "rates", lambda ax: ax.plot(theory[ok], fitted[ok], ".", ms=4, label="fitted, every member"),
+        [0, np.nanmax(theory)], "linear theory", f"theoretical {what}", f"fitted {what}",
+        f"{value.replace('_', ' ')} against theory"))
+    period, period_theory = fits["flip_period"].values, fits["flip_period_theory"].values
+    flipped = np.isfinite(period) & np.isfinite(period_theory)
+    if flipped.any():
+        paths.append(report.save_against_theory(
+            plt, stem, "flips", lambda ax: ax.plot(period_theory[flipped], period[flipped], ".", ms=4,
+                                                   label="fitted, every member that flips"),
+            [np.min(period_theory[flipped]), np.max(period_theory[flipped])], "elliptic formula 4 K(m) / Omega",
+            "theoretical flip period (s)", "fitted flip period (s)", "flip period against theory"))
+        fig, ax = plt.subplots(figsize=(5.5, 4.5), layout="constrained")
+        report.z_histogram(ax, fits["flip_z"].values, "flip periods")
+        ax.set_title("flip periods: fitted against theory")
+        paths.append(report.save(plt, fig, stem, "flip_z"))
+    return paths
+
+
+def _tilt_chart(plt, ds, fits, stem, sample, growing):
+    """The tilt of sample members against time; for growing tilts, the fitted exponential through the last
+    fitted sample."""
+    fig, ax = plt.subplots(figsize=(7, 4.5), layout="constrained")
+    t = ds["t"].values
+    for i, member in enumerate(np.unique(np.linspace(0, ds.sizes["member"] - 1, sample).astype(int))):
+        color = f"C{i % 10}"
+        tilt = ds["tilt"].values[member] if "tilt" in ds else None
+        if tilt is None:
+            break
+        ax.semilogy(t, tilt, ".", ms=2, color=color, alpha=0.5)
+        used = int(fits["samples_used"].values[member]) if np.isfinite(fits["samples_used"].values[member]) else 0
+        if growing and used >= 2:
+            rate = fits["growth_rate"].values[member]
+            end = used - 1
+            ax.semilogy(t[:used], tilt[end] * np.exp(rate * (t[:used] - t[end])), "-", color=color, lw=1,
+                        label=f"member {member}: rate {rate:.5g} 1/s")
+    ax.set_xlabel("t (s)")
+    ax.set_ylabel("tilt (rad)")
+    ax.set_title("tilt of sample members (dots)" + (" and fitted exponentials" if growing else ""))
+    if growing:
+        ax.legend(fontsize=7, loc="best")
+    return report.save(plt, fig, stem, "tilt")
+
+
+def main(argv=None) -> int:
+    parser = report.parser(__doc__)
+    parser.add_argument("--sample", type=arguments.positive_int, default=6, help="members drawn in the tilt chart")
+    args = parser.parse_args(argv)
+    return report.run_script(args, fit.body_rates, name="rigid_body", value=QUANTITIES, units="",
+                             title="free-body motions", label=label,
+                             draw=lambda *a: draw(*a, sample=args.sample))
+
+
+if __name__ == "__main__":
+    sys.exit(main())
