@@ -62,7 +62,7 @@ def body_against_top(table, h, args):
     rk4 = METHODS["rk4"]
     bodies = {**table, "lambda2": 0.5 * (table["lambda1"] + table["lambda3"])}
     calls = {}
-    for scene, values, constants in ((top, table, {}), (body, bodies, {"spin_axis": 3})):
+    for scene, values, constants in ((top, table, {}), (body, {**bodies, "spin_axis": np.full(n, 3.0)}, {})):
         launch.prepare(scene, rk4, constants)
         calls[scene.NAME] = launch.Launch(scene, rk4, values, constants, n_save=2, save_dt=h * args.steps, dt=h,
                                           blowup_factor=np.inf).run

@@ -18,6 +18,7 @@ import sys
 import numpy as np
 
 from ensemble import arguments, fit, report
+from ensemble.scenes import body
 
 QUANTITIES = (("growth_rate", "1/s", "growth rates of small tilts"),
               ("wobble_frequency", "rad/s", "wobble frequencies of small tilts"),
@@ -29,16 +30,18 @@ def label(sel, point, mode) -> str:
 
 
 def draw(plt, ds, fits, rows, stem, sample):
-    growing = np.isfinite(fits["growth_rate"].values).any()
-    value = "growth_rate" if growing else "wobble_frequency"
-    paths = [_tilt_chart(plt, ds, fits, stem, sample, growing)]
-    theory, fitted = fits[f"{value}_theory"].values, fits[value].values
-    ok = np.isfinite(fitted)
-    what = "growth rate (1/s)" if growing else "wobble frequency (rad/s)"
+    present = [name for name in ("growth_rate", "wobble_frequency") if np.isfinite(fits[name].values).any()]
+    paths = [_tilt_chart(plt, ds, fits, stem, sample)]
+
+    def draw_fits(ax):
+        for name, marker in zip(present, ".x"):
+            ax.plot(fits[f"{name}_theory"].values, fits[name].values, marker, ms=4,
+                    label=f"fitted {name.replace('_', ' ')}, every member")
+
+    top = max([np.nanmax(fits[f"{name}_theory"].values) for name in present], default=1.0)
     paths.append(report.save_against_theory(
-        plt, stem, "rates", lambda ax: ax.plot(theory[ok], fitted[ok], ".", ms=4, label="fitted, every member"),
-        [0, np.nanmax(theory)], "linear theory", f"theoretical {what}", f"fitted {what}",
-        f"{value.replace('_', ' ')} against theory"))
+        plt, stem, "rates", draw_fits, [0, top], "linear theory", "theory (1/s or rad/s)", "fitted (1/s or rad/s)",
+        "growth rates and wobble frequencies against theory"))
     period, period_theory = fits["flip_period"].values, fits["flip_period_theory"].values
     flipped = np.isfinite(period) & np.isfinite(period_theory)
     if flipped.any():
@@ -54,27 +57,24 @@ def draw(plt, ds, fits, rows, stem, sample):
     return paths
 
 
-def _tilt_chart(plt, ds, fits, stem, sample, growing):
+def _tilt_chart(plt, ds, fits, stem, sample):
     """The tilt of sample members against time; for growing tilts, the fitted exponential through the last
     fitted sample."""
     fig, ax = plt.subplots(figsize=(7, 4.5), layout="constrained")
     t = ds["t"].values
+    tilts = body.tilt(ds["omega"].values.transpose(2, 1, 0), ds["spin_axis"].values).T  # (member, t)
     for i, member in enumerate(np.unique(np.linspace(0, ds.sizes["member"] - 1, sample).astype(int))):
         color = f"C{i % 10}"
-        tilt = ds["tilt"].values[member] if "tilt" in ds else None
-        if tilt is None:
-            break
+        tilt = tilts[member]
         ax.semilogy(t, tilt, ".", ms=2, color=color, alpha=0.5)
-        used = int(fits["samples_used"].values[member]) if np.isfinite(fits["samples_used"].values[member]) else 0
-        if growing and used >= 2:
-            rate = fits["growth_rate"].values[member]
-            end = used - 1
-            ax.semilogy(t[:used], tilt[end] * np.exp(rate * (t[:used] - t[end])), "-", color=color, lw=1,
-                        label=f"member {member}: rate {rate:.5g} 1/s")
+        used, rate = int(fits["samples_used"].values[member]), fits["growth_rate"].values[member]
+        if np.isfinite(rate) and used >= 2:
+            ax.semilogy(t[:used], tilt[used - 1] * np.exp(rate * (t[:used] - t[used - 1])), "-", color=color, lw=1,
+                        label=f"member {member}: growth rate {rate:.5g} 1/s")
     ax.set_xlabel("t (s)")
     ax.set_ylabel("tilt (rad)")
-    ax.set_title("tilt of sample members (dots)" + (" and fitted exponentials" if growing else ""))
-    if growing:
+    ax.set_title("tilt of sample members (dots), fitted exponentials where the tilt grows")
+    if ax.get_legend_handles_labels()[0]:
         ax.legend(fontsize=7, loc="best")
     return report.save(plt, fig, stem, "tilt")
 

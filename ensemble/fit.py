@@ -359,22 +359,23 @@ def body_rates(ds: xr.Dataset, max_tilt: float = BODY_MAX_TILT) -> xr.Dataset:
     t = ds["t"].values
     omega = ds["omega"].values  # (member, t, axis)
     sigma = _noise(ds["omega"])
-    constants = {"spin_axis": int(ds.attrs["spin_axis"])}
+    constants = {}
     values = {name: ds[name].values for name in body.PARAMETERS if name in ds}
     values.setdefault("azimuth0", np.zeros(omega.shape[0]))
-    k = constants["spin_axis"] - 1
+    values.setdefault("spin_axis", np.full(omega.shape[0], float(ds.attrs.get("spin_axis", 3))))  # older results
+    k, i, j = body.spin_axes(values["spin_axis"])
     lam = np.stack([values[f"lambda{a}"] for a in body.AXES])
-    damping = values["c"] * (1 / lam[(k + 1) % 3] + 1 / lam[(k + 2) % 3]) / 2
+    damping = values["c"] * (1 / lam[i, np.arange(k.size)] + 1 / lam[j, np.arange(k.size)]) / 2
     growing = np.abs(body.transverse_exponents(values, constants)[0].imag) == 0  # a saddle: real exponents
 
     spin0 = values["spin0"] * np.cos(values["tilt0"])
-    fitted = np.array([_small_tilt_fit(t, omega[m], k, spin0[m], damping[m], growing[m], sigma, max_tilt)
+    fitted = np.array([_small_tilt_fit(t, omega[m], k[m], spin0[m], damping[m], growing[m], sigma, max_tilt)
                        for m in range(omega.shape[0])]).reshape(-1, 3).T
     estimate, stderr, used = fitted
     theory = _shown(body.transverse_exponents(values, constants)[0], growing)
     method = _method_prediction(ds, theory, lambda m, dt, chosen: _shown(body.step_exponents(
         m, {name: v[chosen] for name, v in values.items()}, constants, dt)[0], growing[chosen]))
-    flips = np.array([_flip_period(t, omega[m, :, k], sigma) for m in range(omega.shape[0])]).reshape(-1, 3).T
+    flips = np.array([_flip_period(t, omega[m, :, k[m]], sigma) for m in range(omega.shape[0])]).reshape(-1, 3).T
     period_theory = np.where(growing & (values["c"] == 0), body.flip_period(values, constants), np.nan)
     with np.errstate(invalid="ignore", divide="ignore"):
         z, z_method, flip_z = (estimate - theory) / stderr, (estimate - method) / stderr, \

@@ -140,8 +140,8 @@ def run_script(args, fit_function, *, name: str, value, units: str, title: str, 
     """Fit a result, print the table, write the fits and charts; the exit status of a script.
 
     value: the fitted variable, or several (value, units, title) triples, each
-    tabled when some member has it (one without `<value>_method` is compared
-    with theory only). draw(plt, ds, fits, rows, stem) returns the paths of the
+    tabled at the sweep points where it has a theory (one without
+    `<value>_method` is compared with theory only). draw(plt, ds, fits, rows, stem) returns the paths of the
     script's own charts; the z histogram is added here. Bad input prints one
     line and returns 2.
     """
@@ -158,7 +158,10 @@ def run_script(args, fit_function, *, name: str, value, units: str, title: str, 
         if not np.isfinite(fits[variable].values).any() and not isinstance(value, str):
             continue
         against = args.against if f"{variable}_method" in fits else "theory"
-        table += (found := rows(fits, variable, label, against))
+        found = rows(fits, variable, label, against)
+        if not isinstance(value, str):  # several quantities: leave out sweep points where one does not apply
+            found = [r for r in found if np.isfinite(r.theory)]
+        table += found
         print_table(f"{variable_title} of {args.result} ({ds.attrs['method']}, {step})", found, variable_units)
     if fits.attrs["members_failed"]:
         print(f"{fits.attrs['members_failed']} members could not be fitted and are left out")

@@ -33,7 +33,7 @@ PARAMETERS = {
     "lambda3": Parameter("kg m2", "principal moment of inertia about body axis e3"),
     "c": Parameter("kg m2 s-1", "air-drag torque coefficient (torque = -c omega)"),
     "spin0": Parameter("rad s-1", "magnitude of the angular velocity at t = 0"),
-    "spin_axis": Parameter("1", "body axis (1, 2 or 3) the spin starts near", default=3, integer=True),
+    "spin_axis": Parameter("1", "body axis (1, 2 or 3) the spin starts near", default=3.0),
     "tilt0": Parameter("rad", "angle between omega and the spin axis at t = 0"),
     "azimuth0": Parameter("rad", "azimuth of omega about the spin axis at t = 0, from the next axis (cyclic)",
                           default=0.0),
@@ -61,12 +61,14 @@ def coordinates(constants: dict) -> dict[str, tuple[np.ndarray, str]]:
 
 
 def check_constants(constants: dict) -> None:
-    if constants["spin_axis"] not in AXES:
-        raise ParameterError("spin_axis", f"must be 1, 2 or 3, got {constants['spin_axis']}")
+    """A body run has no run constants besides its shape."""
 
 
 def check(values: dict[str, np.ndarray]) -> None:
     """Physical constraints on per-member parameters; raises ParameterError for the first broken one."""
+    unknown = ~np.isin(values["spin_axis"], AXES)
+    if np.any(unknown):
+        raise ParameterError("spin_axis", f"must be 1, 2 or 3, got {values['spin_axis'][np.argmax(unknown)]:g}")
     moments = [values[f"lambda{i}"] for i in AXES]
     for i, moment in zip(AXES, moments):
         if np.any(moment <= 0):
@@ -108,15 +110,27 @@ def _moments(values) -> np.ndarray:
     return np.stack([values[f"lambda{i}"] for i in AXES])
 
 
+def spin_axes(spin_axis) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Rows (0-based) of the spin axis k and of the next two axes i, j in cyclic order, per member."""
+    k = np.asarray(spin_axis).astype(int) - 1
+    return k, (k + 1) % 3, (k + 2) % 3
+
+
+def _pick(rows: np.ndarray, row: np.ndarray) -> np.ndarray:
+    """rows (3, ..., members) at each member's row (members,)."""
+    return np.take_along_axis(rows, np.broadcast_to(row, rows.shape[1:])[None], axis=0)[0]
+
+
 def initial_state(values: dict[str, np.ndarray], constants: dict) -> np.ndarray:
     """Body rates at t = 0, shape (3, members), rad/s: spin0 cos tilt0 along the spin axis k, and spin0 sin
     tilt0 (cos azimuth0, sin azimuth0) along the next two axes in cyclic order."""
     spin, tilt, azimuth = values["spin0"], values["tilt0"], values["azimuth0"]
-    k = constants["spin_axis"] - 1
+    k, i, j = spin_axes(values["spin_axis"])
+    members = np.arange(spin.shape[0])
     state = np.empty((3, spin.shape[0]))
-    state[(k + 1) % 3] = spin * np.sin(tilt) * np.cos(azimuth)
-    state[(k + 2) % 3] = spin * np.sin(tilt) * np.sin(azimuth)
-    state[k] = spin * np.cos(tilt)
+    state[i, members] = spin * np.sin(tilt) * np.cos(azimuth)
+    state[j, members] = spin * np.sin(tilt) * np.sin(azimuth)
+    state[k, members] = spin * np.cos(tilt)
     return state
 
 
@@ -211,11 +225,11 @@ def _spread(lam: np.ndarray, w: np.ndarray, moment: np.ndarray) -> np.ndarray:
     return np.sum(lam * (lam - moment) * w**2, axis=0)
 
 
-def tilt(state: np.ndarray, axis: int, spin_axis: int) -> np.ndarray:
-    """Angle (rad) between omega and the spin axis; `axis` is the axis of `state` holding (w1, w2, w3)."""
-    w = np.moveaxis(state, axis, 0)
-    k = spin_axis - 1
-    return np.arctan2(np.hypot(w[(k + 1) % 3], w[(k + 2) % 3]), w[k])
+def tilt(w: np.ndarray, spin_axis) -> np.ndarray:
+    """Angle (rad) between omega and the spin axis: w (3, ..., members) rad/s; spin_axis 1, 2 or 3, one or per
+    member."""
+    k, i, j = spin_axes(spin_axis)
+    return np.arctan2(np.hypot(_pick(w, i), _pick(w, j)), _pick(w, k))
 
 
 def kinetic_energy(omega: np.ndarray, lam: np.ndarray) -> np.ndarray:
@@ -236,7 +250,7 @@ def observe(samples: np.ndarray, names, values: dict[str, np.ndarray], constants
     if "omega" in names:
         out["omega"] = omega
     if "tilt" in names:
-        out["tilt"] = tilt(omega, 2, constants["spin_axis"])
+        out["tilt"] = np.ascontiguousarray(tilt(samples.transpose(1, 0, 2), values["spin_axis"]).T)
     if "energy" in names:
         out["energy"] = kinetic_energy(omega, lam)
     if "angular_momentum" in names:
@@ -261,17 +275,17 @@ def transverse_exponents(values: dict[str, np.ndarray], constants: dict, spin: n
     r_j)/2)^2 + a_i a_j w_k^2), with w_k = `spin` (rad/s; default the start's, spin0 cos tilt0). Without drag:
     +-i Omega_k about a stable axis, Omega_k = spin0 sqrt((lambda_i - lambda_k)(lambda_j - lambda_k) / (lambda_i
     lambda_j)); +-sigma about the intermediate one."""
-    k = constants["spin_axis"] - 1
-    i, j = (k + 1) % 3, (k + 2) % 3
+    _, i, j = spin_axes(values["spin_axis"])
     a, r = np.split(rates(values)[:6], 2)
+    a_i, a_j, r_i, r_j = _pick(a, i), _pick(a, j), _pick(r, i), _pick(r, j)
     wk = values["spin0"] * np.cos(values["tilt0"]) if spin is None else spin
-    root = np.sqrt((((r[i] - r[j]) / 2) ** 2 + a[i] * a[j] * wk**2).astype(complex))
-    return np.stack((-(r[i] + r[j]) / 2 + root, -(r[i] + r[j]) / 2 - root))
+    root = np.sqrt((((r_i - r_j) / 2) ** 2 + a_i * a_j * wk**2).astype(complex))
+    return np.stack((-(r_i + r_j) / 2 + root, -(r_i + r_j) / 2 - root))
 
 
 def spin_at(values: dict[str, np.ndarray], constants: dict, t: np.ndarray) -> np.ndarray:
     """The spin-axis rate w_k (rad/s) at times t (s, per member) of the linear motion: decaying at c / lambda_k."""
-    lam = values[f"lambda{constants['spin_axis']}"]
+    lam = _pick(_moments(values), spin_axes(values["spin_axis"])[0])
     return values["spin0"] * np.cos(values["tilt0"]) * np.exp(-values["c"] * t / lam)
 
 
@@ -297,29 +311,25 @@ def _linear_split_step(method: Method, values, constants, h, spin) -> np.ndarray
     lambda_k; the turn about axis i, by the small angle L_i tau / lambda_i, moves L_j by +L_k L_i tau / lambda_i,
     the turn about j moves L_i by -L_k L_j tau / lambda_j (as L' = L x omega); drag scales each L_a by exp(-c tau /
     lambda_a)."""
-    k = constants["spin_axis"] - 1
-    i, j = (k + 1) % 3, (k + 2) % 3
+    k, i, j = spin_axes(values["spin_axis"])
     lam = _moments(values)
-    spin_l = lam[k] * (values["spin0"] * np.cos(values["tilt0"]) if spin is None else spin)
+    spin_l = _pick(lam, k) * (values["spin0"] * np.cos(values["tilt0"]) if spin is None else spin)
     n = spin_l.shape[0]
+    zero, one = np.zeros(n), np.ones(n)
     step = np.broadcast_to(np.eye(2)[:, :, None], (2, 2, n)).copy()
     for piece, fraction in method.splitting.sequence:
         tau = h * fraction
         name = method.splitting.pieces[piece]
         if name == "drag":
             decay = np.exp(-values["c"] * tau / lam)
-            piece_map = np.array([[decay[i], np.zeros(n)], [np.zeros(n), decay[j]]])
-            spin_l = spin_l * decay[k]
+            piece_map = np.array([[_pick(decay, i), zero], [zero, _pick(decay, j)]])
+            spin_l = spin_l * _pick(decay, k)
         else:
             axis = int(name[-1]) - 1
             angle = spin_l * tau / lam[axis]
-            zero, one = np.zeros(n), np.ones(n)
-            if axis == k:
-                piece_map = np.array([[np.cos(angle), np.sin(angle)], [-np.sin(angle), np.cos(angle)]])
-            elif axis == i:
-                piece_map = np.array([[one, zero], [angle, one]])
-            else:
-                piece_map = np.array([[one, -angle], [zero, one]])
+            turn = np.array([[np.cos(angle), np.sin(angle)], [-np.sin(angle), np.cos(angle)]])
+            piece_map = np.where(axis == k, turn, np.where(axis == i, np.array([[one, zero], [angle, one]]),
+                                                           np.array([[one, -angle], [zero, one]])))
         step = np.einsum("abm,bcm->acm", piece_map, step)
     return step
 
@@ -360,5 +370,6 @@ def step_growth(method: Method, values: dict[str, np.ndarray], constants: dict, 
 
 def amplitudes(samples: np.ndarray, values: dict[str, np.ndarray], constants: dict) -> np.ndarray:
     """The tilt's two motions: |rates across the spin axis| and |rate along it| (rad/s), (2, samples, members)."""
-    k = constants["spin_axis"] - 1
-    return np.stack((np.hypot(samples[:, (k + 1) % 3], samples[:, (k + 2) % 3]), np.abs(samples[:, k])))
+    w = samples.transpose(1, 0, 2)
+    k, i, j = spin_axes(values["spin_axis"])
+    return np.stack((np.hypot(_pick(w, i), _pick(w, j)), np.abs(_pick(w, k))))
