@@ -104,9 +104,17 @@ def incidence(n: int, boundary: str) -> np.ndarray:
 
 
 def stiffness(k: np.ndarray, n: int, boundary: str) -> np.ndarray:
-    """K = D^T diag(k) D, shape (..., n, n), N/m; k of shape (..., springs)."""
+    """K = D^T diag(k) D, shape (..., n, n), N/m; k of shape (..., springs). Each spring touches one or two
+    masses, so K is summed spring by spring in O(n) per member (tridiagonal, plus two corners for a ring)."""
     d = incidence(n, boundary)
-    return np.einsum("si,...s,sj->...ij", d, k, d)
+    k = np.asarray(k, dtype=float)
+    flat = k.reshape(-1, k.shape[-1])
+    out = np.zeros((flat.shape[0], n, n))
+    spring, column = np.nonzero(d)
+    pairs = [(s, i, j) for s in range(d.shape[0]) for i in column[spring == s] for j in column[spring == s]]
+    s, i, j = (np.array(x, dtype=int) for x in zip(*pairs))
+    np.add.at(out, (slice(None), i, j), flat[:, s] * d[s, i] * d[s, j])
+    return out.reshape(k.shape[:-1] + (n, n))
 
 
 def energy(x, v, m, k, boundary: str) -> np.ndarray:
