@@ -3,8 +3,9 @@ from __future__ import annotations
 
 import argparse
 
-EXIT_BAD_INPUT = 2
-EXIT_INTERRUPTED = 130
+EXIT_BAD_INPUT = 2  # bad input: nothing was run, nothing written
+EXIT_FAILED = 3  # the run started and failed midway (a full disk, a write error): its .part holds what finished
+EXIT_INTERRUPTED = 130  # Ctrl-C
 
 
 class OneLineParser(argparse.ArgumentParser):

@@ -2,11 +2,13 @@
 from __future__ import annotations
 
 import argparse
+import os
+import shutil
 import sys
 from pathlib import Path
 
 from . import __version__
-from .arguments import EXIT_BAD_INPUT, EXIT_INTERRUPTED, OneLineParser
+from .arguments import EXIT_BAD_INPUT, EXIT_FAILED, EXIT_INTERRUPTED, OneLineParser
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -94,22 +96,127 @@ def _run(args) -> int:
     if args.chunk is not None and args.chunk < 1:
         return _error(f"--chunk: must be >= 1, got {args.chunk}")
     out = args.output or Path("results") / f"{args.runfile.stem}.nc"
-    if out.exists() and not args.force:
-        return _error(f"{out}: exists; use --force to replace it")
+    problem = _memory_problem(spec)
+    if problem:
+        return _error(f"{args.runfile}: {problem}")
+    problem = _output_problem(out, args.runfile, args.force) or _space_problem(out, spec)
+    if problem:
+        return _error(f"{out}: {problem}")
+    try:
+        with OutputLock(out):
+            summary = run(spec, out, chunk=args.chunk, progress=not args.quiet)
+    except OutputLocked:
+        return _error(f"{out}: another run is writing it now; wait for it or choose another output")
+    except KeyboardInterrupt:
+        print(f"ensemble: interrupted; {_left_behind(part_path(out))}", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    except (OSError, RuntimeError) as e:  # netCDF4 reports HDF5 write failures as RuntimeError
+        print(f"ensemble: error: {out}: writing failed ({_cause(e)}); {_failed_behind(part_path(out))}",
+              file=sys.stderr)
+        return EXIT_FAILED
+    print(f"wrote {out}: {summary}")
+    return 0
+
+
+def _output_problem(out: Path, runfile: Path, force: bool) -> str | None:
+    """Why `out` cannot be written (None if it can): the run file itself, a folder, an existing file without
+    --force or not written by ensemble, a folder that cannot be made or written."""
+    if out.exists() and runfile.exists() and out.resolve() == runfile.resolve():
+        return "is the run file itself; choose another output"
+    if out.is_dir():
+        return "is a folder; give the output file's name"
+    if out.exists() and not force:
+        return "exists; use --force to replace it"
+    if out.exists() and not _is_result(out):
+        return "exists and is not a result written by ensemble; not replacing it, even with --force"
     try:
         out.parent.mkdir(parents=True, exist_ok=True)
     except OSError as e:
-        return _error(f"{out.parent}: cannot create output folder ({e.strerror})")
+        return f"cannot create the folder {out.parent} ({e.strerror})"
+    if not os.access(out.parent, os.W_OK):
+        return f"cannot write in the folder {out.parent} (permission denied)"
+    return None
+
+
+def _memory_problem(spec) -> str | None:
+    """The smallest chunk's memory against what this machine has available (Linux; no check elsewhere)."""
+    from .runner import member_bytes, smallest_chunk
+
     try:
-        summary = run(spec, out, chunk=args.chunk, progress=not args.quiet)
-    except KeyboardInterrupt:
-        part = part_path(out)
-        where = (f"the members finished so far are in {part} (not a complete result)" if part.exists()
-                 else "before the output file was opened; nothing was written")
-        print(f"ensemble: interrupted; {where}", file=sys.stderr)
-        return EXIT_INTERRUPTED
-    print(f"wrote {out}: {summary}")
-    return 0
+        available = os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    except (ValueError, OSError, AttributeError):
+        return None
+    members = smallest_chunk(spec)
+    need = members * member_bytes(spec)
+    if need > available:
+        return (f"{members} members holding {spec.n_save} saved times each need {need / 1e9:.3g} GB "
+                f"of memory and {available / 1e9:.3g} GB is available; save less often (save_dt) or fewer variables")
+    return None
+
+
+def _space_problem(out: Path, spec) -> str | None:
+    """The disk's free space against what the result will take (a full disk midway costs the run)."""
+    from .store import output_bytes
+
+    need, free = output_bytes(spec), shutil.disk_usage(out.parent).free
+    if need > free:
+        return f"the result needs about {need / 1e6:.4g} MB and {out.parent} has {free / 1e6:.4g} MB free"
+    return None
+
+
+def _is_result(path: Path) -> bool:
+    """A NetCDF file whose `source` attribute says ensemble wrote it."""
+    import netCDF4
+
+    try:
+        with netCDF4.Dataset(path) as nc:
+            return str(getattr(nc, "source", "")).startswith("ensemble")
+    except OSError:
+        return False
+
+
+def _cause(error: Exception) -> str:
+    if isinstance(error, OSError) and error.strerror:
+        return error.strerror
+    return str(error).splitlines()[0] if str(error) else type(error).__name__
+
+
+def _left_behind(part: Path) -> str:
+    return (f"the members finished so far are in {part} (not a complete result; its attribute members_written "
+            f"counts them)" if part.exists() else "before the output file was opened; nothing was written")
+
+
+def _failed_behind(part: Path) -> str:
+    return (f"{part} holds the members written before (members_written counts them), if the failed write left it "
+            f"readable" if part.exists() else "nothing was written")
+
+
+class OutputLocked(Exception):
+    """Another process holds the output's lock."""
+
+
+class OutputLock:
+    """An exclusive lock on OUT (the file OUT.lock, locked with flock: the lock ends with its process, so a
+    killed run leaves no stale lock), so that two runs never write the same output at once."""
+
+    def __init__(self, out: Path):
+        self.path = out.with_name(out.name + ".lock")
+
+    def __enter__(self):
+        import fcntl
+
+        self.file = open(self.path, "w")
+        try:
+            fcntl.flock(self.file, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            self.file.close()
+            raise OutputLocked from None
+        return self
+
+    def __exit__(self, *exc):
+        self.path.unlink(missing_ok=True)
+        self.file.close()
+        return False
 
 
 def _methods() -> int:

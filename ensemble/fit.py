@@ -588,7 +588,7 @@ def _dataset(ds: xr.Dataset, data: dict, dims, *, noise: float, fit: str,
                            axis=1)
     failed = int(np.all(~np.isfinite(found), axis=1).sum())  # members with no estimate at all
     out.attrs = {
-        "Conventions": "CF-1.8",
+        "Conventions": "CF-1.9",
         "title": f"{fit} fits of {ds.attrs.get('title', 'an ensemble result')}",
         "source": ds.attrs.get("source", ""),
         "method": ds.attrs.get("method", ""),

@@ -48,15 +48,24 @@ class Summary:
         return f"{steps} in {self.seconds:.3g} s: {rate:.3g} member-steps/s" + failures
 
 
-def default_chunk(spec: Spec) -> int:
-    """Members per chunk: a multiple of the kernel block that keeps a chunk within CHUNK_BYTES."""
+def member_bytes(spec: Spec) -> int:
+    """Memory (bytes) one member's record takes while its chunk is held: kernel samples and saved variables."""
     scene = SCENES[spec.scene]
     sizes = scene.sizes(spec.constants)
     state_rows, _ = scene.kernel_rows(spec.constants)
     saved = sum(math.prod(sizes[d] for d in scene.OBSERVABLES[v][0][2:]) for v in spec.save)
-    values_per_member = spec.n_save * (state_rows + saved)  # kernel samples and the saved variables
-    block = launch.block_size(scene, spec.constants)
-    chunk = CHUNK_BYTES // (8 * values_per_member) // block * block
+    return 8 * spec.n_save * (state_rows + saved)
+
+
+def smallest_chunk(spec: Spec) -> int:
+    """Members in the smallest chunk a run can hold: one kernel block (or every member, if fewer)."""
+    return min(launch.block_size(SCENES[spec.scene], spec.constants), spec.n_members)
+
+
+def default_chunk(spec: Spec) -> int:
+    """Members per chunk: a multiple of the kernel block that keeps a chunk within CHUNK_BYTES."""
+    block = launch.block_size(SCENES[spec.scene], spec.constants)
+    chunk = CHUNK_BYTES // member_bytes(spec) // block * block
     return min(max(chunk, block), spec.n_members)  # at least one kernel block
 
 

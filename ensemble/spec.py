@@ -52,6 +52,11 @@ DEFAULT_TOLERANCES = {"rtol": 1e-6, "atol": 1e-9}  # for adaptive methods
 DISTRIBUTIONS = ("uniform", "normal", "loguniform")
 _STEP_RTOL = 1e-9  # how close save_dt / dt and t_end / save_dt must be to whole numbers
 MAY_BE_INFINITE = ("blowup_factor",)  # inf: only a non-finite state fails a member
+# What a run file may ask for, refused before anything is allocated:
+MAX_RUN_FILE_BYTES = 1_000_000  # a run file is a short text
+MAX_STEPS = 10**12  # steps per member (t_end / dt), and saved samples per member (t_end / save_dt)
+MAX_SEED = 2**63 - 1  # the seed is stored as a 64-bit integer
+MAX_TABLE_BYTES = 2**31  # every member's parameters, held in memory for the whole run
 POLYGON = "polygon"  # a shape given by its mass and its vertices (a run constant), not by lengths
 
 
@@ -161,6 +166,9 @@ def _positive(key: str, value: float) -> float:
 
 def _whole_ratio(key: str, num: float, den: float, what: str) -> None:
     ratio = num / den
+    if not ratio <= MAX_STEPS:
+        raise SpecError(key, f"{key} / {what} = {num!r} / {den!r} = {ratio:.3g}: more than the {MAX_STEPS:.0e} a run "
+                             f"may ask for")
     if round(ratio) < 1 or abs(ratio - round(ratio)) > _STEP_RTOL * ratio:
         raise SpecError(key, f"must be a whole multiple of {what} ({num!r} / {den!r} = {ratio:.12g})")
 
@@ -243,8 +251,13 @@ def parse(text: str, path: str = "<string>") -> Spec:
     _whole_ratio("t_end", t_end, save_dt, "save_dt")
     if values["members"] < 1:
         raise SpecError("members", f"must be >= 1, got {values['members']}")
-    if values["seed"] < 0:
-        raise SpecError("seed", f"must be >= 0, got {values['seed']}")
+    if not 0 <= values["seed"] <= MAX_SEED:
+        raise SpecError("seed", f"must be in 0 .. 2**63 - 1, got {values['seed']}")
+    for grid_settings in setting_axes:
+        for dt in grid_settings.get("dt", (settings["dt"],) if "dt" in settings else ()):
+            if not t_end / dt <= MAX_STEPS:
+                raise SpecError("dt", f"t_end / dt = {t_end / dt:.3g} steps per member: more than the "
+                                      f"{MAX_STEPS:.0e} a run may ask for")
 
     save = tuple(values.get("save", module.OBSERVABLES))
     for i, name in enumerate(save):
@@ -252,6 +265,9 @@ def parse(text: str, path: str = "<string>") -> Spec:
             raise SpecError(f"save[{i}]", f"unknown variable {name!r}; {scene} saves: {', '.join(module.OBSERVABLES)}")
     if not save:
         raise SpecError("save", "must name at least one variable")
+    for i, name in enumerate(save):
+        if name in save[:i]:
+            raise SpecError(f"save[{i}]", f"names {name!r} a second time")
 
     blowup_factor = values.get("blowup_factor", DEFAULT_BLOWUP_FACTOR)
     if not blowup_factor > 1:
@@ -271,6 +287,12 @@ def parse(text: str, path: str = "<string>") -> Spec:
                 parameters=parameters, grids=tuple(grids), constants=constants, noise=noise,
                 declared=declared, rtol=settings.get("rtol"), atol=settings.get("atol"), measure=measure,
                 blowup_factor=blowup_factor)
+    sizes = module.sizes(constants)
+    need = 8 * spec.n_members * (sum(sizes[p.per] if p.per else 1 for p in declared.values()) + len(SETTINGS) + 1)
+    if need > MAX_TABLE_BYTES:
+        raise SpecError("members", f"{spec.n_members} member(s) ({values['members']} per sweep point) need "
+                                   f"{need / 1e9:.3g} GB of parameters in memory; at most "
+                                   f"{MAX_TABLE_BYTES / 1e9:.3g} GB")
     # Drawing every member's values checks them; keep them, as mode starts may cost an eigensolve each.
     return replace(spec, table=_build_table(spec))
 
@@ -501,9 +523,16 @@ def load(path: str | Path) -> Spec:
     """Read and validate a run file."""
     path = Path(path)
     try:
-        text = path.read_text()
+        with open(path, "rb") as file:
+            raw = file.read(MAX_RUN_FILE_BYTES + 1)
     except OSError as e:
         raise SpecError("run file", f"cannot read it: {e.strerror or e}") from None
+    if len(raw) > MAX_RUN_FILE_BYTES:
+        raise SpecError("run file", f"is larger than {MAX_RUN_FILE_BYTES / 1e6:g} MB; a run file is a short TOML text")
+    try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as e:
+        raise SpecError("run file", f"is not UTF-8 text (byte {e.start})") from None
     return parse(text, str(path))
 
 

@@ -6,6 +6,7 @@ in, so an interrupted run never leaves a file that looks complete.
 from __future__ import annotations
 
 import datetime
+import math
 import os
 from pathlib import Path
 
@@ -23,11 +24,19 @@ def part_path(path: Path) -> Path:
     return path.with_name(path.name + ".part")
 
 
+def output_bytes(spec: Spec) -> int:
+    """Bytes the result of `spec` takes on disk, about: its saved variables and per-member records, uncompressed."""
+    scene = SCENES[spec.scene]
+    sizes = {"member": spec.n_members, "t": spec.n_save, **scene.sizes(spec.constants)}
+    saved = sum(math.prod(sizes[d] for d in scene.OBSERVABLES[name][0]) for name in spec.save)
+    return 8 * (saved + spec.n_members * (len(RUN_RECORDS) + len(spec.declared)))
+
+
 # Per-member records of how each member ran: name -> (type, units, long_name).
 RUN_RECORDS = {
-    "steps_accepted": ("i4", "1", "integration steps taken (accepted)"),
-    "steps_rejected": ("i4", "1", "trial steps rejected by the step-size control"),
-    "rhs_evals": ("i4", "1", "right-hand-side (force) evaluations"),
+    "steps_accepted": ("i8", "1", "integration steps taken (accepted)"),
+    "steps_rejected": ("i8", "1", "trial steps rejected by the step-size control"),
+    "rhs_evals": ("i8", "1", "right-hand-side (force) evaluations"),
     "error_max": ("f8", "1", "largest relative error against the exact solution over the saved samples: "
                              "max |y - y_exact| / max |y_exact| over the state"),
     "error_final": ("f8", "1", "relative error against the exact solution at t_end: "
@@ -56,7 +65,7 @@ def global_attributes(spec: Spec, table: dict[str, np.ndarray]) -> dict[str, obj
             shared[key] = float(values[0])
     return {
         **spec.constants,
-        "Conventions": "CF-1.8",
+        "Conventions": "CF-1.9",
         "title": f"ensemble {spec.scene} run {Path(spec.path).stem} ({methods})",
         "history": f"{now} ensemble {__version__}: ensemble run {spec.path}",
         "source": f"ensemble {__version__}",
@@ -176,6 +185,7 @@ class Writer:
         """Store the saved variables of members start, start + 1, ... (member-major arrays)."""
         for name, values in data.items():
             self.nc.variables[name][start:start + len(values)] = values
+        self.nc.sync()  # the data reach the disk (or raise) before members_written counts them
         self.written += len(next(iter(data.values())))
         self.nc.setncattr("members_written", self.written)
         self.nc.sync()
@@ -184,7 +194,12 @@ class Writer:
         return self
 
     def __exit__(self, kind, value, traceback):
-        self.nc.close()
+        try:
+            self.nc.close()
+        except (OSError, RuntimeError):
+            if kind is None:
+                raise
+            # a write already failed (a full disk): closing fails too, and the first error is the one to report
         if kind is None:
             os.replace(self.part, self.path)
         return False

@@ -54,7 +54,7 @@ def test_dataset_follows_the_contract(cli_run):
         assert ds[name].dims == ("member",) and "units" in ds[name].attrs and "long_name" in ds[name].attrs
     np.testing.assert_allclose(ds.t, np.arange(11) * 0.1, rtol=1e-12)
     attrs = ds.attrs
-    assert attrs["Conventions"] == "CF-1.8" and attrs["scene"] == "top" and attrs["method"] == "rk4"
+    assert attrs["Conventions"] == "CF-1.9" and attrs["scene"] == "top" and attrs["method"] == "rk4"
     assert attrs["spec"] == SWEEP_RUN and attrs["seed"] == 7 and attrs["dt"] == 1e-3
     assert attrs["source"].startswith("ensemble ") and attrs["members_written"] == 10
     assert sorted(set(ds.c.values)) == [1e-4, 2e-4]
@@ -78,9 +78,9 @@ def test_file_round_trips_the_kernel_output(cli_run, tmp_path):
 def test_output_passes_the_cf_compliance_checker(cli_run):
     folder, _ = cli_run
     executable = shutil.which("compliance-checker", path=str(Path(sys.executable).parent)) or "compliance-checker"
-    checker = subprocess.run([executable, "--test=cf:1.8", "-f", "json", "-o", "-",
+    checker = subprocess.run([executable, "--test=cf:1.9", "-f", "json", "-o", "-",
                               str(folder / "results" / "sweep.nc")], capture_output=True, text=True)
-    report = json.loads(checker.stdout)["cf:1.8"]
+    report = json.loads(checker.stdout)["cf:1.9"]
     assert report["high_count"] == 0, report["high_priorities"]
 
 

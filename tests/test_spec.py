@@ -156,3 +156,36 @@ def test_summary_says_closed_form_only_for_the_closed_form():
     failed_at_once = str(runner.Summary(4, 0, 0.1, blew_up=4))
     assert "closed form" not in failed_at_once and "4 of 4 members failed" in failed_at_once
     assert "(closed form)" in str(runner.Summary(4, 0, 0.1, closed_form=True))
+
+
+@pytest.mark.parametrize("change, expected", [
+    ({"dt": 5e-324}, "save_dt: save_dt / dt = 0.1 / 5e-324 = inf: more than the 1e+12"),
+    ({"t_end": 1e308, "save_dt": 1e308}, "save_dt: save_dt / dt = 1e+308 / 0.001 = inf"),
+    ({"t_end": 1e13, "save_dt": 1e12, "dt": 1.0}, "dt: t_end / dt = 1e+13 steps per member: more than the 1e+12"),
+    ({"seed": 2**70}, "seed: must be in 0 .. 2**63 - 1, got 1180591620717411303424"),
+    ({"members": 10**12}, "members: 1000000000000 member(s) (1000000000000 per sweep point) need 8.8e+04 GB"),
+])
+def test_what_a_run_file_may_ask_for_is_bounded(change, expected, tmp_path, capsys):
+    """Steps, seeds and members beyond the limits are one line before anything is allocated (a 10**12-member
+    run would need 8.8e4 GB for its parameters alone)."""
+    refused(top_runfile(**change), tmp_path, capsys, expected)
+
+
+def test_a_variable_saved_twice_is_refused(tmp_path, capsys):
+    refused('save = ["tilt", "tilt"]\n' + top_runfile(), tmp_path, capsys, "save[1]: names 'tilt' a second time")
+
+
+def test_a_record_longer_than_memory_is_refused_before_the_run(tmp_path, capsys):
+    """One kernel block of 128 members holding 1e9 saved times each cannot be held: refused with the number."""
+    refused(top_runfile(t_end=1e7, save_dt=0.01, dt=0.01), tmp_path, capsys, "holding 1000000001 saved times each")
+
+
+@pytest.mark.parametrize("content, expected", [(b"\xff\xfe scene", "run file: is not UTF-8 text (byte 0)"),
+                                               (b"#" * 1_000_001, "run file: is larger than 1 MB")])
+def test_a_run_file_that_is_not_short_text_is_refused(content, expected, tmp_path, capsys):
+    from ensemble import cli
+    path = tmp_path / "bad.toml"
+    path.write_bytes(content)
+    assert cli.main(["run", str(path), "-o", str(tmp_path / "bad.nc")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and expected in err[0] and not list(tmp_path.glob("bad.nc*")), err

@@ -1,0 +1,113 @@
+"""Where a run writes: the output path is checked before any work, two runs never share an output, and a write
+that fails midway (a full disk) says so, exits 3 and leaves a .part whose members_written counts only what
+reached the disk."""
+import fcntl
+import os
+import resource
+import signal
+import subprocess
+import sys
+
+import netCDF4
+import numpy as np
+import pytest
+
+from ensemble import cli
+from tests.conftest import top_runfile
+
+RUN = top_runfile(members=300, t_end=0.5, save_dt=0.005)
+
+
+def refused_output(folder, capsys, out, *options, expected):
+    runfile = folder / "run.toml"
+    if not runfile.exists():
+        runfile.write_text(RUN)
+    status = cli.main(["run", str(runfile), "-o", str(out), "--quiet", *options])
+    err = capsys.readouterr().err.strip()
+    assert status == 2 and len(err.splitlines()) == 1 and expected in err, err
+    assert not list(folder.glob("*.part")) and not list(folder.glob("*.lock"))
+    return err
+
+
+def test_the_run_file_is_never_the_output(tmp_path, capsys):
+    runfile = tmp_path / "run.toml"
+    runfile.write_text(RUN)
+    refused_output(tmp_path, capsys, runfile, "--force", expected="is the run file itself")
+    assert runfile.read_text() == RUN
+
+
+def test_a_file_ensemble_did_not_write_is_not_replaced_even_with_force(tmp_path, capsys):
+    other = tmp_path / "notes.nc"
+    other.write_text("my notes\n")
+    refused_output(tmp_path, capsys, other, "--force", expected="is not a result written by ensemble")
+    assert other.read_text() == "my notes\n"
+
+
+def test_a_folder_is_not_an_output(tmp_path, capsys):
+    (tmp_path / "out").mkdir()
+    refused_output(tmp_path, capsys, tmp_path / "out", "--force", expected="is a folder")
+
+
+@pytest.mark.skipif(os.geteuid() == 0, reason="root writes into read-only folders")
+def test_a_read_only_folder_is_refused_before_the_run(tmp_path, capsys):
+    locked = tmp_path / "locked"
+    locked.mkdir(mode=0o555)
+    refused_output(tmp_path, capsys, locked / "out.nc", expected="cannot write in the folder")
+
+
+def test_a_second_run_on_the_same_output_is_refused_at_once(tmp_path, capsys):
+    out = tmp_path / "out.nc"
+    with open(tmp_path / "out.nc.lock", "w") as held:  # what a running `ensemble run -o out.nc` holds
+        fcntl.flock(held, fcntl.LOCK_EX)
+        runfile = tmp_path / "run.toml"
+        runfile.write_text(RUN)
+        status = cli.main(["run", str(runfile), "-o", str(out), "--quiet"])
+    err = capsys.readouterr().err.strip()
+    assert status == 2 and "another run is writing it" in err and not out.exists()
+
+
+def _small_disk():
+    """The child's files may not grow past 600 kB: a disk that fills up midway (SIGXFSZ ignored, so a write past
+    the limit fails with EFBIG, as a full disk fails with ENOSPC)."""
+    signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+    resource.setrlimit(resource.RLIMIT_FSIZE, (600_000, 600_000))
+
+
+def test_a_disk_that_fills_up_is_one_line_exit_3_and_an_honest_part(tmp_path):
+    runfile = tmp_path / "run.toml"
+    runfile.write_text(RUN)
+    out = tmp_path / "out.nc"
+    done = subprocess.run([sys.executable, "-m", "ensemble", "run", str(runfile), "-o", str(out), "--quiet",
+                           "--chunk", "64"], capture_output=True, text=True, preexec_fn=_small_disk)
+    assert done.returncode == 3, done.stderr
+    lines = done.stderr.strip().splitlines()
+    assert len(lines) == 1 and "writing failed" in lines[0] and "out.nc.part" in lines[0], lines
+    assert not out.exists() and not (tmp_path / "out.nc.lock").exists()
+    try:  # HDF5 does not promise a readable file after a failed write; if it is, it must not overstate
+        nc = netCDF4.Dataset(tmp_path / "out.nc.part")
+    except OSError:
+        return
+    with nc:
+        written = int(nc.members_written)
+        assert written < 300 and np.all(np.isfinite(nc["tilt"][:written]))
+
+
+def test_a_disk_without_room_for_the_result_is_refused_before_the_run(tmp_path, capsys, monkeypatch):
+    import shutil
+    free = shutil.disk_usage(tmp_path)._replace(free=100_000)
+    monkeypatch.setattr(shutil, "disk_usage", lambda path: free)
+    err = refused_output(tmp_path, capsys, tmp_path / "out.nc", expected="the result needs about")
+    assert "has 0.1 MB free" in err
+
+
+def test_step_counters_hold_more_than_two_billion(tmp_path):
+    """A run of 3e9 steps per member must not wrap to a negative count in the file (they are 64-bit)."""
+    from ensemble.spec import members_table, parse
+    from ensemble.store import Writer
+    spec = parse(top_runfile(members=3), "run.toml")
+    counts = np.array([3_000_000_000, 2**40, 7], dtype=np.int64)
+    with Writer(tmp_path / "out.nc", spec, members_table(spec), 3) as writer:
+        writer.write(0, {"steps_accepted": counts, "rhs_evals": 4 * counts})
+    with netCDF4.Dataset(tmp_path / "out.nc") as nc:
+        np.testing.assert_array_equal(nc["steps_accepted"][:], counts)
+        np.testing.assert_array_equal(nc["rhs_evals"][:], 4 * counts)
