@@ -125,16 +125,18 @@ def main(argv=None) -> int:
     print(f"stability of {args.result} ({ds.attrs['scene']}, {ds.sizes['t'] - 1} saved intervals)")
     print_limits(rows, points)
     out, stem = report.outputs(args.result, "stability")
-    points.to_netcdf(out)
-    print(f"map: {out}")
+    try:
+        points.to_netcdf(out)
+        print(f"map: {out}")
+        import matplotlib
 
-    import matplotlib
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    charts = [draw_map(plt, points, rows, stem), draw_energy(plt, ds, points, args.drift_step, stem)]
-    print("charts:", *[c for c in charts if c is not None])
+        charts = [draw_map(plt, points, rows, stem), draw_energy(plt, ds, points, args.drift_step, stem)]
+        print("charts:", *[c for c in charts if c is not None])
+    except OSError as e:
+        report.cannot_write(out.parent, e)
     return 1 if args.check and not all(limit_agrees(r) for r in rows) else 0
 
 

@@ -87,9 +87,12 @@ def main(argv=None) -> int:
     if "seconds_per_step" not in ds:
         print("no timing in this result ([measure] timing = true): the cost panel is empty")
     out, stem = report.outputs(args.result, "work_precision")
-    table.to_netcdf(out)
-    print(f"table: {out}")
-    print("chart:", draw(table, stem, f"{ds.attrs['scene']}: {ds.attrs.get('title', '')}"))
+    try:
+        table.to_netcdf(out)
+        print(f"table: {out}")
+        print("chart:", draw(table, stem, f"{ds.attrs['scene']}: {ds.attrs.get('title', '')}"))
+    except OSError as e:
+        report.cannot_write(out.parent, e)
     return 0
 
 

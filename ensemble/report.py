@@ -166,20 +166,41 @@ def run_script(args, fit_function, *, name: str, value, units: str, title: str, 
     if fits.attrs["members_failed"]:
         print(f"{fits.attrs['members_failed']} members could not be fitted and are left out")
     out, stem = outputs(args.result, name)
-    fits.to_netcdf(out)
-    print(f"fits: {out}")
+    try:
+        fits.to_netcdf(out)
+        print(f"fits: {out}")
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    paths = draw(plt, ds, fits, table, stem)
-    fig, ax = plt.subplots(figsize=(5.5, 4.5), layout="constrained")
-    what = "theory" if args.against == "theory" else "what the method shows"
-    z_histogram(ax, fits["z" if args.against == "theory" else "z_method"].values.ravel(), "fits", what)
-    ax.set_title(f"{title}: fitted against {what}")
-    paths.append(save(plt, fig, stem, "z"))
-    print("charts:", *paths)
+        paths = draw(plt, ds, fits, table, stem)
+        fig, ax = plt.subplots(figsize=(5.5, 4.5), layout="constrained")
+        what = "theory" if args.against == "theory" else "what the method shows"
+        z_histogram(ax, fits["z" if args.against == "theory" else "z_method"].values.ravel(), "fits", what)
+        ax.set_title(f"{title}: fitted against {what}")
+        paths.append(save(plt, fig, stem, "z"))
+        print("charts:", *paths)
+    except OSError as e:
+        cannot_write(out.parent, e)
     return 1 if args.check and not all(r.passed for r in table if r.members) else 0
+
+
+def cannot_write(folder: Path, error: OSError) -> None:
+    """One line on stderr: the fits and charts could not be written (the table printed above stands)."""
+    print(f"error: cannot write the fits and charts in {folder} ({error.strerror or error}); the table above "
+          f"stands", file=sys.stderr)
+
+
+def written_members(ds: xr.Dataset, path: Path) -> xr.Dataset:
+    """The members a result holds: all of a complete result; of a partial one (a `.part` left by an interrupted
+    or failed run), the first members_written, said in one line. Raises ValueError when none was written."""
+    total, written = ds.sizes["member"], int(ds.attrs.get("members_written", ds.sizes["member"]))
+    if written >= total:
+        return ds
+    if written == 0:
+        raise ValueError("a partial result with no member written (members_written = 0)")
+    print(f"{path}: a partial result: {written} of {total} members were written; the other {total - written} "
+          f"are left out")
+    return ds.isel(member=slice(0, written))
 
 
 def load_result(path: Path, fit_function, validate=None):
@@ -191,7 +212,7 @@ def load_result(path: Path, fit_function, validate=None):
         print('error: the charts need matplotlib: pip install "ensemble[plot]"', file=sys.stderr)
         return None
     try:
-        ds = xr.load_dataset(path, engine="netcdf4")
+        ds = written_members(xr.load_dataset(path, engine="netcdf4"), path)
         if validate:
             validate(ds)
         return ds, fit_function(ds)
