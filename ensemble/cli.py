@@ -93,6 +93,9 @@ def _run(args) -> int:
         spec = load(args.runfile)
     except SpecError as e:
         return _error(f"{args.runfile}: {e}")
+    except KeyboardInterrupt:  # drawing members (mode starts solve eigenproblems) can take a while
+        print("ensemble: interrupted while reading the run file; nothing was written", file=sys.stderr)
+        return EXIT_INTERRUPTED
     if args.chunk is not None and args.chunk < 1:
         return _error(f"--chunk: must be >= 1, got {args.chunk}")
     out = args.output or Path("results") / f"{args.runfile.stem}.nc"

@@ -208,3 +208,18 @@ def test_interrupt_before_the_file_opens_names_no_file(write_runfile, tmp_path, 
     err = capsys.readouterr().err
     assert "nothing was written" in err and ".part" not in err
     assert not list(tmp_path.glob("out.nc*"))
+
+
+def test_interrupt_while_reading_the_run_file_is_one_line(write_runfile, tmp_path, monkeypatch, capsys):
+    """Ctrl-C while members are drawn (a long chain's mode starts solve eigenproblems): one line, status 130."""
+    from ensemble import spec as spec_module
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(spec_module, "_build_table", interrupted)
+    out = tmp_path / "out.nc"
+    assert cli.main(["run", str(write_runfile(top_runfile())), "-o", str(out)]) == 130
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == ["ensemble: interrupted while reading the run file; nothing was written"]
+    assert not list(tmp_path.glob("out.nc*"))
