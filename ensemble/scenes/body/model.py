@@ -164,7 +164,7 @@ def exact(values: dict[str, np.ndarray], constants: dict, t: np.ndarray) -> np.n
     separatrix (a small tilt about the intermediate axis) m is within rounding
     of 1 and the solution holds only to about eps / (1 - m).
     """
-    from scipy.special import ellipj, ellipkinc  # here: scipy.special costs every run 0.2 s to import
+    from scipy.special import ellipj, ellipk, ellipkinc  # here: scipy.special costs every run 0.2 s to import
 
     frame, parity, lam_f, w, to_dn, to_cn, rate, m = _elliptic(values, constants)
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -176,7 +176,8 @@ def exact(values: dict[str, np.ndarray], constants: dict, t: np.ndarray) -> np.n
     moving = np.isfinite(rate) & (rate > 0) & np.isfinite(m)
     u0 = ellipkinc(phi0, np.where(moving, m, 0.0))
     u = np.where(moving, sense * rate, 0.0)[None, :] * np.asarray(t, dtype=float)[:, None] + u0
-    sn, cn, dn, _ = ellipj(u, np.where(moving, m, 0.0)[None, :])
+    period = 4 * ellipk(np.where(moving, m, 0.0))  # sn, cn and dn repeat after 4 K: ellipj is most exact near 0
+    sn, cn, dn, _ = ellipj(np.mod(u, period[None, :]), np.where(moving, m, 0.0)[None, :])
     spun = np.stack((a1 * cn, a2 * sn, np.where(w[2] < 0, -1.0, 1.0) * a3 * dn), axis=1)  # (t, 3, members)
     spun = np.where(moving[None, None, :], spun, w[None])  # a body spinning about a principal axis stays
     out = np.empty_like(spun)
