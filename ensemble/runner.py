@@ -35,6 +35,7 @@ class Summary:
     blew_up: int = 0  # failed members (status BLEW_UP)
     underflowed: int = 0  # failed members (status STEP_SIZE_UNDERFLOW)
     closed_form: bool = False  # every member was evaluated in closed form (no steps)
+    preparing: float = 0.0  # seconds spent compiling or loading kernels before the run, not in `seconds`
 
     def __str__(self) -> str:
         failed = self.blew_up + self.underflowed
@@ -45,7 +46,8 @@ class Summary:
         rate = self.member_steps / self.seconds if self.seconds > 0 else float("inf")
         steps = (f"{self.members} members x {self.steps_each} steps" if self.steps_each is not None
                  else f"{self.members} members, {self.member_steps} member-steps")
-        return f"{steps} in {self.seconds:.3g} s: {rate:.3g} member-steps/s" + failures
+        compiling = f" (after {self.preparing:.3g} s compiling kernels)" if self.preparing > ANNOUNCE_AFTER else ""
+        return f"{steps} in {self.seconds:.3g} s: {rate:.3g} member-steps/s" + compiling + failures
 
 
 def member_bytes(spec: Spec) -> int:
@@ -127,12 +129,10 @@ def chunk_data(spec: Spec, method: Method, values: dict[str, np.ndarray], first:
 
 def run(spec: Spec, out: str | Path, *, chunk: int | None = None, progress: bool = True) -> Summary:
     """Integrate every member of `spec` and write the dataset to `out` (NetCDF)."""
-    scene = SCENES[spec.scene]
     table = members_table(spec)
     n = spec.n_members
     chunk = chunk or default_chunk(spec)
-    for name in spec.methods:  # compile or load before the clock starts
-        launch.prepare(scene, METHODS[name], spec.constants)
+    preparing = prepare_kernels(spec, announce=progress)
     repeats = spec.measure["repeats"] if spec.measure["timing"] else 1
     member_steps = 0
     step_counts = set()
@@ -152,7 +152,43 @@ def run(spec: Spec, out: str | Path, *, chunk: int | None = None, progress: bool
                 bar.update(k1 - k0)
     return Summary(n, member_steps, time.perf_counter() - start, step_counts.pop() if len(step_counts) == 1 else None,
                    blew_up=int(failed[Status.BLEW_UP]), underflowed=int(failed[Status.STEP_SIZE_UNDERFLOW]),
-                   closed_form=all(METHODS[name].closed_form for name in spec.methods))
+                   closed_form=all(METHODS[name].closed_form for name in spec.methods), preparing=preparing)
+
+
+ANNOUNCE_AFTER = 1.0  # s: kernels taking longer than this to get ready are being compiled, and a line says so
+
+
+def prepare_kernels(spec: Spec, announce: bool = True) -> float:
+    """Compile (or load from Numba's disk cache) the run's kernels; returns the seconds it took.
+
+    Loading from the cache takes well under a second. When it takes longer
+    (compiling, once per machine) and `announce`, one line on stderr says so
+    while it happens, and another how long it took.
+    """
+    import threading
+
+    scene = SCENES[spec.scene]
+    names = "/".join(spec.methods)
+    said = threading.Event()
+
+    def say():
+        said.set()
+        print(f"compiling the {names} kernels for {spec.scene} (once per machine; later runs load them) ...",
+              file=sys.stderr, flush=True)
+
+    timer = threading.Timer(ANNOUNCE_AFTER, say)
+    if announce:
+        timer.start()
+    start = time.perf_counter()
+    try:
+        for name in spec.methods:
+            launch.prepare(scene, METHODS[name], spec.constants)
+    finally:
+        timer.cancel()
+    seconds = time.perf_counter() - start
+    if said.is_set():
+        print(f"compiled in {seconds:.1f} s", file=sys.stderr, flush=True)
+    return seconds
 
 
 def simulate(spec: Spec, *, chunk: int | None = None):

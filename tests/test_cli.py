@@ -1,6 +1,7 @@
 """The command line end to end, the NetCDF file it writes, and interrupted runs."""
 import json
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -223,3 +224,21 @@ def test_interrupt_while_reading_the_run_file_is_one_line(write_runfile, tmp_pat
     err = capsys.readouterr().err.strip().splitlines()
     assert err == ["ensemble: interrupted while reading the run file; nothing was written"]
     assert not list(tmp_path.glob("out.nc*"))
+
+
+def test_a_slow_kernel_start_says_it_is_compiling(write_runfile, tmp_path, monkeypatch, capsys):
+    """When getting the kernels ready takes longer than a cache load (compiling, once per machine), a line on
+    stderr says so while it happens, another how long it took, and the summary does not hide it."""
+    import time
+    prepare = launch.prepare
+
+    def slow(*args, **kwargs):
+        time.sleep(1.5)
+        return prepare(*args, **kwargs)
+
+    monkeypatch.setattr(launch, "prepare", slow)
+    assert cli.main(["run", str(write_runfile(top_runfile())), "-o", str(tmp_path / "out.nc")]) == 0
+    captured = capsys.readouterr()
+    assert "compiling the rk4 kernels for top (once per machine; later runs load them) ..." in captured.err
+    assert re.search(r"compiled in 1\.\d s", captured.err)
+    assert re.search(r"member-steps/s \(after 1\.\d+ s compiling kernels\)$", captured.out.strip())
