@@ -251,13 +251,8 @@ def parse(text: str, path: str = "<string>") -> Spec:
     _whole_ratio("t_end", t_end, save_dt, "save_dt")
     if values["members"] < 1:
         raise SpecError("members", f"must be >= 1, got {values['members']}")
-    if not 0 <= values["seed"] <= MAX_SEED:
-        raise SpecError("seed", f"must be in 0 .. 2**63 - 1, got {values['seed']}")
-    for grid_settings in setting_axes:
-        for dt in grid_settings.get("dt", (settings["dt"],) if "dt" in settings else ()):
-            if not t_end / dt <= MAX_STEPS:
-                raise SpecError("dt", f"t_end / dt = {t_end / dt:.3g} steps per member: more than the "
-                                      f"{MAX_STEPS:.0e} a run may ask for")
+    _check_bounds(values["seed"], t_end, [axes.get("dt", (settings["dt"],) if "dt" in settings else ())
+                                          for axes in setting_axes])
 
     save = tuple(values.get("save", module.OBSERVABLES))
     for i, name in enumerate(save):
@@ -295,6 +290,16 @@ def parse(text: str, path: str = "<string>") -> Spec:
                                    f"{MAX_TABLE_BYTES / 1e9:.3g} GB")
     # Drawing every member's values checks them; keep them, as mode starts may cost an eigensolve each.
     return replace(spec, table=_build_table(spec))
+
+
+def _check_bounds(seed: int, t_end: float, steps: list[tuple[float, ...]]) -> None:
+    """The seed's range, and the steps per member of every grid's dt values."""
+    if not 0 <= seed <= MAX_SEED:
+        raise SpecError("seed", f"must be in 0 .. 2**63 - 1, got {seed}")
+    for dt in (dt for grid in steps for dt in grid):
+        if not t_end / dt <= MAX_STEPS:
+            raise SpecError("dt", f"t_end / dt = {t_end / dt:.3g} steps per member: more than the {MAX_STEPS:.0e} "
+                                  f"a run may ask for")
 
 
 def _parameters(given: dict, grids: list[dict], labels: list[str], module):
