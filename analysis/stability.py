@@ -128,13 +128,10 @@ def main(argv=None) -> int:
     try:
         points.to_netcdf(out)
         print(f"map: {out}")
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-
-        charts = [draw_map(plt, points, rows, stem), draw_energy(plt, ds, points, args.drift_step, stem)]
-        print("charts:", *[c for c in charts if c is not None])
+        plt = report.pyplot()
+        if plt is not None:
+            charts = [draw_map(plt, points, rows, stem), draw_energy(plt, ds, points, args.drift_step, stem)]
+            print("charts:", *[c for c in charts if c is not None])
     except OSError as e:
         report.cannot_write(out.parent, e)
     return 1 if args.check and not all(limit_agrees(r) for r in rows) else 0

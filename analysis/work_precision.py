@@ -40,12 +40,7 @@ def print_table(table: xr.Dataset) -> None:
                   f"{row['rhs_evals']:>10.0f} {row['seconds']:>10.3g}")
 
 
-def draw(table: xr.Dataset, stem: Path, title: str) -> Path:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+def draw(plt, table: xr.Dataset, stem: Path, title: str) -> Path:
     fig, (cost, steps) = plt.subplots(1, 2, figsize=(12, 5), layout="constrained")
     for method in dict.fromkeys(table["method"].values):
         chosen = table["method"].values == method
@@ -90,7 +85,9 @@ def main(argv=None) -> int:
     try:
         table.to_netcdf(out)
         print(f"table: {out}")
-        print("chart:", draw(table, stem, f"{ds.attrs['scene']}: {ds.attrs.get('title', '')}"))
+        plt = report.pyplot()
+        if plt is not None:
+            print("chart:", draw(plt, table, stem, f"{ds.attrs['scene']}: {ds.attrs.get('title', '')}"))
     except OSError as e:
         report.cannot_write(out.parent, e)
     return 0

@@ -149,7 +149,6 @@ def run_script(args, fit_function, *, name: str, value, units: str, title: str, 
     if loaded is None:
         return 2
     ds, fits = loaded
-    import matplotlib
     for axis in ds.attrs.get("sweep_axes", "").split():
         fits[axis] = ds[axis]
     step = f"dt = {ds.attrs['dt']} s" if "dt" in ds.attrs else "dt per member"
@@ -169,9 +168,9 @@ def run_script(args, fit_function, *, name: str, value, units: str, title: str, 
     try:
         fits.to_netcdf(out)
         print(f"fits: {out}")
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-
+        plt = pyplot()
+        if plt is None:
+            return 1 if args.check and not all(r.passed for r in table if r.members) else 0
         paths = draw(plt, ds, fits, table, stem)
         fig, ax = plt.subplots(figsize=(5.5, 4.5), layout="constrained")
         what = "theory" if args.against == "theory" else "what the method shows"
@@ -204,13 +203,7 @@ def written_members(ds: xr.Dataset, path: Path) -> xr.Dataset:
 
 
 def load_result(path: Path, fit_function, validate=None):
-    """(dataset, fit_function(dataset)) of a result file; None after one line on stderr for bad input
-    or when matplotlib (the `plot` extra) is missing."""
-    try:
-        import matplotlib  # noqa: F401
-    except ImportError:
-        print('error: the charts need matplotlib: pip install "ensemble[plot]"', file=sys.stderr)
-        return None
+    """(dataset, fit_function(dataset)) of a result file; None after one line on stderr for bad input."""
     try:
         ds = written_members(xr.load_dataset(path, engine="netcdf4"), path)
         if validate:
@@ -219,6 +212,21 @@ def load_result(path: Path, fit_function, validate=None):
     except (OSError, ValueError) as e:
         print(f"error: {path}: {str(e).splitlines()[0]}", file=sys.stderr)
         return None
+
+
+def pyplot():
+    """matplotlib.pyplot, drawing to files; None, after one line on stderr, without the `plot` extra (the tables
+    and --check need no matplotlib)."""
+    try:
+        import matplotlib
+    except ImportError:
+        print('no charts: they need matplotlib (pip install "ensemble[plot]"); the table above stands',
+              file=sys.stderr)
+        return None
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
 
 
 def save(plt, fig, stem: Path, chart: str) -> Path:

@@ -125,3 +125,17 @@ def test_an_unwritable_output_is_one_line_and_keeps_the_verdict(tmp_path):
         lines = done.stderr.strip().splitlines()
         assert len(lines) == 1 and lines[0].endswith("); the table above stands"), lines
         assert lines[0].startswith(f"error: cannot write the fits and charts in {tmp_path} (")
+
+
+def test_tables_and_check_need_no_matplotlib(tmp_path):
+    """With the core install alone (matplotlib hidden), a script prints its table, writes its fits, says in one
+    line that charts need the plot extra, and exits with the check's verdict."""
+    result = run_small("aerobie.toml", tmp_path, 2)
+    hide = ("import runpy, sys; sys.modules['matplotlib'] = None; sys.argv = sys.argv[1:]; "
+            "runpy.run_path(sys.argv[0], run_name='__main__')")
+    done = subprocess.run([sys.executable, "-c", hide, str(ROOT / "analysis" / "tilt_decay.py"), str(result),
+                           "--check", "--against", "method"], capture_output=True, text=True, cwd=ROOT)
+    assert done.returncode == 0 and re.search(r"^c = .* pass$", done.stdout, flags=re.M), done.stderr
+    assert done.stderr.strip().splitlines() == [
+        'no charts: they need matplotlib (pip install "ensemble[plot]"); the table above stands']
+    assert (tmp_path / "aerobie_tilt_decay.nc").exists() and not list(tmp_path.glob("*.png"))
