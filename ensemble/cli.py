@@ -107,7 +107,8 @@ def _run(args) -> int:
         return _error(f"{out}: {problem}")
     try:
         with OutputLock(out):
-            summary = run(spec, out, chunk=args.chunk, progress=not args.quiet)
+            summary = run(spec, out, chunk=args.chunk, progress=not args.quiet, force=args.force,
+                          command=args.command_line)
     except OutputLocked:
         return _error(f"{out}: another run is writing it now; wait for it or choose another output")
     except KeyboardInterrupt:
@@ -281,7 +282,10 @@ def _inertia(args) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
+    import shlex
+
     args = _parser().parse_args(argv)
+    args.command_line = shlex.join(["ensemble", *(sys.argv[1:] if argv is None else argv)])
     if args.command == "run":
         return _run(args)
     if args.command == "inertia":

@@ -127,8 +127,12 @@ def chunk_data(spec: Spec, method: Method, values: dict[str, np.ndarray], first:
     return outcome, data
 
 
-def run(spec: Spec, out: str | Path, *, chunk: int | None = None, progress: bool = True) -> Summary:
-    """Integrate every member of `spec` and write the dataset to `out` (NetCDF)."""
+def run(spec: Spec, out: str | Path, *, chunk: int | None = None, progress: bool = True, force: bool = False,
+        command: str | None = None) -> Summary:
+    """Integrate every member of `spec` and write the dataset to `out` (NetCDF); an existing `out` only with
+    force. `command` is recorded in the file's history (default: `ensemble run <run file>`)."""
+    if Path(out).exists() and not force:
+        raise FileExistsError(f"{out}: exists; pass force=True to replace it")
     table = members_table(spec)
     n = spec.n_members
     chunk = chunk or default_chunk(spec)
@@ -138,7 +142,7 @@ def run(spec: Spec, out: str | Path, *, chunk: int | None = None, progress: bool
     step_counts = set()
     failed = np.zeros(len(Status), dtype=np.int64)
     start = time.perf_counter()
-    with Writer(out, spec, table, chunk) as writer, tqdm(
+    with Writer(out, spec, table, chunk, command) as writer, tqdm(
         total=n, unit="member", file=sys.stderr, disable=not progress, leave=False
     ) as bar:
         for j0 in range(0, n, chunk):

@@ -223,7 +223,12 @@ def _top_level(text: str) -> dict:
     for key in REQUIRED:
         if key not in raw:
             raise SpecError(key, "missing (required)")
-    return {key: _expect(key, raw[key], kind) for key, kind in TOP_LEVEL.items() if key in raw}
+    values = {key: _expect(key, raw[key], kind) for key, kind in TOP_LEVEL.items() if key in raw}
+    for name in SETTINGS:
+        if name in values.get("parameters", {}):
+            raise SpecError(f"parameters.{name}", "is a run setting: give it at the top of the run file (or sweep "
+                                                  "it under [sweep]), not under [parameters]")
+    return values
 
 
 def _grids(sweep) -> tuple[list[dict], list[str]]:
@@ -319,7 +324,7 @@ def _parameters(given: dict, grids: list[dict], labels: list[str], module):
     parameters = {}
     for name, value in given.items():
         if name not in declared:
-            raise _unknown(f"parameters.{name}", name, (*module.PARAMETERS, *SETTINGS))
+            raise _unknown(f"parameters.{name}", name, module.PARAMETERS)
         parameters[name] = _parameter(keys[name], value, declared[name])
     axes = _parameter_axes(grids, labels, keys, declared, parameters, module)
     swept = set(axes[0]) if axes else set()

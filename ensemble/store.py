@@ -54,8 +54,9 @@ SETTING_UNITS = {"dt": ("s", "integration step (for adaptive methods: the first 
                  "atol": ("1", "absolute tolerance of the step-size control, in the SI units of each state variable")}
 
 
-def global_attributes(spec: Spec, table: dict[str, np.ndarray]) -> dict[str, object]:
-    """The run's provenance; a setting (method, dt, rtol, atol) is an attribute when every member shares it."""
+def global_attributes(spec: Spec, table: dict[str, np.ndarray], command: str | None = None) -> dict[str, object]:
+    """The run's provenance; a setting (method, dt, rtol, atol) is an attribute when every member shares it.
+    `command` is the command line that made the run (default: `ensemble run <run file>`)."""
     now = datetime.datetime.now(datetime.timezone.utc).replace(microsecond=0).isoformat()
     methods = " ".join(dict.fromkeys(table["method"]))
     shared = {}
@@ -66,8 +67,9 @@ def global_attributes(spec: Spec, table: dict[str, np.ndarray]) -> dict[str, obj
     return {
         **spec.constants,
         "Conventions": "CF-1.9",
-        "title": f"ensemble {spec.scene} run {Path(spec.path).stem} ({methods})",
-        "history": f"{now} ensemble {__version__}: ensemble run {spec.path}",
+        "title": f"ensemble {spec.scene} run{'' if spec.path == '<string>' else ' ' + Path(spec.path).stem} "
+                 f"({methods})",
+        "history": f"{now} ensemble {__version__}: {command or 'ensemble run ' + spec.path}",
         "source": f"ensemble {__version__}",
         "comment": "Each member's parameters are variables over member; `spec` holds the run file.",
         "scene": spec.scene,
@@ -90,13 +92,14 @@ class Writer:
     exception the `.part` file stays, holding the chunks that finished.
     """
 
-    def __init__(self, path: str | Path, spec: Spec, table: dict[str, np.ndarray], chunk: int):
+    def __init__(self, path: str | Path, spec: Spec, table: dict[str, np.ndarray], chunk: int,
+                 command: str | None = None):
         self.path = Path(path)
         self.part = part_path(self.path)
         self.scene = SCENES[spec.scene]
         self.spec = spec
         self.nc = nc = netCDF4.Dataset(self.part, "w", format="NETCDF4")
-        nc.setncatts(global_attributes(spec, table))
+        nc.setncatts(global_attributes(spec, table, command))
         nc.setncattr("members_written", 0)
         self._dimensions(table)
         self._parameters(table)

@@ -242,3 +242,22 @@ def test_a_slow_kernel_start_says_it_is_compiling(write_runfile, tmp_path, monke
     assert "compiling the rk4 kernels for top (once per machine; later runs load them) ..." in captured.err
     assert re.search(r"compiled in 1\.\d s", captured.err)
     assert re.search(r"member-steps/s \(after 1\.\d+ s compiling kernels\)$", captured.out.strip())
+
+
+def test_history_title_and_overwrite_say_what_happened(write_runfile, tmp_path):
+    """history keeps the whole command line; a run from a string is not titled '<string>'; runner.run, like the
+    command line, replaces an existing file only when told to."""
+    out = tmp_path / "out.nc"
+    path = write_runfile(top_runfile())
+    assert cli.main(["run", str(path), "-o", str(out), "--quiet"]) == 0
+    assert cli.main(["run", str(path), "-o", str(out), "--force", "--quiet"]) == 0
+    with netCDF4.Dataset(out) as nc:
+        assert nc.history.endswith(f": ensemble run {path} -o {out} --force --quiet")
+        assert nc.title == "ensemble top run run (rk4)"
+    from_string = tmp_path / "string.nc"
+    runner.run(parse(top_runfile()), from_string, progress=False)
+    with netCDF4.Dataset(from_string) as nc:
+        assert nc.title == "ensemble top run (rk4)"
+    with pytest.raises(FileExistsError, match="exists; pass force=True"):
+        runner.run(parse(top_runfile()), from_string, progress=False)
+    runner.run(parse(top_runfile()), from_string, progress=False, force=True)

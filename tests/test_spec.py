@@ -189,3 +189,11 @@ def test_a_run_file_that_is_not_short_text_is_refused(content, expected, tmp_pat
     assert cli.main(["run", str(path), "-o", str(tmp_path / "bad.nc")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and expected in err[0] and not list(tmp_path.glob("bad.nc*")), err
+
+
+def test_a_setting_under_parameters_says_where_it_belongs(tmp_path, capsys):
+    text = top_runfile(dt=None).replace("[parameters]\n", "[parameters]\ndt = 1e-3\n")
+    refused(text, tmp_path, capsys, "parameters.dt: is a run setting: give it at the top of the run file")
+    line = refused(top_runfile().replace("[parameters]\n", "[parameters]\nfoo = 1\n"), tmp_path, capsys,
+                   "parameters.foo: unknown key")
+    assert "known keys: azimuth0, body, c, lambda1, lambda3, spin0, tilt0" in line and "dt" not in line
