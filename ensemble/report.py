@@ -82,8 +82,9 @@ def rows(fits: xr.Dataset, value: str, label_of, against: str = "theory") -> lis
             method = sel[f"{value}_method"].values if f"{value}_method" in sel else np.full(v.shape, np.nan)
             ok = np.isfinite(v) & np.isfinite(e)
             miss, error = mean_with_error((v - (method if against == "method" else theory))[ok], e[ok])
+            over = ok if ok.any() else np.ones(v.shape, dtype=bool)  # the same members in every column
             out.append(Row(label_of(sel, point, mode), float(np.mean(v[ok])) if ok.any() else np.nan,
-                           float(np.mean(theory)), float(np.mean(method)), miss, error,
+                           float(np.mean(theory[over])), float(np.mean(method[over])), miss, error,
                            int(ok.sum()), int((~ok).sum()), against))
     return out
 

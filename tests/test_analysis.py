@@ -139,3 +139,14 @@ def test_tables_and_check_need_no_matplotlib(tmp_path):
     assert done.stderr.strip().splitlines() == [
         'no charts: they need matplotlib (pip install "ensemble[plot]"); the table above stands']
     assert (tmp_path / "aerobie_tilt_decay.nc").exists() and not list(tmp_path.glob("*.png"))
+
+
+def test_table_rows_compare_the_same_members():
+    """A member that could not be fitted leaves every column of its row, theory and method too."""
+    from ensemble import report
+    fits = xr.Dataset({"rate": ("member", [1.0, np.nan, 3.0]), "rate_stderr": ("member", [0.1, np.nan, 0.1]),
+                       "rate_theory": ("member", [1.5, 100.0, 2.5]), "rate_method": ("member", [1.4, 90.0, 2.4])},
+                      coords={"member": [0, 1, 2]})
+    (row,) = report.rows(fits, "rate", lambda *a: "all")
+    assert (row.mean, row.theory, row.method, row.members, row.failed) == (2.0, 2.0, 1.9, 2, 1)
+    assert row.miss == pytest.approx(0.0, abs=1e-15)
