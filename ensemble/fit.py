@@ -201,14 +201,18 @@ def mode_frequencies(ds: xr.Dataset) -> xr.Dataset:
     one). Returns over (member, mode): frequency (rad/s; NaN for modes not
     found, and for zero modes, which do not oscillate), frequency_stderr,
     frequency_theory (eigenfrequencies of K v = w^2 M v), frequency_method
-    (what the run's method shows, see chain.step_eigenvalue), z and z_method.
+    (what the run's method shows, see chain.step_eigenvalue), z, z_method,
+    mode_amplitude (m, the start's amplitude in each mode) and excited (1
+    where the start put energy in the mode, 0 where it did not: a chain
+    started in one mode rings in no other; zero modes do not oscillate).
     """
     _require(ds, "chain", ("x", "m", "k"), "mode_frequencies")
     n, boundary = int(ds.attrs["n"]), str(ds.attrs["boundary"])
     t = ds["t"].values
     x = ds["x"].values
     sigma = _noise(ds["x"])
-    theory, _ = chain.normal_modes(ds["m"].values, ds["k"].values, boundary)
+    theory, shapes = chain.normal_modes(ds["m"].values, ds["k"].values, boundary)
+    amplitude, excited = _mode_amplitudes(ds, theory, shapes)
     method = _method_prediction(ds, theory, lambda m, dt, chosen: np.angle(
         chain.step_eigenvalue(m, theory[chosen], dt)) / dt)
     frequency = np.full(theory.shape, np.nan)
@@ -232,8 +236,30 @@ def mode_frequencies(ds: xr.Dataset) -> xr.Dataset:
         "frequency_method": (method, "rad s-1", "frequency shown by the member's method at its dt"),
         "z": (z, "1", "(frequency - frequency_theory) / frequency_stderr"),
         "z_method": (z_method, "1", "(frequency - frequency_method) / frequency_stderr"),
+        "mode_amplitude": (amplitude, "m", "amplitude of the start in the mode"),
     }
-    return _dataset(ds, data, ("member", "mode"), noise=sigma, fit="mode_frequencies")
+    out = _dataset(ds, data, ("member", "mode"), noise=sigma, fit="mode_frequencies")
+    out["excited"] = (("member", "mode"), excited.astype(np.int8),
+                      {"long_name": "whether the start put energy in the mode",
+                       "flag_values": np.array([0, 1], np.int8), "flag_meanings": "not_excited excited"})
+    return out
+
+
+EXCITED = 1e-9  # a mode holding less than this fraction of a member's largest mode amplitude was not excited
+
+
+def _mode_amplitudes(ds: xr.Dataset, omega: np.ndarray, shapes: np.ndarray):
+    """Each member's start in its modes: amplitude sqrt(a^2 + (b / w)^2) (m) with a, b the M-projections of x0
+    and v0 on the mode, and whether it exceeds EXCITED of the member's largest. Zero modes: NaN, not excited."""
+    mass = ds["m"].values
+    x0 = ds["x"].values[:, 0, :]
+    v0 = ds["v0"].values if "v0" in ds else np.zeros_like(x0)
+    a = np.einsum("mij,mi->mj", shapes, mass * x0)
+    b = np.einsum("mij,mi->mj", shapes, mass * v0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        amplitude = np.where(omega > 0, np.hypot(a, b / omega), np.nan)
+    largest = np.nanmax(np.where(np.isfinite(amplitude), amplitude, 0.0), axis=1, keepdims=True)
+    return amplitude, np.isfinite(amplitude) & (amplitude > EXCITED * largest)
 
 
 class _VariableProjection:

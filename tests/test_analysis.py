@@ -18,7 +18,9 @@ ROOT = Path(__file__).resolve().parent.parent
 def run_small(name: str, folder: Path, members: int, **replace) -> Path:
     text = re.sub(r"^members = \d+", f"members = {members}", (ROOT / "runs" / name).read_text(), flags=re.M)
     for old, new in replace.items():
+        assert old in text, old  # a replacement that matches nothing would test the unchanged file
         text = text.replace(old, new)
+    folder.mkdir(parents=True, exist_ok=True)
     out = folder / name.replace(".toml", ".nc")
     runner.run(spec.parse(text, name), out, progress=False)
     return out
@@ -29,8 +31,17 @@ def script(name: str, *args) -> subprocess.CompletedProcess:
                           capture_output=True, text=True, cwd=ROOT)
 
 
-def test_tilt_decay_script_on_the_aerobie(tmp_path):
+RK4_SHIFT = {"dt = 2.5e-4 ": "dt = 1e-3 "}  # rk4 at 1e-3 s shifts the aerobie's slowest rate by 1.8e-6
+
+
+def test_the_aerobie_passes_its_check_against_the_physics(tmp_path):
     result = run_small("aerobie.toml", tmp_path, 4)
+    done = script("tilt_decay.py", result, "--check")
+    assert done.returncode == 0 and len(re.findall(r"^c = .* pass$", done.stdout, flags=re.M)) == 3, done.stdout
+
+
+def test_tilt_decay_script_shows_rk4s_own_shift(tmp_path):
+    result = run_small("aerobie.toml", tmp_path, 4, **RK4_SHIFT)
     done = script("tilt_decay.py", result, "--check", "--against", "method")
     assert done.returncode == 0, done.stderr
     assert len(re.findall(r"^c = .* pass$", done.stdout, flags=re.M)) == 3 and "FAIL" not in done.stdout
@@ -45,12 +56,24 @@ def test_tilt_decay_script_on_the_aerobie(tmp_path):
 
 
 def test_normal_modes_script_on_the_two_mass_chain(tmp_path):
+    """The course's chain rings in both modes (w^2 = k/m and 3k/m), and both pass against the physics."""
     result = run_small("two_mass.toml", tmp_path, 2)
     done = script("normal_modes.py", result, "--check")
     assert done.returncode == 0, done.stderr
-    lines = done.stdout.splitlines()
-    assert any(line.startswith("mode 1") and "none fitted" in line for line in lines)
-    assert any(line.startswith("mode 2") and line.rstrip().endswith("pass") for line in lines)
+    assert re.search(r"^mode 1 +1 .* 2  pass$", done.stdout, flags=re.M), done.stdout
+    assert re.search(r"^mode 2 +1.73205.* 2  pass$", done.stdout, flags=re.M), done.stdout
+
+
+def test_a_mode_nobody_fits_fails_the_check_unless_it_was_not_excited(tmp_path):
+    """Started in mode 2 alone, mode 1 is 'not excited' and the check passes; started in both but recorded for
+    only 3 periods of mode 1 (a fit needs 4), mode 1 is excited and unfitted, and the check fails."""
+    started = run_small("two_mass.toml", tmp_path, 2,
+                        **{"x0 = { normal = [0.0, 0.1] }": "x0 = { mode = 2, amplitude = 0.1 }"})
+    done = script("normal_modes.py", started, "--check")
+    assert done.returncode == 0 and re.search(r"^mode 1 .* not excited", done.stdout, flags=re.M), done.stdout
+    short = run_small("two_mass.toml", tmp_path / "short", 2, **{"t_end = 100.0": "t_end = 20.0"})
+    done = script("normal_modes.py", short, "--check")
+    assert done.returncode == 1 and re.search(r"^mode 1 .* none fitted: FAIL", done.stdout, flags=re.M), done.stdout
     for chart in ("spectrum", "frequencies", "z"):
         assert (tmp_path / f"two_mass_normal_modes_{chart}.png").stat().st_size > 10_000
 
@@ -116,7 +139,7 @@ def test_a_partial_result_is_analysed_over_its_written_members_only(tmp_path):
 def test_an_unwritable_output_is_one_line_and_keeps_the_verdict(tmp_path):
     """When the fits cannot be written (here a folder stands where the fits file goes), the table is printed,
     one line names the folder, and --check still decides the exit status."""
-    result = run_small("aerobie.toml", tmp_path, 2)
+    result = run_small("aerobie.toml", tmp_path, 2, **RK4_SHIFT)
     (tmp_path / "aerobie_tilt_decay.nc").mkdir()
     passed = script("tilt_decay.py", result, "--check", "--against", "method")
     failed = script("tilt_decay.py", result, "--check")  # rk4 misses the slowest rate by 1.8e-6: FAIL

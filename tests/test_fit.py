@@ -104,13 +104,24 @@ def test_noisy_tilt_is_not_fitted_below_the_noise():
 
 
 def test_course_two_mass_chain_frequency():
+    """Started from random displacements, both modes ring at Verlet's (2/h) asin(w h / 2), w^2 = k/m and 3k/m."""
     fitted = fit.mode_frequencies(simulate(small(RUNS / "two_mass.toml", 2)))
-    # Started in mode 2 alone: mode 1 never rings and is reported as not found.
-    assert np.all(np.isnan(fitted.frequency.sel(mode=1)))
-    verlet = 2 / 1e-3 * np.arcsin(np.sqrt(3.0) * 1e-3 / 2)
-    assert np.allclose(fitted.frequency.sel(mode=2), verlet, rtol=1e-8)
-    assert np.allclose(fitted.frequency_method.sel(mode=2), verlet, rtol=1e-14)
+    verlet = 2 / 1e-3 * np.arcsin(np.array([1.0, np.sqrt(3.0)]) * 1e-3 / 2)
+    assert np.allclose(fitted.frequency, verlet, rtol=1e-8)
+    assert np.allclose(fitted.frequency_method, verlet, rtol=1e-14)
     assert np.allclose(fitted.frequency_theory.values, [1.0, np.sqrt(3.0)])
+    assert np.all(fitted.excited == 1)
+
+
+def test_a_mode_start_excites_that_mode_alone():
+    """Started in mode 2, the start's amplitude in mode 1 is rounding (not excited) and mode 1 is not found."""
+    text = small(RUNS / "two_mass.toml", 2).replace("x0 = { normal = [0.0, 0.1] }",
+                                                    "x0 = { mode = 2, amplitude = 0.1 }")
+    fitted = fit.mode_frequencies(simulate(text))
+    assert np.all(np.isnan(fitted.frequency.sel(mode=1))) and np.all(fitted.excited.sel(mode=1) == 0)
+    assert np.all(fitted.excited.sel(mode=2) == 1)
+    # mode 2's shape is (1, -1) / sqrt(2 m) (M-normalized), so amplitude 0.1 at each mass is 0.1 sqrt(2)
+    np.testing.assert_allclose(fitted.mode_amplitude.sel(mode=2), 0.1 * np.sqrt(2.0), rtol=1e-12)
 
 
 def test_uniform_32_chain_frequencies_from_data_alone():
@@ -123,7 +134,8 @@ def test_uniform_32_chain_frequencies_from_data_alone():
 
 
 def test_disordered_verlet_chain_shows_the_verlet_frequencies():
-    fitted = fit.mode_frequencies(simulate(small(RUNS / "disordered.toml", 2)))
+    """At dt = 0.01 s (the run file takes 1e-3 s, where Verlet's shift is below the check's tolerance)."""
+    fitted = fit.mode_frequencies(simulate(small(RUNS / "disordered.toml", 2).replace("dt = 1e-3 ", "dt = 0.01 ")))
     assert np.allclose(fitted.frequency, fitted.frequency_method, rtol=1e-8)
     assert not np.allclose(fitted.frequency, fitted.frequency_theory, rtol=1e-6)  # the integrator effect shows
 
