@@ -239,8 +239,9 @@ def pyplot():
     return plt
 
 
-def save(plt, fig, stem: Path, chart: str) -> Path:
-    path = stem.with_name(f"{stem.name}_{chart}.png")
+def save(plt, fig, stem: Path, chart: str = "") -> Path:
+    """Write a chart as STEM_CHART.png (STEM.png without a chart name) and close it."""
+    path = stem.with_name(f"{stem.name}_{chart}.png" if chart else f"{stem.name}.png")
     fig.savefig(path, dpi=120)
     plt.close(fig)
     return path

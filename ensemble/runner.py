@@ -12,6 +12,7 @@ import zlib
 from dataclasses import dataclass
 from pathlib import Path
 
+import numba
 import numpy as np
 from tqdm import tqdm
 
@@ -82,19 +83,53 @@ def _same_settings(table: dict[str, np.ndarray], j0: int, j1: int):
             k0 = k
 
 
-def integrate(spec: Spec, method: Method, values: dict[str, np.ndarray], repeats: int = 1) -> tuple[Outcome, float]:
-    """Integrate members that share one method and dt; returns what the launch did and its best seconds per
-    member-step over `repeats` calls."""
+def integrate(spec: Spec, method: Method, values: dict[str, np.ndarray], repeats: int = 0) -> tuple[Outcome, float]:
+    """Integrate members that share one method and dt; returns what the launch did and, when `repeats` > 0, the
+    kernel's seconds per member-step (see kernel_seconds_per_step; NaN otherwise)."""
     scene = SCENES[spec.scene]
     dt = values["dt"] if method.adaptive else float(values["dt"][0])
+    settings = dict(n_save=spec.n_save, save_dt=spec.save_dt, dt=dt, rtol=values["rtol"], atol=values["atol"],
+                    blowup_factor=spec.blowup_factor)
+    outcome = launch.integrate(scene, method, values, spec.constants, **settings)
+    if repeats < 1 or method.closed_form:
+        return outcome, np.nan
+    stepping = {**settings, "n_save": 2, "save_dt": spec.t_end}  # the same steps, saving only the end
+    return outcome, kernel_seconds_per_step(scene, method, values, spec.constants, outcome, repeats, stepping)
+
+
+TIMED_MEMBER_STEPS = 2_000_000  # work in one timed kernel call, so that the call's own fixed cost is negligible
+
+
+def kernel_seconds_per_step(scene, method: Method, values: dict[str, np.ndarray], constants: dict, outcome: Outcome,
+                            repeats: int, settings: dict) -> float:
+    """The kernel's seconds per member-step on one thread: best of `repeats` timed calls (with `settings`: the
+    run's steps, saving only the end state) on these members, repeated until a call does at least
+    TIMED_MEMBER_STEPS member-steps. It times stepping alone: no layout, no output, per-call and per-member costs
+    (dispatch, loading a block, saving samples) spread thin, and one thread whatever the point's member count,
+    so the cost grows in proportion to the steps. A run on T threads costs about 1/T of it per member-step."""
+    taken = int(outcome.counts[0].sum() + outcome.counts[1].sum())
+    if taken == 0:
+        return np.nan
+    members, block = len(outcome.status), launch.block_size(scene, constants)
+    whole = block // math.gcd(members, block)  # copies that fill whole kernel blocks: no padded members timed
+    copies = -(-max(1, -(-TIMED_MEMBER_STEPS // taken)) // whole) * whole
+    tiled = {name: np.tile(v, (copies,) + (1,) * (np.ndim(v) - 1)) for name, v in values.items()}
+    if np.ndim(settings["dt"]):
+        settings = {**settings, "dt": tiled["dt"]}
+    settings = {**settings, "rtol": tiled["rtol"], "atol": tiled["atol"]}
+    timed = launch.Launch(scene, method, tiled, constants, **settings)
     best = np.inf
-    for _ in range(repeats):
-        start = time.perf_counter()
-        outcome = launch.integrate(scene, method, values, spec.constants, n_save=spec.n_save, save_dt=spec.save_dt,
-                                   dt=dt, rtol=values["rtol"], atol=values["atol"], blowup_factor=spec.blowup_factor)
-        best = min(best, time.perf_counter() - start)
-    taken = outcome.counts[0].sum() + outcome.counts[1].sum()
-    return outcome, best / taken if taken else np.nan
+    threads = numba.get_num_threads()
+    numba.set_num_threads(1)  # one thread: how many blocks a point has cannot leave threads idle
+    try:
+        for _ in range(repeats):
+            start = time.perf_counter()
+            timed.run()
+            best = min(best, time.perf_counter() - start)
+    finally:
+        numba.set_num_threads(threads)
+    counts = timed.outcome().counts
+    return best / float(counts[0].sum() + counts[1].sum())
 
 
 def observation_noise(spec: Spec, name: str, first: int, shape: tuple[int, ...]) -> np.ndarray:
@@ -108,7 +143,7 @@ def observation_noise(spec: Spec, name: str, first: int, shape: tuple[int, ...])
     ])
 
 
-def chunk_data(spec: Spec, method: Method, values: dict[str, np.ndarray], first: int, repeats: int = 1):
+def chunk_data(spec: Spec, method: Method, values: dict[str, np.ndarray], first: int, repeats: int = 0):
     """Integrate members first, first + 1, ... (one method and dt) and return (outcome, the variables to write)."""
     scene = SCENES[spec.scene]
     outcome, seconds_per_step = integrate(spec, method, values, repeats)
@@ -137,7 +172,7 @@ def run(spec: Spec, out: str | Path, *, chunk: int | None = None, progress: bool
     n = spec.n_members
     chunk = chunk or default_chunk(spec)
     preparing = prepare_kernels(spec, announce=progress)
-    repeats = spec.measure["repeats"] if spec.measure["timing"] else 1
+    repeats = spec.measure["repeats"] if spec.measure["timing"] else 0
     member_steps = 0
     step_counts = set()
     failed = np.zeros(len(Status), dtype=np.int64)

@@ -178,7 +178,7 @@ def test_work_precision_script_prints_orders_and_draws(tmp_path):
     assert done.returncode == 0, done.stderr
     assert re.search(r"^rk4: nominal order 4, measured 3\.9\d|^rk4: nominal order 4, measured 4\.0\d", done.stdout,
                      flags=re.M), done.stdout
-    assert (tmp_path / "wp_work_precision_work_precision.png").stat().st_size > 20_000
+    assert (tmp_path / "wp_work_precision.png").stat().st_size > 20_000
     bad = subprocess.run([sys.executable, str(RUNS.parent / "analysis" / "work_precision.py"), str(tmp_path / "x.nc")],
                          capture_output=True, text=True)
     assert bad.returncode == 2 and len(bad.stderr.strip().splitlines()) == 1
@@ -199,3 +199,19 @@ def test_adaptive_run_launches_once_per_chunk_and_setting(monkeypatch):
     ds = runner.simulate(spec, chunk=128)
     chunks, settings = -(-300 // 128), 1
     assert len(calls) <= chunks * settings and ds.sizes["member"] == 300
+
+
+def test_timed_cost_per_member_grows_in_proportion_to_the_steps():
+    """seconds_per_step times the kernel alone, on one thread, over blocks of at least TIMED_MEMBER_STEPS
+    member-steps, so a record of 100 steps costs per step what one of 10,000 does, within 20% (the whole call was
+    timed before: the cost hardly grew with the steps). The timed call saves only the end state. Interleaved
+    rounds, best of each: a ratio taken in one run, not an absolute time."""
+    short, long = (parse(top_runfile(t_end=t_end, save_dt=t_end / 4, members=2)) for t_end in (0.1, 10.0))
+    best = {0.1: np.inf, 10.0: np.inf}
+    for _ in range(5):
+        for spec in (short, long):
+            values = members_table(spec)
+            outcome, seconds = runner.integrate(spec, METHODS["rk4"], values, repeats=3)
+            assert outcome.counts[0][0] == round(spec.t_end / 1e-3)
+            best[spec.t_end] = min(best[spec.t_end], seconds)
+    assert 0.8 < best[0.1] / best[10.0] < 1.25, best
