@@ -19,12 +19,17 @@ RUN_ATTRIBUTES = ("title", "history", "source", "method", "spec", "seed", "membe
 def open_results(paths) -> xr.Dataset:
     """Results of `ensemble run` (same scene) concatenated over `member`, loaded in memory.
 
-    Members get ids 0 .. N-1 across all runs, and sweep points are numbered across runs too. Per member,
-    `run_index` is the run (file) it came from, `member_in_run` and `sweep_point_in_run` its ids there, `method` its method (flags, as in a run that sweeps it) and `dt` its step.
-    Per run (dimension `run`): `run_path` and the run's global attributes in RUN_ATTRIBUTES, and each noisy
-    variable's `<name>_noise_stddev`; the attribute `observation_noise_stddev` stays on a variable only when
-    every run has the same noise. Variables saved by some runs only are NaN for the others; differing time
-    grids are joined (NaN where a run has no sample). Raises ValueError for results of different scenes.
+    Members get ids 0 .. N-1 across all runs, and sweep points are numbered
+    across runs too. Per member, `run_index` is the run (file) it came from,
+    `member_in_run` and `sweep_point_in_run` its ids there, `method` its
+    method (flags, as in a run that sweeps it) and `dt` its step. Per run
+    (dimension `run`): `run_path`, the run's global attributes in
+    RUN_ATTRIBUTES as `run_<name>`, and each noisy variable's
+    `<name>_noise_stddev`; the attribute `observation_noise_stddev` stays on a
+    variable only when every run has the same noise. Variables saved by some
+    runs only are NaN for the others; differing time grids are joined (NaN
+    where a run has no sample). Raises ValueError for results of different
+    scenes.
     """
     paths = [Path(p) for p in paths]
     runs = [xr.load_dataset(p, engine="netcdf4") for p in paths]
