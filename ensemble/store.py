@@ -32,26 +32,33 @@ def output_bytes(spec: Spec) -> int:
     return 8 * (saved + spec.n_members * (len(RUN_RECORDS) + len(spec.declared)))
 
 
-# Per-member records of how each member ran: name -> (type, units, long_name).
+# Per-member records of how each member ran: name -> (type, units, long_name, comment). A long_name is short
+# (plots use it as a label); the comment says how the value is made.
 RUN_RECORDS = {
-    "steps_accepted": ("i8", "1", "integration steps taken (accepted)"),
-    "steps_rejected": ("i8", "1", "trial steps rejected by the step-size control"),
-    "rhs_evals": ("i8", "1", "right-hand-side (force) evaluations"),
-    "error_max": ("f8", "1", "largest relative error against the exact solution over the saved samples: "
-                             "max |y - y_exact| / max |y_exact| over the state"),
-    "error_final": ("f8", "1", "relative error against the exact solution at t_end: "
-                               "max |y - y_exact| / max |y_exact| over the state"),
-    "seconds_per_step": ("f8", "s", "kernel wall time per member-step, best of the timed repeats"),
-    "status": ("i1", "1", "how the member ended"),
-    "failure_time": ("f8", "s", "first saved time at which the member had failed (for a step size underflow: the "
-                                "time it reached); NaN when it did not fail"),
-    "growth_per_step": ("f8", "1", "measured amplitude growth factor per step of the member's fastest-growing "
-                                   "motion, from the slope of log amplitude over the second half of its samples "
-                                   "before any failure (per mean accepted step for adaptive methods)"),
+    "steps_accepted": ("i8", "1", "steps taken", "integration steps accepted"),
+    "steps_rejected": ("i8", "1", "steps rejected", "trial steps rejected by the step-size control"),
+    "rhs_evals": ("i8", "1", "rhs evaluations", "right-hand-side (force) evaluations"),
+    "error_max": ("f8", "1", "largest relative error", "largest relative error against the exact solution over "
+                                                       "the saved samples: max |y - y_exact| / max |y_exact| over "
+                                                       "the state"),
+    "error_final": ("f8", "1", "relative error at t_end", "relative error against the exact solution at t_end: "
+                                                          "max |y - y_exact| / max |y_exact| over the state"),
+    "seconds_per_step": ("f8", "s", "kernel time per member-step", "kernel alone, one thread, best of the timed "
+                                                                   "repeats, over whole blocks of repeated members "
+                                                                   "saving only the end state"),
+    "status": ("i1", "1", "how the member ended", ""),
+    "failure_time": ("f8", "s", "time of failure", "first saved time at which the member had failed (for a step "
+                                                   "size underflow: the time it reached); NaN when it did not fail"),
+    "growth_per_step": ("f8", "1", "growth factor per step", "measured amplitude growth factor per step of the "
+                                                             "member's fastest-growing motion, from the slope of log "
+                                                             "amplitude over the second half of its samples before "
+                                                             "any failure (per mean accepted step for adaptive "
+                                                             "methods)"),
 }
-SETTING_UNITS = {"dt": ("s", "integration step (for adaptive methods: the first trial step)"),
-                 "rtol": ("1", "relative tolerance of the step-size control"),
-                 "atol": ("1", "absolute tolerance of the step-size control, in the SI units of each state variable")}
+SETTING_UNITS = {"dt": ("s", "integration step", "for adaptive methods: the first trial step"),
+                 "rtol": ("1", "relative tolerance", "of the step-size control"),
+                 "atol": ("1", "absolute tolerance", "of the step-size control, in the SI units of each state "
+                                                     "variable")}
 
 
 def global_attributes(spec: Spec, table: dict[str, np.ndarray], command: str | None = None) -> dict[str, object]:
@@ -146,10 +153,10 @@ class Writer:
             var.setncatts({"long_name": "integration method", "flag_values": np.arange(len(methods), dtype=np.int8),
                            "flag_meanings": " ".join(methods)})
             var[:] = np.array([methods.index(m) for m in table["method"]], dtype=np.int8)
-        for key, (units, long_name) in SETTING_UNITS.items():
+        for key, (units, long_name, comment) in SETTING_UNITS.items():
             if key in spec.sweep:
                 var = self.nc.createVariable(key, "f8", ("member",), fill_value=np.nan)
-                var.setncatts({"units": units, "long_name": long_name})
+                var.setncatts({"units": units, "long_name": long_name, "comment": comment})
                 var[:] = table[key]
 
     def _records(self) -> None:
@@ -158,13 +165,13 @@ class Writer:
         records += ["error_max", "error_final"] if self.spec.measure["error"] else []
         records += ["seconds_per_step"] if self.spec.measure["timing"] else []
         for name in records:
-            kind, units, long_name = RUN_RECORDS[name]
+            kind, units, long_name, comment = RUN_RECORDS[name]
             var = self.nc.createVariable(name, kind, ("member",), fill_value=np.nan if kind == "f8" else None)
             if name == "status":
                 var.setncatts({"long_name": long_name, "flag_values": Status.flag_values(),
                                "flag_meanings": Status.flag_meanings()})
             else:
-                var.setncatts({"units": units, "long_name": long_name})
+                var.setncatts({"units": units, "long_name": long_name, "comment": comment})
 
     def _observables(self, chunk: int) -> None:
         """The saved variables, chunked by `chunk` members; NaN marks a member's samples after it failed."""

@@ -59,6 +59,9 @@ def test_dataset_follows_the_contract(cli_run):
     assert attrs["spec"] == SWEEP_RUN and attrs["seed"] == 7 and attrs["dt"] == 1e-3
     assert attrs["source"].startswith("ensemble ") and attrs["members_written"] == 10
     assert sorted(set(ds.c.values)) == [1e-4, 2e-4]
+    # long_names are labels (xarray's plots use them): short, with any explanation in `comment`
+    assert max(len(ds[name].attrs.get("long_name", "")) for name in ds.variables) <= 80
+    assert "second half of its samples" in ds.growth_per_step.attrs["comment"]
 
 
 def test_file_round_trips_the_kernel_output(cli_run, tmp_path):
