@@ -182,11 +182,7 @@ def run_script(args, fit_function, *, name: str, value, units: str, title: str, 
         if plt is None:
             return 1 if args.check and not all(r.checked for r in table) else 0
         paths = draw(plt, ds, fits, table, stem)
-        fig, ax = plt.subplots(figsize=(5.5, 4.5), layout="constrained")
-        what = "theory" if args.against == "theory" else "what the method shows"
-        z_histogram(ax, fits["z" if args.against == "theory" else "z_method"].values.ravel(), "fits", what)
-        ax.set_title(f"{title}: fitted against {what}")
-        paths.append(save(plt, fig, stem, "z"))
+        paths.append(draw_misses(plt, fits, stem, args.against, title))
         print("charts:", *paths)
     except OSError as e:
         cannot_write(out.parent, e)
@@ -252,21 +248,67 @@ def save_against_theory(plt, stem: Path, chart: str, draw_fits, span, theory_lab
     """A chart of fitted values against theory: draw_fits(ax) draws the fits, then the line y = x over span."""
     fig, ax = plt.subplots(figsize=(5.5, 4.5), layout="constrained")
     draw_fits(ax)
+    low, high = float(np.min(span)), float(np.max(span))
+    if high - low <= 1e-6 * max(abs(low), abs(high)):  # one sweep point: give y = x a length around it
+        pad = 0.05 * max(abs(low), abs(high)) or 1.0
+        span = [low - pad, high + pad]
+        ax.set_xlim(span)
+        ax.set_ylim(span)
+    ax.ticklabel_format(useOffset=False)  # an offset label makes a 1e-13 difference look like a gap
     ax.plot(span, span, "k--", lw=1, label=theory_label)
     ax.set(xlabel=xlabel, ylabel=ylabel, title=title)
     ax.legend()
     return save(plt, fig, stem, chart)
 
 
+def draw_misses(plt, fits: xr.Dataset, stem: Path, against: str, title: str) -> Path:
+    """The chart of how fits miss their reference, RESULT_<fit>_z.png: z against N(0, 1) when the result has
+    observation noise; without noise z has no distribution to follow (its error bar is the fit's own residual),
+    so the relative miss (fitted / reference - 1) per member is drawn instead."""
+    fig, ax = plt.subplots(figsize=(5.5, 4.5), layout="constrained")
+    what = "theory" if against == "theory" else "what the method shows"
+    if fits.attrs.get("observation_noise_stddev", 0.0) > 0:
+        z_histogram(ax, fits["z" if against == "theory" else "z_method"].values.ravel(), "fits", what)
+        ax.set_title(f"{title}: fitted against {what}")
+    else:
+        misses = [_relative_miss(fits, row_value, against) for row_value in _fitted_values(fits)]
+        for (name, miss), marker in zip(misses, "ox^"):
+            ax.plot(np.arange(miss.size), miss, marker, ms=3, mfc="none", label=name.replace("_", " "))
+        ax.axhline(0.0, color="k", lw=0.5)
+        ax.axhspan(-RTOL, RTOL, color="g", alpha=0.15, label=f"the check's {RTOL:g}")
+        ax.set_xlabel("member (and mode)")
+        ax.set_ylabel(f"fitted / {what} - 1")
+        ax.set_title(f"{title}: relative miss (noise-free: no z)", fontsize=9)
+        ax.legend(fontsize=8)
+    return save(plt, fig, stem, "z")
+
+
+def _fitted_values(fits: xr.Dataset) -> list[str]:
+    """The fitted quantities of a fit dataset: variables with a _theory beside them."""
+    return [name for name in fits.data_vars if f"{name}_theory" in fits and f"{name}_stderr" in fits]
+
+
+def _relative_miss(fits: xr.Dataset, name: str, against: str) -> tuple[str, np.ndarray]:
+    reference = fits[f"{name}_method" if against == "method" and f"{name}_method" in fits else f"{name}_theory"]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        miss = (fits[name].values / reference.values - 1).ravel()
+    return name, miss[np.isfinite(miss)]
+
+
+Z_SPAN = 50.0  # z histograms show |z| up to this; larger values are counted at the edge, and the legend says so
+
+
 def z_histogram(ax, z: np.ndarray, label: str, reference: str = "theory") -> None:
     """Histogram of z values as a density, with the N(0, 1) density over it."""
     z = z[np.isfinite(z)]
-    span = max(4.0, float(np.nanmax(np.abs(z))) if z.size else 4.0)
-    span = min(span, 50.0)
-    ax.hist(np.clip(z, -span, span), bins=40, range=(-span, span), density=True, alpha=0.6, label=f"{label} ({z.size})")
+    span = min(max(4.0, float(np.nanmax(np.abs(z))) if z.size else 4.0), Z_SPAN)
+    outside = int(np.sum(np.abs(z) > span))
+    clipped = f", {outside} beyond +-{span:g} drawn at the edges" if outside else ""
+    ax.hist(np.clip(z, -span, span), bins=40, range=(-span, span), density=True, alpha=0.6,
+            label=f"{label} ({z.size}{clipped})")
     grid = np.linspace(-span, span, 400)
     ax.plot(grid, np.exp(-grid**2 / 2) / np.sqrt(2 * np.pi), "k-", label="N(0, 1)")
     ax.set_xlabel(f"z = (fitted - {reference}) / standard error")
     ax.set_ylabel("density")
-    ax.legend()
+    ax.legend(fontsize=8)
 

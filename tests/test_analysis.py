@@ -173,3 +173,16 @@ def test_table_rows_compare_the_same_members():
     (row,) = report.rows(fits, "rate", lambda *a: "all")
     assert (row.mean, row.theory, row.method, row.members, row.failed) == (2.0, 2.0, 1.9, 2, 1)
     assert row.miss == pytest.approx(0.0, abs=1e-15)
+
+
+def test_z_histograms_say_what_they_clip():
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from ensemble import report
+    fig, ax = plt.subplots()
+    report.z_histogram(ax, np.array([0.1, -0.5, 1.2, 400.0, -90.0, np.nan]), "fits")
+    labels = ax.get_legend_handles_labels()[1]
+    plt.close(fig)
+    assert set(labels) == {"N(0, 1)", "fits (5, 2 beyond +-50 drawn at the edges)"}
