@@ -201,31 +201,22 @@ def test_a_run_imports_no_analysis_and_parsing_no_numba(write_runfile, tmp_path)
     assert done.returncode == 0, done.stderr
 
 
-def test_interrupt_before_the_file_opens_names_no_file(write_runfile, tmp_path, monkeypatch, capsys):
-    """Ctrl-C while kernels load: no .part exists, so the message must not point to one."""
-    def interrupted(*args, **kwargs):
-        raise KeyboardInterrupt
-
-    monkeypatch.setattr(launch, "prepare", interrupted)
-    out = tmp_path / "out.nc"
-    assert cli.main(["run", str(write_runfile(top_runfile())), "-o", str(out)]) == 130
-    err = capsys.readouterr().err
-    assert "nothing was written" in err and ".part" not in err
-    assert not list(tmp_path.glob("out.nc*"))
-
-
-def test_interrupt_while_reading_the_run_file_is_one_line(write_runfile, tmp_path, monkeypatch, capsys):
-    """Ctrl-C while members are drawn (a long chain's mode starts solve eigenproblems): one line, status 130."""
+@pytest.mark.parametrize("where, expected", [
+    ("kernels", "ensemble: interrupted; before the output file was opened; nothing was written"),
+    ("members", "ensemble: interrupted while reading the run file; nothing was written")])
+def test_interrupt_before_the_file_opens_is_one_line_naming_no_file(where, expected, write_runfile, tmp_path,
+                                                                    monkeypatch, capsys):
+    """Ctrl-C while kernels load, or while members are drawn (a long chain's mode starts solve eigenproblems):
+    one line, status 130, and no .part exists, so the message must not point to one."""
     from ensemble import spec as spec_module
 
     def interrupted(*args, **kwargs):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(spec_module, "_build_table", interrupted)
+    monkeypatch.setattr(*((launch, "prepare") if where == "kernels" else (spec_module, "_build_table")), interrupted)
     out = tmp_path / "out.nc"
     assert cli.main(["run", str(write_runfile(top_runfile())), "-o", str(out)]) == 130
-    err = capsys.readouterr().err.strip().splitlines()
-    assert err == ["ensemble: interrupted while reading the run file; nothing was written"]
+    assert capsys.readouterr().err.strip().splitlines() == [expected]
     assert not list(tmp_path.glob("out.nc*"))
 
 
