@@ -115,6 +115,21 @@ def test_convergence_order(method, dts):
     np.testing.assert_allclose(slopes, METHODS[method].order, atol=0.15)
 
 
+def test_dopri5_order_against_its_mean_step():
+    """Over rtol 1e-6 .. 1e-10, the median error at t = 20 s against the closed form falls as the mean accepted
+    step to the fifth power, within 0.15 (measured 4.92), as the fixed-step methods' orders are tested above."""
+    values, constants = members(8, seed=5, spin0=3.0, spin_axis=1), {}
+    exact = body.exact(values, constants, np.array([0.0, 20.0]))
+    errors, steps = [], []
+    for rtol in (1e-6, 1e-7, 1e-8, 1e-9, 1e-10):
+        outcome = launch.integrate(body, METHODS["dopri5"], values, constants, n_save=2, save_dt=20.0, rtol=rtol,
+                                   atol=1e-3 * rtol)
+        errors.append(np.median(np.abs(outcome.samples[-1] - exact[-1]).max(axis=0) / np.abs(exact).max(axis=(0, 1))))
+        steps.append(np.median(outcome.counts[0]))
+    order = np.polyfit(np.log(20.0 / np.array(steps)), np.log(errors), 1)[0]
+    assert order == pytest.approx(METHODS["dopri5"].order, abs=0.15)
+
+
 def test_dopri5_meets_its_tolerance_against_the_closed_form():
     values, constants = members(16, seed=6, spin_axis=2), {}
     outcome = launch.integrate(body, METHODS["dopri5"], values, constants, n_save=9, save_dt=0.25, rtol=1e-9,
