@@ -25,6 +25,7 @@ from .spec import Spec, members_table
 from .store import Writer
 
 CHUNK_BYTES = 32 * 2**20  # saved data held in memory per chunk
+CHUNK_MEMBER_STEPS = 2e9  # work per chunk: about two seconds at this project's kernel speeds
 
 
 @dataclass(frozen=True)
@@ -65,10 +66,22 @@ def smallest_chunk(spec: Spec) -> int:
     return min(launch.block_size(SCENES[spec.scene], spec.constants), spec.n_members)
 
 
+def steps_per_member(spec: Spec) -> float:
+    """The most steps a member of the run takes with a fixed step, t_end / dt (adaptive members: t_end over
+    their first trial step, a guess; 0 when every member is in closed form)."""
+    dt = members_table(spec)["dt"]
+    dt = dt[np.isfinite(dt) & (dt > 0)]
+    return spec.t_end / float(dt.min()) if dt.size else 0.0
+
+
 def default_chunk(spec: Spec) -> int:
-    """Members per chunk: a multiple of the kernel block that keeps a chunk within CHUNK_BYTES."""
+    """Members per chunk: a multiple of the kernel block that keeps a chunk within CHUNK_BYTES of records and
+    CHUNK_MEMBER_STEPS of work (so the progress bar moves, and Ctrl-C lands between chunks, every few seconds)."""
     block = launch.block_size(SCENES[spec.scene], spec.constants)
     chunk = CHUNK_BYTES // member_bytes(spec) // block * block
+    steps = steps_per_member(spec)
+    if steps > 0:
+        chunk = min(chunk, int(CHUNK_MEMBER_STEPS // steps) // block * block)
     return min(max(chunk, block), spec.n_members)  # at least one kernel block
 
 
@@ -180,6 +193,8 @@ def run(spec: Spec, out: str | Path, *, chunk: int | None = None, progress: bool
     with Writer(out, spec, table, chunk, command) as writer, tqdm(
         total=n, unit="member", file=sys.stderr, disable=not progress, leave=False
     ) as bar:
+        if steps_per_member(spec):
+            bar.set_postfix_str(f"about {n * steps_per_member(spec):.2g} member-steps in all", refresh=False)
         for j0 in range(0, n, chunk):
             for k0, k1 in _same_settings(table, j0, min(j0 + chunk, n)):
                 values = {name: v[k0:k1] for name, v in table.items()}

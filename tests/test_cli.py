@@ -255,3 +255,14 @@ def test_history_title_and_overwrite_say_what_happened(write_runfile, tmp_path):
     with pytest.raises(FileExistsError, match="exists; pass force=True"):
         runner.run(parse(top_runfile()), from_string, progress=False)
     runner.run(parse(top_runfile()), from_string, progress=False, force=True)
+
+
+def test_default_chunk_bounds_the_work_between_progress_updates():
+    """A long record with few saves: the records are small, but a chunk holds at most CHUNK_MEMBER_STEPS of
+    work, so the bar moves (and Ctrl-C lands between chunks) every few seconds; never less than one block."""
+    spec = parse(top_runfile(members=100_000, t_end=1000.0, save_dt=100.0))  # 1e6 steps a member
+    block = launch.block_size(SCENES["top"], {})
+    assert runner.steps_per_member(spec) == pytest.approx(1e6)
+    assert runner.default_chunk(spec) == runner.CHUNK_MEMBER_STEPS // 1e6 // block * block
+    one_block = parse(top_runfile(members=1000, t_end=1e5, save_dt=1e4))  # 1e8 steps: one block is the least
+    assert runner.default_chunk(one_block) == block
