@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 import xarray as xr
 
-from ensemble import report, stability
+from ensemble import fit, report, stability
 from ensemble.arguments import OneLineParser
 from ensemble.methods import METHODS
 from ensemble.results import Status
@@ -98,7 +98,12 @@ def _envelope(t: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, np.ndarray
 
 
 def draw_energy(plt, ds: xr.Dataset, points: xr.Dataset, drift_step: float, stem: Path) -> Path | None:
-    drift = stability.energy_drift(ds)
+    """The energy-drift chart; None (and one line saying why) when the result cannot give the drift."""
+    try:
+        drift = stability.energy_drift(ds)
+    except fit.FitError as e:
+        print(f"no energy chart: {e}")
+        return None
     oscillation = SCENES[points.attrs["scene"]].STABILITY_AXES[0]  # the energy is conserved without drag
     fig, ax = plt.subplots(figsize=(7, 4.5), layout="constrained")
     drawn = False

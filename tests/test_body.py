@@ -383,3 +383,41 @@ def test_rigid_body_script_checks_the_course_plate(tmp_path):
     assert rows == ["2", "1", "3", "2"]  # growth rate, wobble frequency about 1 and 3, flip period: one sweep
     for chart in ("tilt", "rates", "z"):
         assert (tmp_path / f"plate_rigid_body_{chart}.png").stat().st_size > 10_000
+
+
+def test_growth_on_small_tilts_about_a_stable_axis_is_the_methods_one_step_map(tmp_path):
+    """About the largest axis of (1, 2, 2.5) kg m2, rk4 grows past h Omega = 2 sqrt(2), and rotations2, though
+    it keeps |L|, turns the stable axis unstable past h Omega = 0.93 (its linearized one-step map, step_exponents).
+    A 1e-150 rad tilt over 200 steps stays linear, so each member's measured growth per step equals the
+    prediction (stability_map's growth_theory)."""
+    from ensemble import stability
+    run = '''scene = "body"
+dt = 1.0
+t_end = 200.0
+save_dt = 1.0
+members = 1
+seed = 1
+save = ["omega"]
+[parameters]
+lambda1 = 1.0
+lambda2 = 2.0
+lambda3 = 2.5
+c = 0.0
+tilt0 = 1e-150
+spin_axis = 3
+[[sweep]]
+method = ["rk4"]
+spin0 = [2.0, 4.7, 5.0]
+[[sweep]]
+method = ["rotations2"]
+spin0 = [1.0, 1.55, 1.6, 1.8]
+'''
+    path = tmp_path / "scan.nc"
+    runner.run(parse(run, "scan.toml"), path, progress=False)
+    points = stability.stability_map(xr.load_dataset(path))
+    measured, theory = points["growth"].values, points["growth_theory"].values
+    grows = theory > 1.01
+    assert list(grows) == [False, True, True, False, True, True, True]
+    np.testing.assert_allclose(measured[grows], theory[grows], rtol=2e-4)
+    # the others neither grow nor (the rate along the axis holding) decay: measured 1 within the scan's tolerance
+    np.testing.assert_allclose(measured[~grows], 1.0, atol=stability.GROWTH_TOLERANCE)
