@@ -337,7 +337,7 @@ def test_splitting_one_step_map_on_small_tilts_is_the_kernels():
             lam = np.stack([values[f"lambda{a}"] for a in (1, 2, 3)])
             across = [(axis) % 3, (axis + 1) % 3]
             start, end = samples[0][across] * lam[across], samples[1][across] * lam[across]
-            step = model._linear_split_step(METHODS[method], values, constants, 0.2, None)
+            step = model._linear_split_step(METHODS[method], values, constants, 0.2)
             np.testing.assert_allclose(np.einsum("abm,bm->am", step, start), end, rtol=1e-7, atol=1e-22)
 
 

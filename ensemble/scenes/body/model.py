@@ -270,43 +270,36 @@ def conserved_energy(ds) -> np.ndarray:
 
 # ---------------------------------------------------------------- linear theory about the spin axis
 
-def transverse_exponents(values: dict[str, np.ndarray], constants: dict, spin: np.ndarray | None = None) -> np.ndarray:
-    """Exponents mu (1/s, complex, shape (2, members)) of small tilts about the spin axis k:
+def transverse_exponents(values: dict[str, np.ndarray], constants: dict) -> np.ndarray:
+    """Exponents mu (1/s, complex, shape (2, members)) of small tilts about the spin axis k at the start:
     d(w_i, w_j)/dt = [[-r_i, a_i w_k], [a_j w_k, -r_j]] (w_i, w_j), so mu = -(r_i + r_j)/2 +- sqrt(((r_i -
-    r_j)/2)^2 + a_i a_j w_k^2), with w_k = `spin` (rad/s; default the start's, spin0 cos tilt0). Without drag:
+    r_j)/2)^2 + a_i a_j w_k^2), with w_k = spin0 cos tilt0 (rad/s). Without drag:
     +-i Omega_k about a stable axis, Omega_k = spin0 sqrt((lambda_i - lambda_k)(lambda_j - lambda_k) / (lambda_i
     lambda_j)); +-sigma about the intermediate one."""
     _, i, j = spin_axes(values["spin_axis"])
     a, r = np.split(rates(values)[:6], 2)
     a_i, a_j, r_i, r_j = _pick(a, i), _pick(a, j), _pick(r, i), _pick(r, j)
-    wk = values["spin0"] * np.cos(values["tilt0"]) if spin is None else spin
+    wk = values["spin0"] * np.cos(values["tilt0"])
     root = np.sqrt((((r_i - r_j) / 2) ** 2 + a_i * a_j * wk**2).astype(complex))
     return np.stack((-(r_i + r_j) / 2 + root, -(r_i + r_j) / 2 - root))
 
 
-def spin_at(values: dict[str, np.ndarray], constants: dict, t: np.ndarray) -> np.ndarray:
-    """The spin-axis rate w_k (rad/s) at times t (s, per member) of the linear motion: decaying at c / lambda_k."""
-    lam = _pick(_moments(values), spin_axes(values["spin_axis"])[0])
-    return values["spin0"] * np.cos(values["tilt0"]) * np.exp(-values["c"] * t / lam)
-
-
-def step_exponents(method: Method, values: dict[str, np.ndarray], constants: dict, h: np.ndarray,
-                   spin: np.ndarray | None = None) -> np.ndarray:
+def step_exponents(method: Method, values: dict[str, np.ndarray], constants: dict, h: np.ndarray) -> np.ndarray:
     """What a fixed-step method of step h (s) shows of the exponents mu (see transverse_exponents): log(R(h mu)) / h
     for a Runge-Kutta method; for a splitting, log of the eigenvalues of its one-step map on small tilts, over h.
     Complex, shape (2, members), 1/s; the imaginary part is the wobble frequency the method shows."""
     if method.splitting is None:
         with np.errstate(divide="ignore", invalid="ignore"):
-            factor = method.tableau.stability(h * transverse_exponents(values, constants, spin))
+            factor = method.tableau.stability(h * transverse_exponents(values, constants))
             return np.log(factor.astype(complex)) / h
-    step = _linear_split_step(method, values, constants, h, spin)
+    step = _linear_split_step(method, values, constants, h)
     trace, det = step[0, 0] + step[1, 1], step[0, 0] * step[1, 1] - step[0, 1] * step[1, 0]
     root = np.sqrt((trace**2 / 4 - det).astype(complex))
     with np.errstate(divide="ignore", invalid="ignore"):
         return np.log(np.stack((trace / 2 + root, trace / 2 - root))) / h
 
 
-def _linear_split_step(method: Method, values, constants, h, spin) -> np.ndarray:
+def _linear_split_step(method: Method, values, constants, h) -> np.ndarray:
     """A splitting's one-step map (2, 2, members) on L across the spin axis k, (L_i, L_j) with i, j = k + 1, k + 2
     (cyclic), linearized about the spin L_k = lambda_k w_k. The turn about axis k turns (L_i, L_j) by -L_k tau /
     lambda_k; the turn about axis i, by the small angle L_i tau / lambda_i, moves L_j by +L_k L_i tau / lambda_i,
@@ -314,7 +307,7 @@ def _linear_split_step(method: Method, values, constants, h, spin) -> np.ndarray
     lambda_a)."""
     k, i, j = spin_axes(values["spin_axis"])
     lam = _moments(values)
-    spin_l = _pick(lam, k) * (values["spin0"] * np.cos(values["tilt0"]) if spin is None else spin)
+    spin_l = _pick(lam, k) * values["spin0"] * np.cos(values["tilt0"])
     n = spin_l.shape[0]
     zero, one = np.zeros(n), np.ones(n)
     step = np.broadcast_to(np.eye(2)[:, :, None], (2, 2, n)).copy()
