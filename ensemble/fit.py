@@ -536,19 +536,20 @@ class _SmallTilt:
     def fit(self, sigma, iterations=50):
         """(p's estimate of growth rate or wobble frequency, its standard error)."""
         p = self.p
+        jacobian, residual = self._projected_jacobian(p)
         for _ in range(iterations):
-            jacobian, residual = self._projected_jacobian(p)
             step = -(jacobian @ residual) / (jacobian @ jacobian)
             if not np.isfinite(step):
                 return np.nan, np.nan
             trial = p + step
-            while _squares(self._projected_jacobian(trial)[1]) > _squares(residual) and abs(trial - p) > 1e-15 * p:
+            at_trial = self._projected_jacobian(trial)
+            while _squares(at_trial[1]) > _squares(residual) and abs(trial - p) > 1e-15 * p:
                 trial = p + (trial - p) / 2
-            p = trial
+                at_trial = self._projected_jacobian(trial)
+            p, (jacobian, residual) = trial, at_trial  # the accepted point's evaluation serves the next step
             if abs(step) <= 1e-11 * abs(p):
                 break
         self.p = p
-        jacobian, residual = self._projected_jacobian(p)
         dof = residual.size - 5
         variance = sigma**2 if sigma > 0 else np.sum(residual**2) / max(dof, 1)
         estimate = p - self.damping if self.growing else p
