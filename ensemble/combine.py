@@ -77,7 +77,7 @@ def _per_member(ds: xr.Dataset, index: int, names: list[str], first_point: int) 
     n = ds.sizes["member"]
     own = _methods(ds)
     methods = ds["method"].values.astype(int) if "method" in ds.variables else np.zeros(n, dtype=int)
-    ds = ds.drop_vars([v for v in ("method",) if v in ds.variables])
+    ds = ds.drop_vars("method", errors="ignore")
     ds = ds.assign(run_index=("member", np.full(n, index, dtype=np.int32)),
                    member_in_run=("member", ds["member"].values.astype(np.int32)),
                    sweep_point_in_run=("member", ds["sweep_point"].values.astype(np.int32)),

@@ -162,13 +162,14 @@ def run_script(args, fit_function, *, name: str, value, units: str, title: str, 
     for axis in ds.attrs.get("sweep_axes", "").split():
         fits[axis] = ds[axis]
     step = f"dt = {ds.attrs['dt']} s" if "dt" in ds.attrs else "dt per member"
+    several = not isinstance(value, str)
     table = []
-    for variable, variable_units, variable_title in [(value, units, title)] if isinstance(value, str) else value:
-        if not np.isfinite(fits[variable].values).any() and not isinstance(value, str):
+    for variable, variable_units, variable_title in value if several else [(value, units, title)]:
+        if several and not np.isfinite(fits[variable].values).any():
             continue
         against = args.against if f"{variable}_method" in fits else "theory"
         found = rows(fits, variable, label, against)
-        if not isinstance(value, str):  # several quantities: leave out sweep points where one does not apply
+        if several:  # leave out sweep points where this quantity does not apply
             found = [r for r in found if np.isfinite(r.theory)]
         table += found
         print_table(f"{variable_title} of {args.result} ({ds.attrs['method']}, {step})", found, variable_units)
@@ -179,11 +180,10 @@ def run_script(args, fit_function, *, name: str, value, units: str, title: str, 
         fits.to_netcdf(out)
         print(f"fits: {out}")
         plt = pyplot()
-        if plt is None:
-            return 1 if args.check and not all(r.checked for r in table) else 0
-        paths = draw(plt, ds, fits, table, stem)
-        paths.append(draw_misses(plt, fits, stem, args.against, title))
-        print("charts:", *paths)
+        if plt is not None:
+            paths = draw(plt, ds, fits, table, stem)
+            paths.append(draw_misses(plt, fits, stem, args.against, title))
+            print("charts:", *paths)
     except OSError as e:
         cannot_write(out.parent, e)
     return 1 if args.check and not all(r.checked for r in table) else 0
