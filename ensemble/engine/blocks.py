@@ -244,6 +244,24 @@ def rates_saved(work, samples, save, block, limit, status, failure_time, t, step
 
 
 @njit(inline="always", **FAST)
+def rates_start(work, control, counts, K, C0, B, j, j0, d1, d2, d3, save_dt):
+    """Start member j of a block of an adaptive three-rate kernel: its first slopes (d1, d2, d3) into rows
+    K .. K + 2, its tolerances and first trial step from `control` (Hairer's guess where none is given), one rhs
+    evaluation counted."""
+    y1, y2, y3 = work[j], work[B + j], work[2 * B + j]
+    work[K * B + j], work[(K + 1) * B + j], work[(K + 2) * B + j] = d1, d2, d3
+    rtol, atol = control[1, j0 + j], control[2, j0 + j]
+    work[(C0 + RTOL) * B + j], work[(C0 + ATOL) * B + j] = rtol, atol
+    work[(C0 + ERR_PREVIOUS) * B + j] = 1e-4
+    h = control[0, j0 + j]
+    if h <= 0.0:
+        scale = atol + rtol * max(abs(y1), abs(y2), abs(y3))
+        h = first_step(max(abs(y1), abs(y2), abs(y3)) / scale, max(abs(d1), abs(d2), abs(d3)) / scale, save_dt)
+    work[(C0 + H) * B + j] = h
+    counts[RHS_EVALS, j0 + j] = 1.0
+
+
+@njit(inline="always", **FAST)
 def rates_error(work, K, NEW, C0, S, e, B):
     """Each member's error norm of its trial step into row C0 + ERR: the RMS over the three rates of h sum_s e_s
     k_s over atol + rtol max(|y|, |y_new|). FSAL: the last stage was evaluated at the new state NEW."""

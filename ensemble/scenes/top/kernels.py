@@ -13,26 +13,22 @@ import numpy as np
 from numba import njit, prange
 
 from ...engine.blocks import (
-    ATOL,
     CONTROL_ROWS,
-    ERR_PREVIOUS,
     FAST,
-    RTOL,
     STEP,
     H,
     adaptive_constants,
     check_members,
     control_step,
-    first_step,
     method_constants,
     rates_accept,
     rates_error,
     rates_load,
     rates_saved,
+    rates_start,
     trial_steps,
 )
 from ...methods import Method
-from ...results import RHS_EVALS
 from .model import PIECES
 
 BLOCK = 128  # members per block
@@ -178,19 +174,9 @@ def _adaptive_kernel(method: Method):
             j0 = block * B
             work = rates_load(state0, rate, block, samples, rows, 3, BLOCK)
             for j in range(B):
-                y1, y2, y3 = work[j], work[B + j], work[2 * B + j]
-                d1, d2, d3 = rhs(y1, y2, y3, work[3 * B + j], work[4 * B + j], work[5 * B + j])
-                work[K * B + j], work[(K + 1) * B + j], work[(K + 2) * B + j] = d1, d2, d3
-                rtol, atol = control[1, j0 + j], control[2, j0 + j]
-                work[(C0 + RTOL) * B + j], work[(C0 + ATOL) * B + j] = rtol, atol
-                work[(C0 + ERR_PREVIOUS) * B + j] = 1e-4
-                h = control[0, j0 + j]
-                if h <= 0.0:
-                    scale = atol + rtol * max(abs(y1), abs(y2), abs(y3))
-                    h = first_step(max(abs(y1), abs(y2), abs(y3)) / scale, max(abs(d1), abs(d2), abs(d3)) / scale,
-                                    save_dt)
-                work[(C0 + H) * B + j] = h
-                counts[RHS_EVALS, j0 + j] = 1.0
+                d1, d2, d3 = rhs(work[j], work[B + j], work[2 * B + j], work[3 * B + j], work[4 * B + j],
+                                 work[5 * B + j])
+                rates_start(work, control, counts, K, C0, B, j, j0, d1, d2, d3, save_dt)
             check_members(work, 0, 3, B, j0, limit, status, failure_time, 0.0, C0 + H)  # a non-finite start
             for i in range(1, n_save):
                 target = i * save_dt
