@@ -12,7 +12,6 @@ import zlib
 from dataclasses import dataclass
 from pathlib import Path
 
-import numba
 import numpy as np
 from tqdm import tqdm
 
@@ -96,14 +95,15 @@ def _same_settings(table: dict[str, np.ndarray], j0: int, j1: int):
             k0 = k
 
 
-def integrate(spec: Spec, method: Method, values: dict[str, np.ndarray], repeats: int = 0) -> tuple[Outcome, float]:
+def integrate(spec: Spec, method: Method, values: dict[str, np.ndarray], repeats: int = 0,
+              watch=None) -> tuple[Outcome, float]:
     """Integrate members that share one method and dt; returns what the launch did and, when `repeats` > 0, the
-    kernel's seconds per member-step (see kernel_seconds_per_step; NaN otherwise)."""
+    kernel's seconds per member-step (see kernel_seconds_per_step; NaN otherwise). watch as launch.integrate's."""
     scene = SCENES[spec.scene]
     dt = values["dt"] if method.adaptive else float(values["dt"][0])
     settings = dict(n_save=spec.n_save, save_dt=spec.save_dt, dt=dt, rtol=values["rtol"], atol=values["atol"],
                     blowup_factor=spec.blowup_factor)
-    outcome = launch.integrate(scene, method, values, spec.constants, **settings)
+    outcome = launch.integrate(scene, method, values, spec.constants, **settings, watch=watch)
     if repeats < 1 or method.closed_form:
         return outcome, np.nan
     stepping = {**settings, "n_save": 2, "save_dt": spec.t_end}  # the same steps, saving only the end
@@ -132,15 +132,10 @@ def kernel_seconds_per_step(scene, method: Method, values: dict[str, np.ndarray]
     settings = {**settings, "rtol": tiled["rtol"], "atol": tiled["atol"]}
     timed = launch.Launch(scene, method, tiled, constants, **settings)
     best = np.inf
-    threads = numba.get_num_threads()
-    numba.set_num_threads(1)  # one thread: how many blocks a point has cannot leave threads idle
-    try:
-        for _ in range(repeats):
-            start = time.perf_counter()
-            timed.run()
-            best = min(best, time.perf_counter() - start)
-    finally:
-        numba.set_num_threads(threads)
+    for _ in range(repeats):  # one thread: how many blocks a point has cannot leave threads idle
+        start = time.perf_counter()
+        timed.run(threads=1)
+        best = min(best, time.perf_counter() - start)
     counts = timed.outcome().counts
     return best / float(counts[0].sum() + counts[1].sum())
 
@@ -156,10 +151,12 @@ def observation_noise(spec: Spec, name: str, first: int, shape: tuple[int, ...])
     ])
 
 
-def chunk_data(spec: Spec, method: Method, values: dict[str, np.ndarray], first: int, repeats: int = 0):
-    """Integrate members first, first + 1, ... (one method and dt) and return (outcome, the variables to write)."""
+def chunk_data(spec: Spec, method: Method, values: dict[str, np.ndarray], first: int, repeats: int = 0,
+               watch=None):
+    """Integrate members first, first + 1, ... (one method and dt) and return (outcome, the variables to write);
+    watch as launch.integrate's."""
     scene = SCENES[spec.scene]
-    outcome, seconds_per_step = integrate(spec, method, values, repeats)
+    outcome, seconds_per_step = integrate(spec, method, values, repeats, watch)
     data = scene.observe(outcome.samples, spec.save, values, spec.constants)
     for name in spec.noise:
         data[name] = data[name] + observation_noise(spec, name, first, data[name].shape)
@@ -191,22 +188,39 @@ def run(spec: Spec, out: str | Path, *, chunk: int | None = None, progress: bool
     failed = np.zeros(len(Status), dtype=np.int64)
     start = time.perf_counter()
     with Writer(out, spec, table, chunk, command) as writer, tqdm(
-        total=n, unit="member", file=sys.stderr, disable=not progress, leave=False
+        total=n, unit="member", file=sys.stderr, disable=not progress, leave=False, bar_format=BAR
     ) as bar:
         if steps_per_member(spec):
             bar.set_postfix_str(f"about {n * steps_per_member(spec):.2g} member-steps in all", refresh=False)
         for j0 in range(0, n, chunk):
             for k0, k1 in _same_settings(table, j0, min(j0 + chunk, n)):
                 values = {name: v[k0:k1] for name, v in table.items()}
-                outcome, data = chunk_data(spec, METHODS[str(values["method"][0])], values, k0, repeats)
+                outcome, data = chunk_data(spec, METHODS[str(values["method"][0])], values, k0, repeats,
+                                           watch=_advance(bar, k1 - k0))
                 member_steps += int(outcome.counts[0].sum() + outcome.counts[1].sum())
                 step_counts.update(np.unique(outcome.counts[0] + outcome.counts[1]).tolist())
                 failed += np.bincount(outcome.status, minlength=len(Status))
                 writer.write(k0, data)
-                bar.update(k1 - k0)
+                bar.n = k1
+                bar.refresh()
     return Summary(n, member_steps, time.perf_counter() - start, step_counts.pop() if len(step_counts) == 1 else None,
                    blew_up=int(failed[Status.BLEW_UP]), underflowed=int(failed[Status.STEP_SIZE_UNDERFLOW]),
                    closed_form=all(METHODS[name].closed_form for name in spec.methods), preparing=preparing)
+
+
+# The bar counts members, and moves within a launch as its blocks store their samples.
+BAR = "{l_bar}{bar}| {n:.0f}/{total_fmt} members [{elapsed}<{remaining}{postfix}]"
+
+
+def _advance(bar: tqdm, members: int):
+    """A launch's watch: moves `bar` from where it stands to that plus `members` times the fraction done."""
+    start = bar.n
+
+    def watch(fraction: float) -> None:
+        bar.n = start + fraction * members
+        bar.refresh()
+
+    return watch
 
 
 ANNOUNCE_AFTER = 1.0  # s: kernels taking longer than this to get ready are being compiled, and a line says so

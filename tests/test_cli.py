@@ -143,6 +143,43 @@ def test_interrupted_run_leaves_no_complete_looking_file(write_runfile, tmp_path
         assert np.all(np.isfinite(part["omega"][:128]))
 
 
+def test_ctrl_c_inside_a_long_kernel_call_stops_the_run_at_once(tmp_path):
+    """One save interval of 5e9 steps (hours): Ctrl-C while the kernel runs ends the process within seconds, exit
+    130, leaving the .part (no member written) and no output. The kernel runs on daemon threads; the main thread
+    only waits, so the interrupt reaches it."""
+    import signal
+    import time
+
+    runfile = tmp_path / "long.toml"
+    runfile.write_text(top_runfile(members=1, dt=1e-7, t_end=1000.0, save_dt=500.0))
+    out = tmp_path / "long.nc"
+    run = subprocess.Popen([sys.executable, "-m", "ensemble", "run", str(runfile), "-o", str(out)],
+                           stderr=subprocess.PIPE, text=True)
+    part = tmp_path / "long.nc.part"
+    deadline = time.monotonic() + 300
+    while not part.exists() and run.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.1)
+    time.sleep(1.0)  # the kernel is running now
+    sent = time.monotonic()
+    run.send_signal(signal.SIGINT)
+    try:
+        _, err = run.communicate(timeout=30)
+    finally:
+        run.kill()
+    assert run.returncode == 130 and time.monotonic() - sent < 5, err
+    assert "interrupted" in err.splitlines()[-1] and not out.exists()
+    with netCDF4.Dataset(part) as nc:
+        assert nc.members_written == 0
+
+
+def test_the_watch_sees_the_fraction_done_grow_to_one():
+    """launch.integrate calls watch with the fraction of samples stored so far: never decreasing, 1 at the end."""
+    fractions = []
+    spec = parse(top_runfile(members=300, t_end=2.0, save_dt=0.1))
+    runner.integrate(spec, METHODS["rk4"], members_table(spec), watch=fractions.append)
+    assert fractions and fractions[-1] == 1.0 and np.all(np.diff(fractions) >= 0)
+
+
 def test_second_process_loads_kernels_from_the_disk_cache(cli_run):
     folder, _ = cli_run  # that run compiled (or loaded) the rk4 kernel
     env = {**os.environ, "NUMBA_DEBUG_CACHE": "1"}

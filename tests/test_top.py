@@ -122,6 +122,22 @@ def test_member_result_does_not_depend_on_its_neighbours():
     np.testing.assert_array_equal(whole[:, :, 7:139], part)
 
 
+@pytest.mark.parametrize("method", ["rk4", "dopri5"])
+def test_results_do_not_depend_on_the_threads(method):
+    """Five blocks run on one thread, on two (in eight groups) and on five give the same bits, counts included."""
+    rng = np.random.default_rng(4)
+    n = 5 * 128 - 3
+    table = members(np.full(n, 1e-3), rng.uniform(1e-3, 2e-3, n), rng.uniform(0, 2e-4, n),
+                    rng.uniform(10, 60, n), rng.uniform(0, 1, n), rng.uniform(0, 6, n))
+    call = launch.Launch(top, METHODS[method], table, {}, n_save=4, save_dt=0.05, dt=1e-3, rtol=1e-8, atol=1e-10)
+    outcomes = []
+    for threads in (1, 2, 5):
+        call.run(threads=threads)
+        outcomes.append(call.outcome())
+    for other in outcomes[1:]:
+        np.testing.assert_array_equal(other.samples, outcomes[0].samples)
+        np.testing.assert_array_equal(other.counts, outcomes[0].counts)
+
 def test_split_methods_are_exact_without_drag():
     """With c = 0 the drag piece is the identity and the rotation piece is the whole exact flow."""
     table = members([1e-3, 2e-3], [2e-3, 1e-3], [0.0, 0.0], [60.0, 40.0], [0.1, 0.3], [0.0, 1.0])

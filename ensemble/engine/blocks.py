@@ -1,7 +1,7 @@
 """Generic compiled helpers of the ensemble kernels: no scene lives here.
 
-Members run in blocks of B; prange goes over blocks and the innermost loop
-over the members of a block, which LLVM vectorizes. A kernel keeps everything
+Members run in blocks of B; threads take groups of blocks (engine.launch.run_blocks)
+and the innermost loop goes over the members of a block, which LLVM vectorizes. A kernel keeps everything
 a step touches in one work array per block, row r of member j at r * B + j:
 with a single base pointer LLVM proves the rows disjoint and emits only the
 vector loop (separate arrays add a runtime overlap check whose scalar fallback
@@ -233,13 +233,15 @@ def rates_load(state0, rate, block, samples, rows, parameters, B):
 
 
 @njit(inline="always", **FAST)
-def rates_saved(work, samples, save, block, limit, status, failure_time, t, step_row, B):
+def rates_saved(work, samples, save, block, limit, status, failure_time, progress, t, step_row, B):
     """End of a save interval at time t (s): fail the members that blew up, store sample `save`; when no member
-    of the block runs any more, fill its later samples with NaN and return True (the block is done)."""
+    of the block runs any more, fill its later samples with NaN and return True (the block is done). progress[block]
+    becomes the last sample the block has stored."""
     running = check_members(work, 0, 3, B, block * B, limit, status, failure_time, t, step_row)
     rows_out(work, 0, samples[save, block], 0, 3, B)
     if running == 0:
         fill_failed(samples, save + 1, block)
+    progress[block] = samples.shape[0] - 1 if running == 0 else save
     return running == 0
 
 

@@ -5,21 +5,29 @@ kernels module (ensemble/scenes/<scene>/kernels.py) provides
 block_size(constants) and kernel(method, constants); its kernels follow one of
 two call conventions, over arrays laid out by block (see engine.blocks):
 
-- fixed step: kernel(state0, rate, h, steps_per_save, limit, samples, status, failure_time);
-- adaptive:   kernel(state0, rate, control, save_dt, limit, samples, counts, status, failure_time),
-  control (3, members): first trial step (s; <= 0: estimate it), rtol, atol.
+- fixed step: kernel(state0, rate, h, steps_per_save, limit, samples, status, failure_time, progress, first_block,
+  end_block);
+- adaptive:   kernel(state0, rate, control, save_dt, limit, samples, counts, status, failure_time, progress,
+  first_block, end_block), control (3, members): first trial step (s; <= 0: estimate it), rtol, atol.
 
 state0 and rate are (blocks, rows, B) (rows from the scene's kernel_rows),
 limit (members,) the largest |state component| a member may reach, samples
 (n_save, blocks, state rows, B), counts (3, members) as results.COUNTS,
-status (members,) and failure_time (members,; s).
+status (members,), failure_time (members,; s) and progress (blocks,; int64),
+the last sample each block has stored. A call integrates blocks first_block
+.. end_block - 1 on the calling thread without the GIL; `run_blocks` spreads a
+launch's blocks over threads. Kernels are not compiled with parallel=True:
+Numba's parallel lowering made a kernel take 3 to 4 times as long to compile
+(measured on the chain's rk4, verlet and euler).
 """
 from __future__ import annotations
 
 import importlib
 import math
+import threading
 from types import ModuleType
 
+import numba
 import numpy as np
 
 from ..methods import Method
@@ -38,7 +46,7 @@ def block_size(scene, constants: dict) -> int:
 
 def integrate(scene, method: Method, values: dict[str, np.ndarray], constants: dict, *, n_save: int,
               save_dt: float, dt=None, rtol=None, atol=None,
-              blowup_factor: float = DEFAULT_BLOWUP_FACTOR) -> Outcome:
+              blowup_factor: float = DEFAULT_BLOWUP_FACTOR, watch=None) -> Outcome:
     """Integrate the members described by `values` with `method`, saving n_save samples every save_dt (s).
 
     Fixed-step methods take the step dt (s, one value; save_dt a whole multiple
@@ -49,11 +57,11 @@ def integrate(scene, method: Method, values: dict[str, np.ndarray], constants: d
     start (checked at every saved sample), or when its adaptive step size
     underflows; it stops there and its later samples are NaN. A member's result
     depends only on its own values: never on how many members run with it,
-    the chunking or the thread count.
+    the chunking or the thread count. watch(fraction done) is called every WATCH_SECONDS while the kernel runs.
     """
     call = Launch(scene, method, values, constants, n_save=n_save, save_dt=save_dt, dt=dt, rtol=rtol, atol=atol,
                   blowup_factor=blowup_factor)
-    call.run()
+    call.run(watch=watch)
     return call.outcome()
 
 
@@ -86,22 +94,27 @@ class Launch:
         self.state0, self.rate, self.limit = blocked(state0, block), blocked(rate, block), limit[0]
         self.samples = np.empty((n_save, padded // block, state0.shape[0], block))
         self.status, self.failure_time = np.zeros(padded), np.empty(padded)
+        self.progress = np.zeros(padded // block, dtype=np.int64)
         self.counts = np.zeros((3, padded)) if method.adaptive else None  # fixed steps are counted afterwards
 
-    def run(self) -> None:
-        """Run the kernel (or evaluate the closed form) on the laid-out inputs."""
+    def run(self, threads: int | None = None, watch=None) -> None:
+        """Run the kernel (or evaluate the closed form) on the laid-out inputs, on `threads` threads (default:
+        thread_count()); watch(fraction done), if given, is called from this thread while it waits."""
         if self.method.closed_form:
             self.samples = self.exact()
             return
         self.status[:] = 0.0
         self.failure_time[:] = np.nan
+        self.progress[:] = 0
         if self.method.adaptive:
             self.counts[:] = 0.0
-            self.kernel(self.state0, self.rate, self.control, float(self.save_dt), self.limit, self.samples,
-                        self.counts, self.status, self.failure_time)
+            arguments = (self.state0, self.rate, self.control, float(self.save_dt), self.limit, self.samples,
+                         self.counts, self.status, self.failure_time, self.progress)
         else:
-            self.kernel(self.state0, self.rate, float(self.dt), int(self.steps_per_save), self.limit, self.samples,
-                        self.status, self.failure_time)
+            arguments = (self.state0, self.rate, float(self.dt), int(self.steps_per_save), self.limit, self.samples,
+                         self.status, self.failure_time, self.progress)
+        done = (lambda: watch(self.progress.sum() / (self.progress.size * max(self.n_save - 1, 1)))) if watch else None
+        run_blocks(self.kernel, arguments, self.state0.shape[0], threads, done)
 
     def outcome(self) -> Outcome:
         """What the last run did, per member."""
@@ -117,6 +130,51 @@ class Launch:
             counts = _fixed_counts(self.method, self.scene, failure_time, self.dt,
                                    self.steps_per_save * (self.n_save - 1))
         return Outcome(unblocked(self.samples)[:, :, :n], counts, self.status[:n].astype(np.int8), failure_time)
+
+
+def thread_count() -> int:
+    """Threads a launch runs on unless told otherwise: NUMBA_NUM_THREADS, by default the cores Numba sees."""
+    return numba.config.NUMBA_NUM_THREADS
+
+
+TASKS_PER_THREAD = 4  # a launch's blocks go to threads in this many groups per thread, so none waits long at the end
+WATCH_SECONDS = 0.2  # how often the waiting thread calls `watch`
+
+
+def run_blocks(kernel, arguments: tuple, blocks: int, threads: int | None = None, watch=None) -> None:
+    """Call kernel(*arguments, first_block, end_block) over blocks 0 .. blocks - 1 in contiguous groups on
+    `threads` threads (default thread_count()), calling watch() every WATCH_SECONDS while they run. Each block's
+    result depends on that block alone, so the grouping and the thread count leave every value unchanged.
+
+    The threads are daemons and the calling thread only waits: Ctrl-C (KeyboardInterrupt) reaches the caller at
+    once, and the process may exit while a kernel call is still running, without waiting for it.
+    """
+    threads = max(1, min(threads or thread_count(), blocks))
+    bounds = np.linspace(0, blocks, min(blocks, TASKS_PER_THREAD * threads) + 1).round().astype(int)
+    groups = iter(list(zip(bounds[:-1].tolist(), bounds[1:].tolist())))
+    lock, failures = threading.Lock(), []
+
+    def work():
+        while not failures:
+            with lock:
+                group = next(groups, None)
+            if group is None:
+                return
+            try:
+                kernel(*arguments, *group)
+            except BaseException as error:  # noqa: BLE001 (handed to the caller)
+                failures.append(error)
+
+    workers = [threading.Thread(target=work, daemon=True, name="ensemble-kernel") for _ in range(threads)]
+    for worker in workers:
+        worker.start()
+    for worker in workers:
+        while worker.is_alive():
+            worker.join(WATCH_SECONDS)
+            if watch is not None:
+                watch()
+    if failures:
+        raise failures[0]
 
 
 def _fixed_counts(method: Method, scene, failure_time: np.ndarray, dt: float, steps: int) -> np.ndarray:
@@ -136,11 +194,12 @@ def prepare(scene, method: Method, constants: dict) -> None:
     kernel = kernels.kernel(method, constants)
     state0, rate = np.zeros((1, state_rows, block)), np.zeros((1, rate_rows, block))
     samples = np.empty((1, 1, state_rows, block))
-    limit, status, failure_time = np.ones(block), np.zeros(block), np.zeros(block)
+    limit, status, failure_time, progress = np.ones(block), np.zeros(block), np.zeros(block), np.zeros(1, np.int64)
     if method.adaptive:
-        kernel(state0, rate, np.ones((3, block)), 1.0, limit, samples, np.zeros((3, block)), status, failure_time)
+        kernel(state0, rate, np.ones((3, block)), 1.0, limit, samples, np.zeros((3, block)), status, failure_time,
+               progress, 0, 1)
     else:
-        kernel(state0, rate, 1.0, 1, limit, samples, status, failure_time)
+        kernel(state0, rate, 1.0, 1, limit, samples, status, failure_time, progress, 0, 1)
 
 
 def _limits(state0: np.ndarray, blowup_factor: float) -> np.ndarray:

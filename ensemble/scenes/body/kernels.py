@@ -11,7 +11,7 @@ import math
 from functools import cache
 
 import numpy as np
-from numba import njit, prange
+from numba import njit
 
 from ...engine.blocks import (
     CONTROL_ROWS,
@@ -98,11 +98,11 @@ def _splitting_kernel(method: Method):
     K = 3 + P
     rows = K + 3 * E
 
-    @njit(parallel=True, cache=True, **FAST)
-    def kernel(state0, rate, h, steps_per_save, limit, samples, status, failure_time):
+    @njit(nogil=True, cache=True, **FAST)
+    def kernel(state0, rate, h, steps_per_save, limit, samples, status, failure_time, progress, first_block, end_block):
         """As _fixed_kernel's."""
         n_save = samples.shape[0]
-        for block in prange(state0.shape[0]):
+        for block in range(first_block, end_block):
             work = rates_load(state0, rate, block, samples, rows, P, BLOCK)
             check_members(work, 0, 3, BLOCK, block * BLOCK, limit, status, failure_time, 0.0)  # a non-finite start
             for e in range(E):
@@ -132,7 +132,8 @@ def _splitting_kernel(method: Method):
                         work[BLOCK + j] = y2
                         work[2 * BLOCK + j] = y3
                 _scale_rows(work, INVERSE, BLOCK)
-                if rates_saved(work, samples, i, block, limit, status, failure_time, i * steps_per_save * h, -1, BLOCK):
+                if rates_saved(work, samples, i, block, limit, status, failure_time, progress,
+                               i * steps_per_save * h, -1, BLOCK):
                     break
 
     return kernel
@@ -149,12 +150,12 @@ def _fixed_kernel(method: Method):
     K = 3 + P
     rows = K + 3 * S
 
-    @njit(parallel=True, cache=True, **FAST)
-    def kernel(state0, rate, h, steps_per_save, limit, samples, status, failure_time):
+    @njit(nogil=True, cache=True, **FAST)
+    def kernel(state0, rate, h, steps_per_save, limit, samples, status, failure_time, progress, first_block, end_block):
         """state0 (blocks, 3, BLOCK), rate (blocks, P, BLOCK), limit (M,) -> samples (n_save, blocks, 3, BLOCK),
         status (M,), failure_time (M,) (s; set only where a member fails); M = blocks x BLOCK."""
         n_save = samples.shape[0]
-        for block in prange(state0.shape[0]):
+        for block in range(first_block, end_block):
             work = rates_load(state0, rate, block, samples, rows, P, BLOCK)
             check_members(work, 0, 3, BLOCK, block * BLOCK, limit, status, failure_time, 0.0)  # a non-finite start
             for i in range(1, n_save):
@@ -187,7 +188,8 @@ def _fixed_kernel(method: Method):
                         work[j] = y1 + h * s1
                         work[BLOCK + j] = y2 + h * s2
                         work[2 * BLOCK + j] = y3 + h * s3
-                if rates_saved(work, samples, i, block, limit, status, failure_time, i * steps_per_save * h, -1, BLOCK):
+                if rates_saved(work, samples, i, block, limit, status, failure_time, progress,
+                               i * steps_per_save * h, -1, BLOCK):
                     break
 
     return kernel
@@ -208,15 +210,16 @@ def _adaptive_kernel(method: Method):
     C0 = NEW + 3
     rows = C0 + CONTROL_ROWS
 
-    @njit(parallel=True, cache=True, **FAST)
-    def kernel(state0, rate, control, save_dt, limit, samples, counts, status, failure_time):
+    @njit(nogil=True, cache=True, **FAST)
+    def kernel(state0, rate, control, save_dt, limit, samples, counts, status, failure_time, progress,
+               first_block, end_block):
         """state0 (blocks, 3, BLOCK), rate (blocks, P, BLOCK); control (3, M): first step (s; <= 0: estimate
         it), rtol, atol;
         limit (M,) -> samples (n_save, blocks, 3, BLOCK), counts (3, M): accepted, rejected, right-hand-side
         evaluations; status (M,) and failure_time (M,; s, set only where a member fails)."""
         n_save = samples.shape[0]
         B = BLOCK
-        for block in prange(state0.shape[0]):
+        for block in range(first_block, end_block):
             j0 = block * B
             work = rates_load(state0, rate, block, samples, rows, P, BLOCK)
             for j in range(B):
@@ -244,7 +247,7 @@ def _adaptive_kernel(method: Method):
                     control_step(work, C0, B, target, counts, j0, status, failure_time, S - 1, alpha, beta, safety,
                                   min_factor, max_factor)
                     rates_accept(work, K, NEW, C0, S, B)
-                if rates_saved(work, samples, i, block, limit, status, failure_time, target, C0 + H, BLOCK):
+                if rates_saved(work, samples, i, block, limit, status, failure_time, progress, target, C0 + H, BLOCK):
                     break
 
     return kernel

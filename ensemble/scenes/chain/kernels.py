@@ -10,7 +10,7 @@ import math
 from functools import cache
 
 import numpy as np
-from numba import njit, prange
+from numba import njit
 
 from ...engine.blocks import (
     ATOL,
@@ -105,13 +105,14 @@ def _load_chain_block(state0, rate, block, samples, n, B, rows, periodic):
 
 
 @njit(inline="always", **FAST)
-def _chain_saved(work, samples, save, block, limit, status, failure_time, t, step_row, n, B):
+def _chain_saved(work, samples, save, block, limit, status, failure_time, progress, t, step_row, n, B):
     """End of a save interval at time t (s): fail the members that blew up, store sample `save`; when no member
     of the block runs any more, fill its later samples with NaN and return True (the block is done)."""
     running = check_members(work, 1, 2 * n + 1, B, block * B, limit, status, failure_time, t, step_row)
     _store_chain_sample(work, samples, save, block, n, B)
     if running == 0:
         fill_failed(samples, save + 1, block)
+    progress[block] = samples.shape[0] - 1 if running == 0 else save
     return running == 0
 
 
@@ -219,13 +220,14 @@ def _fixed_kernel(method: Method, n: int, periodic: bool):
     rows = KV + S * n if runge_kutta else CR + n
     stage_rows = (X, V, ZX, ZV, KX, KV)
 
-    @njit(parallel=True, cache=True, **FAST)
-    def splitting_kernel(state0, rate, h, steps_per_save, limit, samples, status, failure_time):
+    @njit(nogil=True, cache=True, **FAST)
+    def splitting_kernel(state0, rate, h, steps_per_save, limit, samples, status, failure_time, progress, first_block,
+                         end_block):
         """state0 (blocks, 2n, B), rate (blocks, 2n, B), limit (M,) -> samples (n_save, blocks, 2n, B),
         status (M,), failure_time (M,) (s; set only where a member fails); M = blocks x B."""
         kinds, taus, lags = splitting_schedule(pieces, fractions, h, steps_per_save, TILE_PIECES)
         count = len(kinds)
-        for block in prange(state0.shape[0]):
+        for block in range(first_block, end_block):
             j0 = block * B
             work = _load_chain_block(state0, rate, block, samples, n, B, rows, periodic)
             check_members(work, X + 1, 2 * n + 1, B, j0, limit, status, failure_time, 0.0)  # a non-finite start
@@ -248,14 +250,15 @@ def _fixed_kernel(method: Method, n: int, periodic: bool):
                         else:
                             _drift(work, taus[p], 0, n, n, B, n)
                             _set_ghosts(work, X, n, B, periodic)
-                if _chain_saved(work, samples, save, block, limit, status, failure_time, save * steps_per_save * h, -1,
-                                n, B):
+                if _chain_saved(work, samples, save, block, limit, status, failure_time, progress,
+                                save * steps_per_save * h, -1, n, B):
                     break
 
-    @njit(parallel=True, cache=True, **FAST)
-    def runge_kutta_kernel(state0, rate, h, steps_per_save, limit, samples, status, failure_time):
+    @njit(nogil=True, cache=True, **FAST)
+    def runge_kutta_kernel(state0, rate, h, steps_per_save, limit, samples, status, failure_time, progress, first_block,
+                           end_block):
         """As splitting_kernel."""
-        for block in prange(state0.shape[0]):
+        for block in range(first_block, end_block):
             j0 = block * B
             work = _load_chain_block(state0, rate, block, samples, n, B, rows, periodic)
             check_members(work, X + 1, 2 * n + 1, B, j0, limit, status, failure_time, 0.0)  # a non-finite start
@@ -268,8 +271,8 @@ def _fixed_kernel(method: Method, n: int, periodic: bool):
                             dx, dv = _stage_sums(work, b, S, KX, KV, i, j, n, B)
                             work[(X + 1 + i) * B + j] += h * dx
                             work[(V + i) * B + j] += h * dv
-                if _chain_saved(work, samples, save, block, limit, status, failure_time, save * steps_per_save * h, -1,
-                                n, B):
+                if _chain_saved(work, samples, save, block, limit, status, failure_time, progress,
+                                save * steps_per_save * h, -1, n, B):
                     break
 
     return runge_kutta_kernel if runge_kutta else splitting_kernel
@@ -294,12 +297,13 @@ def _adaptive_kernel(method: Method, n: int, periodic: bool):
     C0 = KV + S * n
     rows = C0 + CONTROL_ROWS
     stage_rows = (X, V, ZX, ZV, KX, KV)
-    @njit(parallel=True, cache=True, **FAST)
-    def kernel(state0, rate, control, save_dt, limit, samples, counts, status, failure_time):
+    @njit(nogil=True, cache=True, **FAST)
+    def kernel(state0, rate, control, save_dt, limit, samples, counts, status, failure_time, progress,
+               first_block, end_block):
         """state0, rate (blocks, 2n, B); control (3, M): first step (s; <= 0: estimate it), rtol, atol;
         limit (M,) -> samples (n_save, blocks, 2n, B), counts (3, M): accepted, rejected, right-hand-side evaluations;
         status (M,) and failure_time (M,; s, set only where a member fails)."""
-        for block in prange(state0.shape[0]):
+        for block in range(first_block, end_block):
             j0 = block * B
             work = _load_chain_block(state0, rate, block, samples, n, B, rows, periodic)
             _chain_slopes(work, X, V, KX, KV, n, B)
@@ -351,7 +355,8 @@ def _adaptive_kernel(method: Method, n: int, periodic: bool):
                                 work[(X + 1 + i) * B + j] = np.nan
                                 work[(V + i) * B + j] = np.nan
                     _set_ghosts(work, X, n, B, periodic)
-                if _chain_saved(work, samples, save, block, limit, status, failure_time, target, C0 + H, n, B):
+                if _chain_saved(work, samples, save, block, limit, status, failure_time, progress,
+                                target, C0 + H, n, B):
                     break
 
     return kernel

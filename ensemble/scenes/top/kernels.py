@@ -10,7 +10,7 @@ import math
 from functools import cache
 
 import numpy as np
-from numba import njit, prange
+from numba import njit
 
 from ...engine.blocks import (
     CONTROL_ROWS,
@@ -83,12 +83,12 @@ def _fixed_kernel(method: Method):
     runge_kutta, S, a, b, E, pieces, fractions = method_constants(method)
     rows = 6 + (3 * S if runge_kutta else 2 * E)
 
-    @njit(parallel=True, cache=True, **FAST)
-    def kernel(state0, rate, h, steps_per_save, limit, samples, status, failure_time):
+    @njit(nogil=True, cache=True, **FAST)
+    def kernel(state0, rate, h, steps_per_save, limit, samples, status, failure_time, progress, first_block, end_block):
         """state0 (blocks, 3, BLOCK), rate (blocks, 3, BLOCK), limit (M,) -> samples (n_save, blocks, 3, BLOCK),
         status (M,), failure_time (M,) (s; set only where a member fails); M = blocks x BLOCK."""
         n_save = samples.shape[0]
-        for block in prange(state0.shape[0]):
+        for block in range(first_block, end_block):
             j0 = block * BLOCK
             work = rates_load(state0, rate, block, samples, rows, 3, BLOCK)
             check_members(work, 0, 3, BLOCK, j0, limit, status, failure_time, 0.0)  # a non-finite start
@@ -142,7 +142,8 @@ def _fixed_kernel(method: Method):
                         work[j] = y1
                         work[BLOCK + j] = y2
                         work[2 * BLOCK + j] = y3
-                if rates_saved(work, samples, i, block, limit, status, failure_time, i * steps_per_save * h, -1, BLOCK):
+                if rates_saved(work, samples, i, block, limit, status, failure_time, progress,
+                               i * steps_per_save * h, -1, BLOCK):
                     break
 
     return kernel
@@ -163,14 +164,15 @@ def _adaptive_kernel(method: Method):
     C0 = NEW + 3
     rows = C0 + CONTROL_ROWS
 
-    @njit(parallel=True, cache=True, **FAST)
-    def kernel(state0, rate, control, save_dt, limit, samples, counts, status, failure_time):
+    @njit(nogil=True, cache=True, **FAST)
+    def kernel(state0, rate, control, save_dt, limit, samples, counts, status, failure_time, progress,
+               first_block, end_block):
         """state0, rate (blocks, 3, BLOCK); control (3, M): first step (s; <= 0: estimate it), rtol, atol;
         limit (M,) -> samples (n_save, blocks, 3, BLOCK), counts (3, M): accepted, rejected, right-hand-side
         evaluations; status (M,) and failure_time (M,; s, set only where a member fails)."""
         n_save = samples.shape[0]
         B = BLOCK
-        for block in prange(state0.shape[0]):
+        for block in range(first_block, end_block):
             j0 = block * B
             work = rates_load(state0, rate, block, samples, rows, 3, BLOCK)
             for j in range(B):
@@ -199,7 +201,7 @@ def _adaptive_kernel(method: Method):
                     control_step(work, C0, B, target, counts, j0, status, failure_time, S - 1, alpha, beta, safety,
                                   min_factor, max_factor)
                     rates_accept(work, K, NEW, C0, S, B)
-                if rates_saved(work, samples, i, block, limit, status, failure_time, target, C0 + H, BLOCK):
+                if rates_saved(work, samples, i, block, limit, status, failure_time, progress, target, C0 + H, BLOCK):
                     break
 
     return kernel
