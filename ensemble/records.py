@@ -50,19 +50,32 @@ def measured_growth(amplitudes: np.ndarray, t: np.ndarray, step: np.ndarray) -> 
     return np.where(np.isfinite(fastest), fastest, np.nan)
 
 
-def growth_per_step(scene, method: Method, values: dict[str, np.ndarray], constants: dict, outcome: Outcome,
+def growth_per_step(scene, method: Method, values: dict[str, np.ndarray], amplitudes: np.ndarray, outcome: Outcome,
                     t: np.ndarray, t_end: float) -> np.ndarray:
-    """Each member's measured growth factor per step (see measured_growth) from samples at times t (s); per mean
-    accepted step (time reached, t_end or its failure, over steps accepted) for adaptive methods; NaN for the
-    closed form."""
-    if method.closed_form:
-        return np.full(outcome.samples.shape[2], np.nan)
+    """Each member's measured growth factor per step (see measured_growth) from the scene's amplitudes (motions,
+    samples, members) at times t (s); per mean accepted step (time reached, t_end or its failure, over steps
+    accepted) for adaptive methods."""
     step = values["dt"]
     if method.adaptive:
         reached = np.where(np.isnan(outcome.failure_time), t_end, outcome.failure_time)
         with np.errstate(invalid="ignore", divide="ignore"):
             step = reached / outcome.counts[0]
-    return measured_growth(scene.amplitudes(outcome.samples, values, constants), t, step)
+    return measured_growth(amplitudes, t, step)
+
+
+def relative_error(samples: np.ndarray, exact: np.ndarray) -> np.ndarray:
+    """max |y - y_exact| / max |y_exact| over the state, per sample and member: (samples, members) from
+    samples and exact (samples, state, members). A member with non-finite values has an infinite error."""
+    with np.errstate(invalid="ignore", divide="ignore"):
+        relative = np.abs(samples - exact).max(axis=1) / np.abs(exact).max(axis=1)
+    relative[~np.isfinite(relative) & np.isfinite(exact).all(axis=1)] = np.inf
+    return relative
+
+
+def error_records(relative: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """error_max and error_final per member from a whole record's relative_error: the largest after the start,
+    and the last."""
+    return relative[1:].max(axis=0) if len(relative) > 1 else relative[0], relative[-1]
 
 
 def measured_error(samples: np.ndarray, exact: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -70,7 +83,4 @@ def measured_error(samples: np.ndarray, exact: np.ndarray) -> tuple[np.ndarray, 
 
     samples and exact: (n_save, state, members). A member with non-finite values has an infinite error.
     """
-    with np.errstate(invalid="ignore", divide="ignore"):
-        relative = np.abs(samples - exact).max(axis=1) / np.abs(exact).max(axis=1)
-    relative[~np.isfinite(relative) & np.isfinite(exact).all(axis=1)] = np.inf
-    return relative[1:].max(axis=0) if len(relative) > 1 else relative[0], relative[-1]
+    return error_records(relative_error(samples, exact))

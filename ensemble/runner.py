@@ -17,7 +17,7 @@ from tqdm import tqdm
 
 from .engine import launch
 from .methods import METHODS, Method
-from .records import growth_per_step, measured_error
+from .records import error_records, growth_per_step, relative_error
 from .results import COUNTS, Outcome, Status
 from .scenes import SCENES
 from .spec import Spec, members_table
@@ -51,13 +51,30 @@ class Summary:
         return f"{steps} in {self.seconds:.3g} s: {rate:.3g} member-steps/s" + compiling + failures
 
 
-def member_bytes(spec: Spec) -> int:
-    """Memory (bytes) one member's record takes while its chunk is held: kernel samples and saved variables."""
+def _record_bytes(spec: Spec) -> tuple[int, int]:
+    """Bytes one member needs per saved sample while its chunk runs (kernel samples, saved variables and the
+    amplitudes growth_per_step is fitted to), and once (its kernel work array, the largest of the run's methods)."""
     scene = SCENES[spec.scene]
     sizes = scene.sizes(spec.constants)
     state_rows, _ = scene.kernel_rows(spec.constants)
     saved = sum(math.prod(sizes[d] for d in scene.OBSERVABLES[v][0][2:]) for v in spec.save)
-    return 8 * spec.n_save * (state_rows + saved)
+    work = max((launch.work_rows(scene, METHODS[name], spec.constants) for name in spec.methods), default=0)
+    return 8 * (state_rows + saved), 8 * work
+
+
+def segment_samples(spec: Spec) -> int:
+    """Saved samples per kernel call: every one, unless one kernel block's share of them would outgrow
+    CHUNK_BYTES; then the record runs in segments of this many samples (each call continues the last)."""
+    per_sample, _ = _record_bytes(spec)
+    block = launch.block_size(SCENES[spec.scene], spec.constants)
+    return int(max(1, min(spec.n_save, CHUNK_BYTES // (per_sample * block))))
+
+
+def member_bytes(spec: Spec) -> int:
+    """Memory (bytes) one member takes while its chunk runs: a segment of its record, its kernel work array, and
+    the two amplitudes per saved sample that growth_per_step is fitted to (a whole record's)."""
+    per_sample, once = _record_bytes(spec)
+    return per_sample * segment_samples(spec) + once + 16 * spec.n_save
 
 
 def smallest_chunk(spec: Spec) -> int:
@@ -74,8 +91,9 @@ def steps_per_member(spec: Spec) -> float:
 
 
 def default_chunk(spec: Spec) -> int:
-    """Members per chunk: a multiple of the kernel block that keeps a chunk within CHUNK_BYTES of records and
-    CHUNK_MEMBER_STEPS of work (so the progress bar moves, and Ctrl-C lands between chunks, every few seconds)."""
+    """Members per chunk: a multiple of the kernel block that keeps a chunk within CHUNK_BYTES of memory
+    (member_bytes) and CHUNK_MEMBER_STEPS of work (so chunks end, and finished members reach the file, every few
+    seconds)."""
     block = launch.block_size(SCENES[spec.scene], spec.constants)
     chunk = CHUNK_BYTES // member_bytes(spec) // block * block
     steps = steps_per_member(spec)
@@ -95,14 +113,19 @@ def _same_settings(table: dict[str, np.ndarray], j0: int, j1: int):
             k0 = k
 
 
+def _settings(spec: Spec, method: Method, values: dict[str, np.ndarray]) -> dict:
+    """A launch's settings for members that share one method and dt."""
+    dt = values["dt"] if method.adaptive else float(values["dt"][0])
+    return dict(n_save=spec.n_save, save_dt=spec.save_dt, dt=dt, rtol=values["rtol"], atol=values["atol"],
+                blowup_factor=spec.blowup_factor)
+
+
 def integrate(spec: Spec, method: Method, values: dict[str, np.ndarray], repeats: int = 0,
               watch=None) -> tuple[Outcome, float]:
     """Integrate members that share one method and dt; returns what the launch did and, when `repeats` > 0, the
     kernel's seconds per member-step (see kernel_seconds_per_step; NaN otherwise). watch as launch.integrate's."""
     scene = SCENES[spec.scene]
-    dt = values["dt"] if method.adaptive else float(values["dt"][0])
-    settings = dict(n_save=spec.n_save, save_dt=spec.save_dt, dt=dt, rtol=values["rtol"], atol=values["atol"],
-                    blowup_factor=spec.blowup_factor)
+    settings = _settings(spec, method, values)
     outcome = launch.integrate(scene, method, values, spec.constants, **settings, watch=watch)
     if repeats < 1 or method.closed_form:
         return outcome, np.nan
@@ -110,16 +133,18 @@ def integrate(spec: Spec, method: Method, values: dict[str, np.ndarray], repeats
     return outcome, kernel_seconds_per_step(scene, method, values, spec.constants, outcome, repeats, stepping)
 
 
-TIMED_MEMBER_STEPS = 2_000_000  # work in one timed kernel call, so that the call's own fixed cost is negligible
+TIMED_MEMBER_STEPS = 5_000_000  # work in one timed kernel call, so that the call's own fixed cost is negligible
 
 
 def kernel_seconds_per_step(scene, method: Method, values: dict[str, np.ndarray], constants: dict, outcome: Outcome,
                             repeats: int, settings: dict) -> float:
-    """The kernel's seconds per member-step on one thread: best of `repeats` timed calls (with `settings`: the
-    run's steps, saving only the end state) on these members, repeated until a call does at least
-    TIMED_MEMBER_STEPS member-steps. It times stepping alone: no layout, no output, per-call and per-member costs
-    (dispatch, loading a block, saving samples) spread thin, and one thread whatever the point's member count,
-    so the cost grows in proportion to the steps. A run on T threads costs about 1/T of it per member-step."""
+    """The kernel's seconds per member-step on one thread, per-member costs excluded: the difference between the
+    best of `repeats` timed calls over the run's steps (`settings`, saving only the end state) and the best of
+    as many over twice the time, over the difference in member-steps. The members are repeated until a call does
+    at least TIMED_MEMBER_STEPS member-steps. It times stepping alone: no layout, no output, and neither per-call
+    nor per-member costs (dispatch, loading a block, checking and saving samples), on one thread whatever the
+    point's member count, so the cost grows in proportion to the steps. A run on T threads costs about 1/T of it
+    per member-step. Members that take no more steps over twice the time (they failed) are timed whole."""
     taken = int(outcome.counts[0].sum() + outcome.counts[1].sum())
     if taken == 0:
         return np.nan
@@ -130,46 +155,59 @@ def kernel_seconds_per_step(scene, method: Method, values: dict[str, np.ndarray]
     if np.ndim(settings["dt"]):
         settings = {**settings, "dt": tiled["dt"]}
     settings = {**settings, "rtol": tiled["rtol"], "atol": tiled["atol"]}
-    timed = launch.Launch(scene, method, tiled, constants, **settings)
-    best = np.inf
+    calls = [launch.Launch(scene, method, tiled, constants, **{**settings, "save_dt": factor * settings["save_dt"]})
+             for factor in (1, 2)]
+    best = [np.inf, np.inf]
     for _ in range(repeats):  # one thread: how many blocks a point has cannot leave threads idle
-        start = time.perf_counter()
-        timed.run(threads=1)
-        best = min(best, time.perf_counter() - start)
-    counts = timed.outcome().counts
-    return best / float(counts[0].sum() + counts[1].sum())
+        for k, call in enumerate(calls):
+            start = time.perf_counter()
+            call.run(threads=1)
+            best[k] = min(best[k], time.perf_counter() - start)
+    steps = [float(c.sum()) for c in (call.outcome().counts[:2] for call in calls)]
+    if steps[1] > steps[0] and best[1] > best[0]:
+        return (best[1] - best[0]) / (steps[1] - steps[0])
+    return best[0] / steps[0]
 
 
-def observation_noise(spec: Spec, name: str, first: int, shape: tuple[int, ...]) -> np.ndarray:
-    """Gaussian noise (stddev spec.noise[name]) for members first, first + 1, ...; shape (members, ...).
-
-    Member i's noise on variable `name` comes from a stream seeded by (seed, crc32("noise:" + name), i).
-    """
+def noise_streams(spec: Spec, name: str, first: int, members: int) -> list[np.random.Generator]:
+    """The observation noise streams of variable `name` for members first .. first + members - 1: member i's is
+    seeded by (seed, crc32("noise:" + name), i). Drawn in time order, a segment at a time."""
     stream = zlib.crc32(f"noise:{name}".encode())
-    return spec.noise[name] * np.stack([
-        np.random.default_rng([spec.seed, stream, first + i]).standard_normal(shape[1:]) for i in range(shape[0])
-    ])
+    return [np.random.default_rng([spec.seed, stream, first + i]) for i in range(members)]
 
 
-def chunk_data(spec: Spec, method: Method, values: dict[str, np.ndarray], first: int, repeats: int = 0,
-               watch=None):
-    """Integrate members first, first + 1, ... (one method and dt) and return (outcome, the variables to write);
-    watch as launch.integrate's."""
+def chunk_data(spec: Spec, method: Method, values: dict[str, np.ndarray], first: int, write_samples,
+               repeats: int = 0, watch=None):
+    """Integrate members first, first + 1, ... (one method and dt), handing each segment of their saved variables
+    to write_samples(first sample, variables) as it comes; returns (outcome without samples, the per-member
+    records to write). watch as launch.integrate's."""
     scene = SCENES[spec.scene]
-    outcome, seconds_per_step = integrate(spec, method, values, repeats, watch)
-    data = scene.observe(outcome.samples, spec.save, values, spec.constants)
-    for name in spec.noise:
-        data[name] = data[name] + observation_noise(spec, name, first, data[name].shape)
-    data.update(zip(COUNTS, outcome.counts))
-    data.update(status=outcome.status, failure_time=outcome.failure_time,
-                growth_per_step=growth_per_step(scene, method, values, spec.constants, outcome, spec.times(),
-                                                spec.t_end))
+    settings = _settings(spec, method, values)
+    call = launch.Launch(scene, method, values, spec.constants, **settings, segment=segment_samples(spec))
+    noise = {name: noise_streams(spec, name, first, call.members) for name in spec.noise}
+    times, amplitudes, errors = spec.times(), [], []
+    for start, samples in call.segments(watch=watch):
+        data = scene.observe(samples, spec.save, values, spec.constants)
+        for name, streams in noise.items():
+            data[name] = data[name] + spec.noise[name] * np.stack([g.standard_normal(data[name].shape[1:])
+                                                                   for g in streams])
+        write_samples(start, data)
+        if not method.closed_form:
+            amplitudes.append(scene.amplitudes(samples, values, spec.constants))
+        if spec.measure["error"]:
+            exact = scene.exact(values, spec.constants, times[start:start + len(samples)])
+            errors.append(relative_error(samples, exact))
+    outcome = call.outcome()
+    records = dict(zip(COUNTS, outcome.counts), status=outcome.status, failure_time=outcome.failure_time)
+    records["growth_per_step"] = (np.full(call.members, np.nan) if method.closed_form else growth_per_step(
+        scene, method, values, np.concatenate(amplitudes, axis=1), outcome, times, spec.t_end))
     if spec.measure["error"]:
-        data["error_max"], data["error_final"] = measured_error(
-            outcome.samples, scene.exact(values, spec.constants, spec.times()))
+        records["error_max"], records["error_final"] = error_records(np.concatenate(errors))
     if spec.measure["timing"]:
-        data["seconds_per_step"] = np.full(len(outcome.status), seconds_per_step)
-    return outcome, data
+        stepping = {**settings, "n_save": 2, "save_dt": spec.t_end}  # the same steps, saving only the end
+        records["seconds_per_step"] = np.full(call.members, np.nan if method.closed_form else kernel_seconds_per_step(
+            scene, method, values, spec.constants, outcome, repeats, stepping))
+    return outcome, records
 
 
 def run(spec: Spec, out: str | Path, *, chunk: int | None = None, progress: bool = True, force: bool = False,
@@ -187,7 +225,7 @@ def run(spec: Spec, out: str | Path, *, chunk: int | None = None, progress: bool
     step_counts = set()
     failed = np.zeros(len(Status), dtype=np.int64)
     start = time.perf_counter()
-    with Writer(out, spec, table, chunk, command) as writer, tqdm(
+    with Writer(out, spec, table, chunk, command, segment_samples(spec)) as writer, tqdm(
         total=n, unit="member", file=sys.stderr, disable=not progress, leave=False, bar_format=BAR
     ) as bar:
         if steps_per_member(spec):
@@ -195,12 +233,13 @@ def run(spec: Spec, out: str | Path, *, chunk: int | None = None, progress: bool
         for j0 in range(0, n, chunk):
             for k0, k1 in _same_settings(table, j0, min(j0 + chunk, n)):
                 values = {name: v[k0:k1] for name, v in table.items()}
-                outcome, data = chunk_data(spec, METHODS[str(values["method"][0])], values, k0, repeats,
-                                           watch=_advance(bar, k1 - k0))
+                outcome, records = chunk_data(spec, METHODS[str(values["method"][0])], values, k0,
+                                              lambda start, data, k0=k0: writer.write_samples(k0, start, data),
+                                              repeats, watch=_advance(bar, k1 - k0))
                 member_steps += int(outcome.counts[0].sum() + outcome.counts[1].sum())
                 step_counts.update(np.unique(outcome.counts[0] + outcome.counts[1]).tolist())
                 failed += np.bincount(outcome.status, minlength=len(Status))
-                writer.write(k0, data)
+                writer.write(k0, records)
                 bar.n = k1
                 bar.refresh()
     return Summary(n, member_steps, time.perf_counter() - start, step_counts.pop() if len(step_counts) == 1 else None,

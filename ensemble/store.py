@@ -100,7 +100,7 @@ class Writer:
     """
 
     def __init__(self, path: str | Path, spec: Spec, table: dict[str, np.ndarray], chunk: int,
-                 command: str | None = None):
+                 command: str | None = None, segment: int | None = None):
         self.path = Path(path)
         self.part = part_path(self.path)
         self.scene = SCENES[spec.scene]
@@ -112,7 +112,7 @@ class Writer:
         self._parameters(table)
         self._settings(table)
         self._records()
-        self._observables(chunk)
+        self._observables(chunk, segment or spec.n_save)
         self.written = 0
 
     def _dimensions(self, table: dict[str, np.ndarray]) -> None:
@@ -173,12 +173,13 @@ class Writer:
             else:
                 var.setncatts({"units": units, "long_name": long_name, "comment": comment})
 
-    def _observables(self, chunk: int) -> None:
-        """The saved variables, chunked by `chunk` members; NaN marks a member's samples after it failed."""
+    def _observables(self, chunk: int, segment: int) -> None:
+        """The saved variables in HDF5 chunks of `chunk` members and `segment` samples (what one write holds); NaN
+        marks a member's samples after it failed."""
         spec = self.spec
         for name in spec.save:
             dims, units, long_name = self.scene.OBSERVABLES[name]
-            chunks = {**self.sizes, "member": min(chunk, spec.n_members)}
+            chunks = {**self.sizes, "member": min(chunk, spec.n_members), "t": segment}
             var = self.nc.createVariable(name, "f8", dims, chunksizes=tuple(chunks[d] for d in dims), fill_value=np.nan)
             var.setncatts({"units": units, "long_name": long_name})
             if name in spec.noise:
@@ -191,8 +192,15 @@ class Writer:
         var.setncatts({"units": units, "long_name": long_name})
         var[:] = values
 
+    def write_samples(self, start: int, first: int, data: dict[str, np.ndarray]) -> None:
+        """Store saved variables (member, t, ...) of members start, start + 1, ... at samples first, first + 1,
+        ...; they count as written once `write` stores their records."""
+        for name, values in data.items():
+            self.nc.variables[name][start:start + values.shape[0], first:first + values.shape[1]] = values
+
     def write(self, start: int, data: dict[str, np.ndarray]) -> None:
-        """Store the saved variables of members start, start + 1, ... (member-major arrays)."""
+        """Store the per-member records of members start, start + 1, ... (whose samples are stored): then they
+        count in members_written."""
         for name, values in data.items():
             self.nc.variables[name][start:start + len(values)] = values
         self.nc.sync()  # the data reach the disk (or raise) before members_written counts them

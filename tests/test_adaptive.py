@@ -187,31 +187,33 @@ def test_work_precision_script_prints_orders_and_draws(tmp_path):
 def test_adaptive_run_launches_once_per_chunk_and_setting(monkeypatch):
     """dopri5 without dt (NaN per member) used to start a launch per member: NaN != NaN split every range."""
     calls = []
-    integrate = launch.integrate
+    segments = launch.Launch.segments
 
-    def counted(*args, **kwargs):
+    def counted(self, *args, **kwargs):
         calls.append(1)
-        return integrate(*args, **kwargs)
+        return segments(self, *args, **kwargs)
 
-    monkeypatch.setattr(launch, "integrate", counted)
+    monkeypatch.setattr(launch.Launch, "segments", counted)
     spec = parse(top_runfile(method="dopri5", dt=None, members=150, t_end=0.2, parameters={"c": None},
                              sweep={"c": [1e-4, 2e-4]}))
     ds = runner.simulate(spec, chunk=128)
     chunks, settings = -(-300 // 128), 1
-    assert len(calls) <= chunks * settings and ds.sizes["member"] == 300
+    assert 0 < len(calls) <= chunks * settings and ds.sizes["member"] == 300
 
 
 def test_timed_cost_per_member_grows_in_proportion_to_the_steps():
     """seconds_per_step times the kernel alone, on one thread, over blocks of at least TIMED_MEMBER_STEPS
-    member-steps, so a record of 100 steps costs per step what one of 10,000 does, within 20% (the whole call was
-    timed before: the cost hardly grew with the steps). The timed call saves only the end state. Interleaved
-    rounds, best of each: a ratio taken in one run, not an absolute time."""
+    member-steps, per-member costs taken out, so a record of 100 steps costs per step what one of 10,000 does,
+    within 20% (the whole call was timed before: the cost hardly grew with the steps). The timed call saves only
+    the end state. The median over seven rounds of the ratio taken within each round: this shared host's speed
+    drifts between rounds, not within one."""
     short, long = (parse(top_runfile(t_end=t_end, save_dt=t_end / 4, members=2)) for t_end in (0.1, 10.0))
-    best = {0.1: np.inf, 10.0: np.inf}
-    for _ in range(5):
+    ratios = []
+    for _ in range(7):
+        per_step = []
         for spec in (short, long):
-            values = members_table(spec)
-            outcome, seconds = runner.integrate(spec, METHODS["rk4"], values, repeats=3)
+            outcome, seconds = runner.integrate(spec, METHODS["rk4"], members_table(spec), repeats=3)
             assert outcome.counts[0][0] == round(spec.t_end / 1e-3)
-            best[spec.t_end] = min(best[spec.t_end], seconds)
-    assert 0.8 < best[0.1] / best[10.0] < 1.25, best
+            per_step.append(seconds)
+        ratios.append(per_step[0] / per_step[1])
+    assert 0.8 < np.median(ratios) < 1.2, ratios

@@ -125,15 +125,15 @@ def test_save_limits_what_is_stored(write_runfile):
 
 def test_interrupted_run_leaves_no_complete_looking_file(write_runfile, tmp_path, monkeypatch, capsys):
     calls = []
-    integrate = launch.integrate
+    segments = launch.Launch.segments
 
-    def interrupted_after_one_chunk(*args, **kwargs):
+    def interrupted_after_one_chunk(self, *args, **kwargs):
         if calls:
             raise KeyboardInterrupt
         calls.append(1)
-        return integrate(*args, **kwargs)
+        return segments(self, *args, **kwargs)
 
-    monkeypatch.setattr(launch, "integrate", interrupted_after_one_chunk)
+    monkeypatch.setattr(launch.Launch, "segments", interrupted_after_one_chunk)
     out = tmp_path / "out.nc"
     status = cli.main(["run", str(write_runfile(top_runfile(members=300))), "-o", str(out), "--chunk", "128"])
     assert status == 130 and "interrupted" in capsys.readouterr().err
@@ -208,19 +208,55 @@ def test_bad_command_line_input_is_one_line_and_exit_2(args, key, write_runfile,
     "save = ['energy']\n[parameters]\nn = 256\nm = 1.0\nk = 1.0\n",
 ])
 def test_default_chunk_keeps_kernel_samples_and_saved_data_near_the_budget(text):
-    """A chunk holds the kernel's samples (state rows) and the saved variables, 8 bytes a value;
-    it is whole kernel blocks, and a single block when one block alone exceeds the budget."""
+    """A chunk holds a segment of the kernel's samples (state rows) and of the saved variables, its work arrays,
+    and two amplitudes per saved sample, 8 bytes a value; it is whole kernel blocks, and a single block when one
+    block alone exceeds the budget. A segment is every sample unless one block's would exceed the budget."""
     spec = parse(text)
     chunk = runner.default_chunk(spec)
     block = launch.block_size(SCENES[spec.scene], spec.constants)
     state_rows = 3 if spec.scene == "top" else 2 * spec.constants["n"]
     saved = 4 if spec.scene == "top" else 1  # omega (3) + tilt, or energy
-    per_member = spec.n_save * (state_rows + saved) * 8
+    segment = min(spec.n_save, runner.CHUNK_BYTES // (8 * (state_rows + saved) * block))
+    assert runner.segment_samples(spec) == segment
+    work = launch.work_rows(SCENES[spec.scene], METHODS[spec.methods[0]], spec.constants)
+    per_member = (segment * (state_rows + saved) + work + 2 * spec.n_save) * 8
     assert chunk % block == 0
     if block * per_member > runner.CHUNK_BYTES:
         assert chunk == block
     else:
         assert runner.CHUNK_BYTES / 2 < chunk * per_member <= runner.CHUNK_BYTES
+
+
+def test_a_long_record_runs_in_segments_within_the_memory_budget(tmp_path, monkeypatch):
+    """One member with 200,001 samples: its kernel block (128 members) would hold 614 MB of samples in one call.
+    With a 1 MiB budget the record runs in segments of 146 samples, and traced memory peaks at what fitting
+    growth_per_step to the whole record's two amplitudes takes (3.2 MB, and ten or so temporaries that size)."""
+    import tracemalloc
+
+    monkeypatch.setattr(runner, "CHUNK_BYTES", 2**20)
+    spec = parse(top_runfile(members=1, t_end=200.0, save_dt=1e-3))
+    assert spec.n_save == 200_001 and runner.segment_samples(spec) == 2**20 // (8 * 7 * 128)
+    tracemalloc.start()
+    try:
+        runner.run(spec, tmp_path / "long.nc", progress=False)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert peak < 64e6, peak
+    with xr.open_dataset(tmp_path / "long.nc") as ds:
+        assert ds.members_written == 1 and np.isfinite(ds.omega.values).all()
+
+
+def test_a_run_in_segments_writes_the_bits_of_a_run_in_one(tmp_path, monkeypatch):
+    """Records of 2001 samples, run whole and in segments of 14 samples (a 100 kB budget), with observation
+    noise and measured errors: every variable the same, bit for bit."""
+    text = (top_runfile(members=200, t_end=2.0, save_dt=1e-3)
+            + "[observe]\nnoise = { tilt = 0.01 }\n[measure]\nerror = true\n")
+    spec = parse(text)
+    whole = runner.simulate(spec)
+    monkeypatch.setattr(runner, "CHUNK_BYTES", 100_000)
+    assert runner.segment_samples(spec) == 100_000 // (8 * 7 * 128)
+    xr.testing.assert_identical(runner.simulate(spec).drop_attrs(), whole.drop_attrs())
 
 
 def test_a_run_imports_no_analysis_and_parsing_no_numba(write_runfile, tmp_path):

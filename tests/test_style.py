@@ -10,7 +10,7 @@ LONGEST = 60
 # unrolled and fused by LLVM in one place (see engine/blocks.py).
 KERNEL_BODIES = {
     "ensemble/scenes/top/kernels.py": {"_fixed_kernel", "_adaptive_kernel", "kernel"},
-    "ensemble/scenes/chain/kernels.py": {"_fixed_kernel", "_adaptive_kernel"},
+    "ensemble/scenes/chain/kernels.py": {"_fixed_kernel", "_adaptive_kernel", "kernel"},
     "ensemble/scenes/body/kernels.py": {"_adaptive_kernel", "kernel"},
 }
 

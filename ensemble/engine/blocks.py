@@ -23,6 +23,7 @@ How the runner calls a kernel is in `ensemble.engine.launch`.
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numpy as np
 from numba import njit
@@ -39,6 +40,12 @@ CAREFUL = dict(error_model="numpy", boundscheck=False)
 _EXPONENT = 0x7FF0000000000000  # all ones in a float64's exponent: inf or NaN
 _MAGNITUDE = 0x7FFFFFFFFFFFFFFF  # a float64's bits but its sign
 OK, BLEW_UP, UNDERFLOW = int(Status.OK), int(Status.BLEW_UP), int(Status.STEP_SIZE_UNDERFLOW)
+
+
+class Kernel(NamedTuple):
+    """A scene's compiled kernel for one method and the rows of its work array (rows x B floats per block)."""
+    function: object
+    rows: int
 
 
 @njit(inline="always", **CAREFUL)
@@ -76,6 +83,17 @@ def check_members(work, first, count, B, j0, limit, status, failure_time, t, ste
 def fill_failed(samples, first_save, block):
     """NaN for the samples from first_save on of a block whose members have all failed."""
     samples[first_save:, block] = np.nan
+
+
+@njit(inline="always", **FAST)
+def block_done(samples, status, progress, block, B):
+    """Whether every member of a block failed in an earlier call: then its samples of this call are NaN."""
+    for j in range(B):
+        if status[block * B + j] == OK:
+            return False
+    fill_failed(samples, 0, block)
+    progress[block] = samples.shape[0] - 1
+    return True
 
 
 @njit(inline="always", **FAST)
@@ -222,14 +240,12 @@ def splitting_schedule(pieces, fractions, h, steps_per_save, chunk):
 # body's; adaptive ones keep stage slopes at rows K + 3 s + c and the trial step's new state at rows NEW + c.
 
 @njit(inline="always", **FAST)
-def rates_load(state0, rate, block, samples, rows, parameters, B):
-    """A block's work array (rows x B): the three rates, then `parameters` rows of parameters; also its first
+def rates_load(work, state0, rate, block, samples, parameters, B):
+    """Start a block's (zeroed) work array: the three rates, then `parameters` rows of parameters; also its first
     sample."""
-    work = np.zeros(rows * B)
     rows_in(work, 0, state0[block], 0, 3, B)
     rows_in(work, 3, rate[block], 0, parameters, B)
     rows_out(work, 0, samples[0, block], 0, 3, B)
-    return work
 
 
 @njit(inline="always", **FAST)

@@ -5,16 +5,20 @@ kernels module (ensemble/scenes/<scene>/kernels.py) provides
 block_size(constants) and kernel(method, constants); its kernels follow one of
 two call conventions, over arrays laid out by block (see engine.blocks):
 
-- fixed step: kernel(state0, rate, h, steps_per_save, limit, samples, status, failure_time, progress, first_block,
-  end_block);
-- adaptive:   kernel(state0, rate, control, save_dt, limit, samples, counts, status, failure_time, progress,
-  first_block, end_block), control (3, members): first trial step (s; <= 0: estimate it), rtol, atol.
+- fixed step: kernel(state0, rate, h, steps_per_save, limit, samples, status, failure_time, progress, works, start,
+  first_block, end_block);
+- adaptive:   kernel(state0, rate, control, save_dt, limit, samples, counts, status, failure_time, progress, works,
+  start, first_block, end_block), control (3, members): first trial step (s; <= 0: estimate it), rtol, atol.
 
 state0 and rate are (blocks, rows, B) (rows from the scene's kernel_rows),
 limit (members,) the largest |state component| a member may reach, samples
-(n_save, blocks, state rows, B), counts (3, members) as results.COUNTS,
-status (members,), failure_time (members,; s) and progress (blocks,; int64),
-the last sample each block has stored. A call integrates blocks first_block
+(count, blocks, state rows, B): samples start .. start + count - 1 of the
+run, counts (3, members) as results.COUNTS, status (members,), failure_time
+(members,; s), progress (blocks,; int64) the last of `samples` each block has
+stored, and works (blocks, kernel.rows x B) each block's work array, zeroed
+before the first call. A call with start = 0 starts the blocks from state0;
+a later one continues from where `works` stands, so a run in several calls
+(segments of its samples) gives the bits of one call. A call integrates blocks first_block
 .. end_block - 1 on the calling thread without the GIL; `run_blocks` spreads a
 launch's blocks over threads. Kernels are not compiled with parallel=True:
 Numba's parallel lowering made a kernel take 3 to 4 times as long to compile
@@ -37,6 +41,11 @@ from ..results import DEFAULT_BLOWUP_FACTOR, Outcome
 def kernels_of(scene) -> ModuleType:
     """A scene's kernels module: `kernels` beside its model (imports Numba)."""
     return importlib.import_module(f"{scene.__name__}.kernels")
+
+
+def work_rows(scene, method: Method, constants: dict) -> int:
+    """Rows of a kernel's work array (each B floats a block); 0 for the closed form (no kernel)."""
+    return 0 if method.closed_form else kernels_of(scene).kernel(method, constants).rows
 
 
 def block_size(scene, constants: dict) -> int:
@@ -66,18 +75,22 @@ def integrate(scene, method: Method, values: dict[str, np.ndarray], constants: d
 
 
 class Launch:
-    """`integrate` in three parts: the constructor lays out the inputs in the kernel's blocks, `run` runs the
-    kernel on them (anew each time: time it to time the kernel alone), and `outcome` returns what it did."""
+    """`integrate` in parts: the constructor lays out the inputs in the kernel's blocks; `segments` runs the kernel
+    on them (anew each time), `segment` samples per kernel call, and yields each call's samples; `run` keeps them
+    all; `outcome` returns what the last run did."""
 
     def __init__(self, scene, method: Method, values: dict[str, np.ndarray], constants: dict, *, n_save: int,
-                 save_dt: float, dt=None, rtol=None, atol=None, blowup_factor: float = DEFAULT_BLOWUP_FACTOR):
+                 save_dt: float, dt=None, rtol=None, atol=None, blowup_factor: float = DEFAULT_BLOWUP_FACTOR,
+                 segment: int | None = None):
         self.scene, self.method, self.n_save, self.save_dt, self.dt = scene, method, n_save, save_dt, dt
+        self.segment = max(1, min(segment or n_save, n_save))
+        self.members = len(next(iter(values.values())))
         if method.closed_form:
             step = save_dt if dt is None or not np.isfinite(dt) else float(dt)
-            self.exact = lambda: scene.exact(values, constants, np.arange(n_save) * (round(save_dt / step) * step))
+            times = np.arange(n_save) * (round(save_dt / step) * step)
+            self.exact = lambda first, count: scene.exact(values, constants, times[first:first + count])
             return
         state0, rate = scene.inputs(values, constants)
-        self.members = state0.shape[1]
         kernels = kernels_of(scene)
         block = kernels.block_size(constants)
         self.kernel = kernels.kernel(method, constants)
@@ -91,45 +104,62 @@ class Launch:
             state0, rate, limit = _padded((state0, rate, limit[None]), block)
             self.steps_per_save = round(save_dt / dt)
         padded = state0.shape[1]
+        blocks = padded // block
         self.state0, self.rate, self.limit = blocked(state0, block), blocked(rate, block), limit[0]
-        self.samples = np.empty((n_save, padded // block, state0.shape[0], block))
+        self.buffer = np.empty((self.segment, blocks, state0.shape[0], block))
+        self.works = np.zeros((blocks, self.kernel.rows * block))
         self.status, self.failure_time = np.zeros(padded), np.empty(padded)
-        self.progress = np.zeros(padded // block, dtype=np.int64)
+        self.progress = np.zeros(blocks, dtype=np.int64)
         self.counts = np.zeros((3, padded)) if method.adaptive else None  # fixed steps are counted afterwards
 
-    def run(self, threads: int | None = None, watch=None) -> None:
-        """Run the kernel (or evaluate the closed form) on the laid-out inputs, on `threads` threads (default:
-        thread_count()); watch(fraction done), if given, is called from this thread while it waits."""
+    def segments(self, threads: int | None = None, watch=None):
+        """Run the kernel (or evaluate the closed form) from the start, on `threads` threads (default
+        thread_count()); yields (first, samples) per call: samples first .. first + count - 1 as (count, state
+        rows, members), a view of a buffer the next call overwrites. watch(fraction of the run done), if given, is
+        called from this thread while it waits. A run in segments gives the bits of one in a single call: each
+        call continues from the work arrays the last one left."""
         if self.method.closed_form:
-            self.samples = self.exact()
+            for first in range(0, self.n_save, self.segment):
+                yield first, self.exact(first, min(self.segment, self.n_save - first))
             return
         self.status[:] = 0.0
         self.failure_time[:] = np.nan
-        self.progress[:] = 0
+        self.works[:] = 0.0
         if self.method.adaptive:
             self.counts[:] = 0.0
-            arguments = (self.state0, self.rate, self.control, float(self.save_dt), self.limit, self.samples,
-                         self.counts, self.status, self.failure_time, self.progress)
+            head = (self.state0, self.rate, self.control, float(self.save_dt), self.limit)
+            tail = (self.counts, self.status, self.failure_time, self.progress, self.works)
         else:
-            arguments = (self.state0, self.rate, float(self.dt), int(self.steps_per_save), self.limit, self.samples,
-                         self.status, self.failure_time, self.progress)
-        done = (lambda: watch(self.progress.sum() / (self.progress.size * max(self.n_save - 1, 1)))) if watch else None
-        run_blocks(self.kernel, arguments, self.state0.shape[0], threads, done)
+            head = (self.state0, self.rate, float(self.dt), int(self.steps_per_save), self.limit)
+            tail = (self.status, self.failure_time, self.progress, self.works)
+        for first in range(0, self.n_save, self.segment):
+            samples = self.buffer[:min(self.segment, self.n_save - first)]
+            self.progress[:] = 0
+            done = None if watch is None else (
+                lambda: watch(min(1.0, (first + self.progress.mean()) / max(self.n_save - 1, 1))))
+            run_blocks(self.kernel.function, (*head, samples, *tail, first), self.state0.shape[0], threads, done)
+            yield first, unblocked(samples)[:, :, :self.members]
+
+    def run(self, threads: int | None = None, watch=None) -> None:
+        """Run the whole record (as `segments`), keeping every sample for `outcome`."""
+        parts = [samples if self.segment == self.n_save else samples.copy()
+                 for _, samples in self.segments(threads, watch)]
+        self.samples = parts[0] if len(parts) == 1 else np.concatenate(parts)
 
     def outcome(self) -> Outcome:
-        """What the last run did, per member."""
-        if self.method.closed_form:
-            n = self.samples.shape[2]
-            return Outcome(self.samples, np.zeros((3, n), dtype=np.int64), np.zeros(n, dtype=np.int8),
-                           np.full(n, np.nan))
+        """What the last `run` did, per member: samples (n_save, state rows, members), counts, status and failure
+        time (with `segments`, counts, status and failure time only)."""
+        samples = getattr(self, "samples", None)
         n = self.members
+        if self.method.closed_form:
+            return Outcome(samples, np.zeros((3, n), dtype=np.int64), np.zeros(n, dtype=np.int8), np.full(n, np.nan))
         failure_time = self.failure_time[:n].copy()
         if self.method.adaptive:
             counts = self.counts[:, :n].astype(np.int64)
         else:
             counts = _fixed_counts(self.method, self.scene, failure_time, self.dt,
                                    self.steps_per_save * (self.n_save - 1))
-        return Outcome(unblocked(self.samples)[:, :, :n], counts, self.status[:n].astype(np.int8), failure_time)
+        return Outcome(samples, counts, self.status[:n].astype(np.int8), failure_time)
 
 
 def thread_count() -> int:
@@ -143,8 +173,9 @@ WATCH_SECONDS = 0.2  # how often the waiting thread calls `watch`
 
 def run_blocks(kernel, arguments: tuple, blocks: int, threads: int | None = None, watch=None) -> None:
     """Call kernel(*arguments, first_block, end_block) over blocks 0 .. blocks - 1 in contiguous groups on
-    `threads` threads (default thread_count()), calling watch() every WATCH_SECONDS while they run. Each block's
-    result depends on that block alone, so the grouping and the thread count leave every value unchanged.
+    `threads` threads (default thread_count()), calling watch() every WATCH_SECONDS while they run and once at
+    the end. Each block's result depends on that block alone, so the grouping and the thread count leave every
+    value unchanged.
 
     The threads are daemons and the calling thread only waits: Ctrl-C (KeyboardInterrupt) reaches the caller at
     once, and the process may exit while a kernel call is still running, without waiting for it.
@@ -175,6 +206,8 @@ def run_blocks(kernel, arguments: tuple, blocks: int, threads: int | None = None
                 watch()
     if failures:
         raise failures[0]
+    if watch is not None:
+        watch()  # once more when every block is done
 
 
 def _fixed_counts(method: Method, scene, failure_time: np.ndarray, dt: float, steps: int) -> np.ndarray:
@@ -192,14 +225,15 @@ def prepare(scene, method: Method, constants: dict) -> None:
     state_rows, rate_rows = scene.kernel_rows(constants)
     block = kernels.block_size(constants)
     kernel = kernels.kernel(method, constants)
+    works = np.zeros((1, kernel.rows * block))
     state0, rate = np.zeros((1, state_rows, block)), np.zeros((1, rate_rows, block))
     samples = np.empty((1, 1, state_rows, block))
     limit, status, failure_time, progress = np.ones(block), np.zeros(block), np.zeros(block), np.zeros(1, np.int64)
     if method.adaptive:
-        kernel(state0, rate, np.ones((3, block)), 1.0, limit, samples, np.zeros((3, block)), status, failure_time,
-               progress, 0, 1)
+        kernel.function(state0, rate, np.ones((3, block)), 1.0, limit, samples, np.zeros((3, block)), status,
+                        failure_time, progress, works, 0, 0, 1)
     else:
-        kernel(state0, rate, 1.0, 1, limit, samples, status, failure_time, progress, 0, 1)
+        kernel.function(state0, rate, 1.0, 1, limit, samples, status, failure_time, progress, works, 0, 0, 1)
 
 
 def _limits(state0: np.ndarray, blowup_factor: float) -> np.ndarray:

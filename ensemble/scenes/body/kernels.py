@@ -18,7 +18,9 @@ from ...engine.blocks import (
     FAST,
     STEP,
     H,
+    Kernel,
     adaptive_constants,
+    block_done,
     check_members,
     control_step,
     method_constants,
@@ -59,7 +61,7 @@ def block_size(constants: dict) -> int:
 
 
 def kernel(method: Method, constants: dict):
-    """The compiled (or cache-loaded) kernel of a Runge-Kutta method; every body run shares it."""
+    """Kernel(function, work rows) of a stepping method (compiled or cache-loaded); every body run shares it."""
     return _kernel(method)
 
 
@@ -99,17 +101,21 @@ def _splitting_kernel(method: Method):
     rows = K + 3 * E
 
     @njit(nogil=True, cache=True, **FAST)
-    def kernel(state0, rate, h, steps_per_save, limit, samples, status, failure_time, progress, first_block, end_block):
+    def kernel(state0, rate, h, steps_per_save, limit, samples, status, failure_time, progress,
+               works, start, first_block, end_block):
         """As _fixed_kernel's."""
-        n_save = samples.shape[0]
         for block in range(first_block, end_block):
-            work = rates_load(state0, rate, block, samples, rows, P, BLOCK)
-            check_members(work, 0, 3, BLOCK, block * BLOCK, limit, status, failure_time, 0.0)  # a non-finite start
-            for e in range(E):
-                for c in range(3):
-                    for j in range(BLOCK):
-                        work[(K + 3 * e + c) * BLOCK + j] = math.exp(-work[(6 + c) * BLOCK + j] * h * fractions[e])
-            for i in range(1, n_save):
+            work = works[block].copy()  # a local copy: LLVM knows it aliases nothing
+            if start == 0:
+                rates_load(work, state0, rate, block, samples, P, BLOCK)
+                check_members(work, 0, 3, BLOCK, block * BLOCK, limit, status, failure_time, 0.0)  # a non-finite start
+                for e in range(E):
+                    for c in range(3):
+                        for j in range(BLOCK):
+                            work[(K + 3 * e + c) * BLOCK + j] = math.exp(-work[(6 + c) * BLOCK + j] * h * fractions[e])
+            elif block_done(samples, status, progress, block, BLOCK):
+                continue
+            for i in range(max(start, 1), start + samples.shape[0]):
                 _scale_rows(work, LAMBDA, BLOCK)
                 for _ in range(steps_per_save):
                     for j in range(BLOCK):
@@ -132,11 +138,12 @@ def _splitting_kernel(method: Method):
                         work[BLOCK + j] = y2
                         work[2 * BLOCK + j] = y3
                 _scale_rows(work, INVERSE, BLOCK)
-                if rates_saved(work, samples, i, block, limit, status, failure_time, progress,
+                if rates_saved(work, samples, i - start, block, limit, status, failure_time, progress,
                                i * steps_per_save * h, -1, BLOCK):
                     break
+            works[block] = work
 
-    return kernel
+    return Kernel(kernel, rows)
 
 
 def _fixed_kernel(method: Method):
@@ -151,14 +158,18 @@ def _fixed_kernel(method: Method):
     rows = K + 3 * S
 
     @njit(nogil=True, cache=True, **FAST)
-    def kernel(state0, rate, h, steps_per_save, limit, samples, status, failure_time, progress, first_block, end_block):
+    def kernel(state0, rate, h, steps_per_save, limit, samples, status, failure_time, progress,
+               works, start, first_block, end_block):
         """state0 (blocks, 3, BLOCK), rate (blocks, P, BLOCK), limit (M,) -> samples (n_save, blocks, 3, BLOCK),
         status (M,), failure_time (M,) (s; set only where a member fails); M = blocks x BLOCK."""
-        n_save = samples.shape[0]
         for block in range(first_block, end_block):
-            work = rates_load(state0, rate, block, samples, rows, P, BLOCK)
-            check_members(work, 0, 3, BLOCK, block * BLOCK, limit, status, failure_time, 0.0)  # a non-finite start
-            for i in range(1, n_save):
+            work = works[block].copy()  # a local copy: LLVM knows it aliases nothing
+            if start == 0:
+                rates_load(work, state0, rate, block, samples, P, BLOCK)
+                check_members(work, 0, 3, BLOCK, block * BLOCK, limit, status, failure_time, 0.0)  # a non-finite start
+            elif block_done(samples, status, progress, block, BLOCK):
+                continue
+            for i in range(max(start, 1), start + samples.shape[0]):
                 for _ in range(steps_per_save):
                     for j in range(BLOCK):
                         y1 = work[j]
@@ -188,11 +199,12 @@ def _fixed_kernel(method: Method):
                         work[j] = y1 + h * s1
                         work[BLOCK + j] = y2 + h * s2
                         work[2 * BLOCK + j] = y3 + h * s3
-                if rates_saved(work, samples, i, block, limit, status, failure_time, progress,
+                if rates_saved(work, samples, i - start, block, limit, status, failure_time, progress,
                                i * steps_per_save * h, -1, BLOCK):
                     break
+            works[block] = work
 
-    return kernel
+    return Kernel(kernel, rows)
 
 
 def _adaptive_kernel(method: Method):
@@ -212,21 +224,24 @@ def _adaptive_kernel(method: Method):
 
     @njit(nogil=True, cache=True, **FAST)
     def kernel(state0, rate, control, save_dt, limit, samples, counts, status, failure_time, progress,
-               first_block, end_block):
+               works, start, first_block, end_block):
         """state0 (blocks, 3, BLOCK), rate (blocks, P, BLOCK); control (3, M): first step (s; <= 0: estimate
         it), rtol, atol;
         limit (M,) -> samples (n_save, blocks, 3, BLOCK), counts (3, M): accepted, rejected, right-hand-side
         evaluations; status (M,) and failure_time (M,; s, set only where a member fails)."""
-        n_save = samples.shape[0]
         B = BLOCK
         for block in range(first_block, end_block):
             j0 = block * B
-            work = rates_load(state0, rate, block, samples, rows, P, BLOCK)
-            for j in range(B):
-                d1, d2, d3 = _rhs_of(work[j], work[B + j], work[2 * B + j], work, j, B)
-                rates_start(work, control, counts, K, C0, B, j, j0, d1, d2, d3, save_dt)
-            check_members(work, 0, 3, B, j0, limit, status, failure_time, 0.0, C0 + H)  # a non-finite start
-            for i in range(1, n_save):
+            work = works[block].copy()  # a local copy: LLVM knows it aliases nothing
+            if start == 0:
+                rates_load(work, state0, rate, block, samples, P, BLOCK)
+                for j in range(B):
+                    d1, d2, d3 = _rhs_of(work[j], work[B + j], work[2 * B + j], work, j, B)
+                    rates_start(work, control, counts, K, C0, B, j, j0, d1, d2, d3, save_dt)
+                check_members(work, 0, 3, B, j0, limit, status, failure_time, 0.0, C0 + H)  # a non-finite start
+            elif block_done(samples, status, progress, block, BLOCK):
+                continue
+            for i in range(max(start, 1), start + samples.shape[0]):
                 target = i * save_dt
                 while trial_steps(work, C0, B, target):
                     for s in range(1, S):  # stages outside, members inside, as in the chain kernels
@@ -247,7 +262,9 @@ def _adaptive_kernel(method: Method):
                     control_step(work, C0, B, target, counts, j0, status, failure_time, S - 1, alpha, beta, safety,
                                   min_factor, max_factor)
                     rates_accept(work, K, NEW, C0, S, B)
-                if rates_saved(work, samples, i, block, limit, status, failure_time, progress, target, C0 + H, BLOCK):
+                if rates_saved(work, samples, i - start, block, limit, status, failure_time, progress,
+                               target, C0 + H, BLOCK):
                     break
+            works[block] = work
 
-    return kernel
+    return Kernel(kernel, rows)

@@ -22,7 +22,9 @@ from ...engine.blocks import (
     RTOL,
     STEP,
     H,
+    Kernel,
     adaptive_constants,
+    block_done,
     check_members,
     control_step,
     fill_failed,
@@ -62,7 +64,7 @@ def block_size(constants: dict) -> int:
 
 
 def kernel(method: Method, constants: dict):
-    """The compiled (or cache-loaded) kernel of a stepping method for the run's n and boundary."""
+    """Kernel(function, work rows) of a stepping method (compiled or cache-loaded) for the run's n and boundary."""
     return _kernel(method, constants["n"], constants["boundary"] == "periodic")
 
 
@@ -92,16 +94,27 @@ def _store_chain_sample(work, samples, save, block, n, B):
 
 
 @njit(inline="always", **FAST)
-def _load_chain_block(state0, rate, block, samples, n, B, rows, periodic):
-    """A block's work array (rows x B) with its state and parameters (CL and CR follow each other); also its
+def _load_chain_block(work, state0, rate, block, samples, n, B, periodic):
+    """Start a block's (zeroed) work array with its state and parameters (CL and CR follow each other); also its
     first sample."""
-    work = np.zeros(rows * B)
     rows_in(work, 1, state0[block], 0, n, B)
     rows_in(work, n + 2, state0[block], n, n, B)
     rows_in(work, 2 * n + 2, rate[block], 0, 2 * n, B)
     _store_chain_sample(work, samples, 0, block, n, B)
     _set_ghosts(work, 0, n, B, periodic)
-    return work
+
+
+@njit(inline="always", **FAST)
+def _fixed_start(works, state0, rate, block, samples, limit, status, failure_time, progress, start, n, B, periodic):
+    """A fixed-step call's local copy of a block's work array (LLVM then knows it aliases nothing), and whether
+    the block runs: a call at start 0 loads it from state0, a later one continues it unless every member has
+    failed."""
+    work = works[block].copy()
+    if start == 0:
+        _load_chain_block(work, state0, rate, block, samples, n, B, periodic)
+        check_members(work, 1, 2 * n + 1, B, block * B, limit, status, failure_time, 0.0)  # a non-finite start
+        return work, True
+    return work, not block_done(samples, status, progress, block, B)
 
 
 @njit(inline="always", **FAST)
@@ -221,17 +234,18 @@ def _fixed_kernel(method: Method, n: int, periodic: bool):
     stage_rows = (X, V, ZX, ZV, KX, KV)
 
     @njit(nogil=True, cache=True, **FAST)
-    def splitting_kernel(state0, rate, h, steps_per_save, limit, samples, status, failure_time, progress, first_block,
-                         end_block):
+    def splitting_kernel(state0, rate, h, steps_per_save, limit, samples, status, failure_time, progress,
+                         works, start, first_block, end_block):
         """state0 (blocks, 2n, B), rate (blocks, 2n, B), limit (M,) -> samples (n_save, blocks, 2n, B),
         status (M,), failure_time (M,) (s; set only where a member fails); M = blocks x B."""
         kinds, taus, lags = splitting_schedule(pieces, fractions, h, steps_per_save, TILE_PIECES)
         count = len(kinds)
         for block in range(first_block, end_block):
-            j0 = block * B
-            work = _load_chain_block(state0, rate, block, samples, n, B, rows, periodic)
-            check_members(work, X + 1, 2 * n + 1, B, j0, limit, status, failure_time, 0.0)  # a non-finite start
-            for save in range(1, samples.shape[0]):
+            work, running = _fixed_start(works, state0, rate, block, samples, limit, status, failure_time, progress,
+                                         start, n, B, periodic)
+            if not running:
+                continue
+            for save in range(max(start, 1), start + samples.shape[0]):
                 if tiled:
                     for c0 in range(0, count, TILE_PIECES):
                         c1 = min(c0 + TILE_PIECES, count)
@@ -250,19 +264,21 @@ def _fixed_kernel(method: Method, n: int, periodic: bool):
                         else:
                             _drift(work, taus[p], 0, n, n, B, n)
                             _set_ghosts(work, X, n, B, periodic)
-                if _chain_saved(work, samples, save, block, limit, status, failure_time, progress,
+                if _chain_saved(work, samples, save - start, block, limit, status, failure_time, progress,
                                 save * steps_per_save * h, -1, n, B):
                     break
+            works[block] = work
 
     @njit(nogil=True, cache=True, **FAST)
-    def runge_kutta_kernel(state0, rate, h, steps_per_save, limit, samples, status, failure_time, progress, first_block,
-                           end_block):
+    def runge_kutta_kernel(state0, rate, h, steps_per_save, limit, samples, status, failure_time, progress,
+                           works, start, first_block, end_block):
         """As splitting_kernel."""
         for block in range(first_block, end_block):
-            j0 = block * B
-            work = _load_chain_block(state0, rate, block, samples, n, B, rows, periodic)
-            check_members(work, X + 1, 2 * n + 1, B, j0, limit, status, failure_time, 0.0)  # a non-finite start
-            for save in range(1, samples.shape[0]):
+            work, running = _fixed_start(works, state0, rate, block, samples, limit, status, failure_time, progress,
+                                         start, n, B, periodic)
+            if not running:
+                continue
+            for save in range(max(start, 1), start + samples.shape[0]):
                 for _ in range(steps_per_save):
                     for s in range(S):
                         _chain_stage(work, s, S, a, h, -1, stage_rows, n, B, periodic)
@@ -271,11 +287,12 @@ def _fixed_kernel(method: Method, n: int, periodic: bool):
                             dx, dv = _stage_sums(work, b, S, KX, KV, i, j, n, B)
                             work[(X + 1 + i) * B + j] += h * dx
                             work[(V + i) * B + j] += h * dv
-                if _chain_saved(work, samples, save, block, limit, status, failure_time, progress,
+                if _chain_saved(work, samples, save - start, block, limit, status, failure_time, progress,
                                 save * steps_per_save * h, -1, n, B):
                     break
+            works[block] = work
 
-    return runge_kutta_kernel if runge_kutta else splitting_kernel
+    return Kernel(runge_kutta_kernel if runge_kutta else splitting_kernel, rows)
 
 
 def _adaptive_kernel(method: Method, n: int, periodic: bool):
@@ -299,33 +316,37 @@ def _adaptive_kernel(method: Method, n: int, periodic: bool):
     stage_rows = (X, V, ZX, ZV, KX, KV)
     @njit(nogil=True, cache=True, **FAST)
     def kernel(state0, rate, control, save_dt, limit, samples, counts, status, failure_time, progress,
-               first_block, end_block):
+               works, start, first_block, end_block):
         """state0, rate (blocks, 2n, B); control (3, M): first step (s; <= 0: estimate it), rtol, atol;
         limit (M,) -> samples (n_save, blocks, 2n, B), counts (3, M): accepted, rejected, right-hand-side evaluations;
         status (M,) and failure_time (M,; s, set only where a member fails)."""
         for block in range(first_block, end_block):
             j0 = block * B
-            work = _load_chain_block(state0, rate, block, samples, n, B, rows, periodic)
-            _chain_slopes(work, X, V, KX, KV, n, B)
-            for j in range(B):
-                rtol, atol = control[1, j0 + j], control[2, j0 + j]
-                work[(C0 + RTOL) * B + j], work[(C0 + ATOL) * B + j] = rtol, atol
-                work[(C0 + ERR_PREVIOUS) * B + j] = 1e-4
-                counts[RHS_EVALS, j0 + j] = 1.0
-                h = control[0, j0 + j]
-                if h <= 0.0:
-                    size = 0.0
-                    slope = 0.0
-                    for i in range(n):
-                        x, v = work[(X + 1 + i) * B + j], work[(V + i) * B + j]
-                        size = max(size, abs(x) / (atol + rtol * abs(x)), abs(v) / (atol + rtol * abs(v)))
-                        slope = max(slope, abs(v) / (atol + rtol * abs(x)),
-                                    abs(work[(KV + i) * B + j]) / (atol + rtol * abs(v)))
-                    h = first_step(size, slope, save_dt)
-                work[(C0 + H) * B + j] = h
-            # a non-finite start
-            check_members(work, X + 1, 2 * n + 1, B, j0, limit, status, failure_time, 0.0, C0 + H)
-            for save in range(1, samples.shape[0]):
+            work = works[block].copy()  # a local copy: LLVM knows it aliases nothing
+            if start == 0:
+                _load_chain_block(work, state0, rate, block, samples, n, B, periodic)
+                _chain_slopes(work, X, V, KX, KV, n, B)
+                for j in range(B):
+                    rtol, atol = control[1, j0 + j], control[2, j0 + j]
+                    work[(C0 + RTOL) * B + j], work[(C0 + ATOL) * B + j] = rtol, atol
+                    work[(C0 + ERR_PREVIOUS) * B + j] = 1e-4
+                    counts[RHS_EVALS, j0 + j] = 1.0
+                    h = control[0, j0 + j]
+                    if h <= 0.0:
+                        size = 0.0
+                        slope = 0.0
+                        for i in range(n):
+                            x, v = work[(X + 1 + i) * B + j], work[(V + i) * B + j]
+                            size = max(size, abs(x) / (atol + rtol * abs(x)), abs(v) / (atol + rtol * abs(v)))
+                            slope = max(slope, abs(v) / (atol + rtol * abs(x)),
+                                        abs(work[(KV + i) * B + j]) / (atol + rtol * abs(v)))
+                        h = first_step(size, slope, save_dt)
+                    work[(C0 + H) * B + j] = h
+                # a non-finite start
+                check_members(work, X + 1, 2 * n + 1, B, j0, limit, status, failure_time, 0.0, C0 + H)
+            elif block_done(samples, status, progress, block, B):
+                continue
+            for save in range(max(start, 1), start + samples.shape[0]):
                 target = save * save_dt
                 while trial_steps(work, C0, B, target):
                     for s in range(1, S):  # FSAL: stage 0 is the last step's final stage
@@ -355,8 +376,9 @@ def _adaptive_kernel(method: Method, n: int, periodic: bool):
                                 work[(X + 1 + i) * B + j] = np.nan
                                 work[(V + i) * B + j] = np.nan
                     _set_ghosts(work, X, n, B, periodic)
-                if _chain_saved(work, samples, save, block, limit, status, failure_time, progress,
+                if _chain_saved(work, samples, save - start, block, limit, status, failure_time, progress,
                                 target, C0 + H, n, B):
                     break
+            works[block] = work
 
-    return kernel
+    return Kernel(kernel, rows)
