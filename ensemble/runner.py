@@ -133,18 +133,19 @@ def integrate(spec: Spec, method: Method, values: dict[str, np.ndarray], repeats
     return outcome, kernel_seconds_per_step(scene, method, values, spec.constants, outcome, repeats, stepping)
 
 
-TIMED_MEMBER_STEPS = 5_000_000  # work in one timed kernel call, so that the call's own fixed cost is negligible
+TIMED_MEMBER_STEPS = 4_000_000  # work in one timed kernel call, so that the call's own fixed cost is negligible
 
 
 def kernel_seconds_per_step(scene, method: Method, values: dict[str, np.ndarray], constants: dict, outcome: Outcome,
                             repeats: int, settings: dict) -> float:
     """The kernel's seconds per member-step on one thread, per-member costs excluded: the difference between the
     best of `repeats` timed calls over the run's steps (`settings`, saving only the end state) and the best of
-    as many over twice the time, over the difference in member-steps. The members are repeated until a call does
-    at least TIMED_MEMBER_STEPS member-steps. It times stepping alone: no layout, no output, and neither per-call
-    nor per-member costs (dispatch, loading a block, checking and saving samples), on one thread whatever the
-    point's member count, so the cost grows in proportion to the steps. A run on T threads costs about 1/T of it
-    per member-step. Members that take no more steps over twice the time (they failed) are timed whole."""
+    as many over half the time, over the difference in member-steps. The members are repeated until the first
+    call does at least TIMED_MEMBER_STEPS member-steps. It times stepping alone: no layout, no output, and neither
+    per-call nor per-member costs (dispatch, loading a block, checking and saving samples), on one thread
+    whatever the point's member count, so the cost grows in proportion to the steps. A run on T threads costs
+    about 1/T of it per member-step. Members that take as many steps over half the time (they failed) are timed
+    whole."""
     taken = int(outcome.counts[0].sum() + outcome.counts[1].sum())
     if taken == 0:
         return np.nan
@@ -156,7 +157,7 @@ def kernel_seconds_per_step(scene, method: Method, values: dict[str, np.ndarray]
         settings = {**settings, "dt": tiled["dt"]}
     settings = {**settings, "rtol": tiled["rtol"], "atol": tiled["atol"]}
     calls = [launch.Launch(scene, method, tiled, constants, **{**settings, "save_dt": factor * settings["save_dt"]})
-             for factor in (1, 2)]
+             for factor in (1.0, 0.5)]
     best = [np.inf, np.inf]
     for _ in range(repeats):  # one thread: how many blocks a point has cannot leave threads idle
         for k, call in enumerate(calls):
@@ -164,8 +165,8 @@ def kernel_seconds_per_step(scene, method: Method, values: dict[str, np.ndarray]
             call.run(threads=1)
             best[k] = min(best[k], time.perf_counter() - start)
     steps = [float(c.sum()) for c in (call.outcome().counts[:2] for call in calls)]
-    if steps[1] > steps[0] and best[1] > best[0]:
-        return (best[1] - best[0]) / (steps[1] - steps[0])
+    if steps[0] > steps[1] and best[0] > best[1]:
+        return (best[0] - best[1]) / (steps[0] - steps[1])
     return best[0] / steps[0]
 
 

@@ -14,7 +14,8 @@ TEXTS = {
     "top": top_runfile(members=130, t_end=1.0, save_dt=0.1, method=None) + SWEEPS.format("rk4", "split2"),
     "body": RUNS["body"],
     "chain": RUNS["chain"],
-    "long chain": RUNS["chain"].replace("n = 1\n", "n = 133\n").replace('["euler", ', '["verlet", '),  # tiled
+    "long chain": RUNS["chain"].split("[[sweep]]")[0].replace("n = 1\n", "n = 133\n")
+    + '[[sweep]]\nmethod = ["verlet"]\n',  # the tiled splitting kernel
 }
 
 
