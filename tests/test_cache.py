@@ -18,8 +18,8 @@ RUNS_FOLDER = Path(__file__).resolve().parents[1] / "runs"
 
 def _without_sweeps(path: Path, methods) -> str:
     """A run file's text untimed, without its [[sweep]] tables of the given methods."""
-    head, *sweeps = path.read_text().replace("timing = true", "timing = false").split("[[sweep]]")
-    return head + "".join("[[sweep]]" + table for table in sweeps
+    head, *sweeps = path.read_text().replace("timing = true", "timing = false").split("\n[[sweep]]")
+    return head + "".join("\n[[sweep]]" + table for table in sweeps
                           if not any(f'method = ["{name}"]' in table for name in methods))
 
 
