@@ -183,7 +183,8 @@ def test_work_precision_script_prints_orders_and_draws(tmp_path):
     import sys
 
     out = tmp_path / "wp.nc"
-    runner.run(parse((RUNS / "work_precision_top.toml").read_text(), "wp.toml"), out, progress=False)
+    text = (RUNS / "work_precision_top.toml").read_text().replace("timing = true", "timing = true\nrepeats = 1")
+    runner.run(parse(text, "wp.toml"), out, progress=False)
     done = subprocess.run([sys.executable, str(RUNS.parent / "analysis" / "work_precision.py"), str(out)],
                           capture_output=True, text=True)
     assert done.returncode == 0, done.stderr
