@@ -21,8 +21,8 @@ a later one continues from where `works` stands, so a run in several calls
 (segments of its samples) gives the bits of one call. A call integrates blocks first_block
 .. end_block - 1 on the calling thread without the GIL; `run_blocks` spreads a
 launch's blocks over threads. Kernels are not compiled with parallel=True:
-Numba's parallel lowering made a kernel take 3 to 4 times as long to compile
-(measured on the chain's rk4, verlet and euler).
+Numba's parallel lowering made compiling a kernel take twice as long
+(analysis/compile_time.py).
 """
 from __future__ import annotations
 

@@ -236,7 +236,7 @@ def _fixed_kernel(method: Method, n: int, periodic: bool):
     @njit(nogil=True, cache=True, **FAST)
     def splitting_kernel(state0, rate, h, steps_per_save, limit, samples, status, failure_time, progress,
                          works, start, first_block, end_block):
-        """state0 (blocks, 2n, B), rate (blocks, 2n, B), limit (M,) -> samples (n_save, blocks, 2n, B),
+        """state0 (blocks, 2n, B), rate (blocks, 2n, B), limit (M,) -> samples (count, blocks, 2n, B),
         status (M,), failure_time (M,) (s; set only where a member fails); M = blocks x B."""
         kinds, taus, lags = splitting_schedule(pieces, fractions, h, steps_per_save, TILE_PIECES)
         count = len(kinds)
@@ -318,7 +318,7 @@ def _adaptive_kernel(method: Method, n: int, periodic: bool):
     def kernel(state0, rate, control, save_dt, limit, samples, counts, status, failure_time, progress,
                works, start, first_block, end_block):
         """state0, rate (blocks, 2n, B); control (3, M): first step (s; <= 0: estimate it), rtol, atol;
-        limit (M,) -> samples (n_save, blocks, 2n, B), counts (3, M): accepted, rejected, right-hand-side evaluations;
+        limit (M,) -> samples (count, blocks, 2n, B), counts (3, M): accepted, rejected, right-hand-side evaluations;
         status (M,) and failure_time (M,; s, set only where a member fails)."""
         for block in range(first_block, end_block):
             j0 = block * B

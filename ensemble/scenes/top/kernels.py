@@ -88,7 +88,7 @@ def _fixed_kernel(method: Method):
     @njit(nogil=True, cache=True, **FAST)
     def kernel(state0, rate, h, steps_per_save, limit, samples, status, failure_time, progress,
                works, start, first_block, end_block):
-        """state0 (blocks, 3, BLOCK), rate (blocks, 3, BLOCK), limit (M,) -> samples (n_save, blocks, 3, BLOCK),
+        """state0 (blocks, 3, BLOCK), rate (blocks, 3, BLOCK), limit (M,) -> samples (count, blocks, 3, BLOCK),
         status (M,), failure_time (M,) (s; set only where a member fails); M = blocks x BLOCK."""
         for block in range(first_block, end_block):
             j0 = block * BLOCK
@@ -175,7 +175,7 @@ def _adaptive_kernel(method: Method):
     def kernel(state0, rate, control, save_dt, limit, samples, counts, status, failure_time, progress,
                works, start, first_block, end_block):
         """state0, rate (blocks, 3, BLOCK); control (3, M): first step (s; <= 0: estimate it), rtol, atol;
-        limit (M,) -> samples (n_save, blocks, 3, BLOCK), counts (3, M): accepted, rejected, right-hand-side
+        limit (M,) -> samples (count, blocks, 3, BLOCK), counts (3, M): accepted, rejected, right-hand-side
         evaluations; status (M,) and failure_time (M,; s, set only where a member fails)."""
         B = BLOCK
         for block in range(first_block, end_block):
