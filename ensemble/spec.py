@@ -3,9 +3,14 @@
 A run file is TOML (see README.md). Every problem is a SpecError naming the
 key, so the command line can print one line and exit with status 2.
 
-Randomness: parameter `name` of member i is the i-th draw of a stream seeded by
-(seed, crc32(name)). It depends only on the seed, the parameter and the member
-index, never on chunk size, thread count, or the order of keys in the file.
+Randomness: parameter `name` of member i takes values i*k .. i*k + k - 1 (k
+values per member: 1, or one per mass or spring) of a PCG64 stream seeded by
+(seed, crc32(name)), reached by jumping the stream ahead (PCG64.advance), so
+any range of members is drawn in time proportional to its length. A value is
+a pure function of (seed, parameter, member index): never of chunk size,
+thread count, worker, or the order of keys in the file. Each value uses one
+64-bit output: uniform as numpy's Generator.uniform, loguniform its exp of a
+uniform, normal the inverse normal CDF of a uniform on (0, 1).
 (Observation noise is drawn where it is added, in the runner.)
 
 Parsing imports no Numba: a run file is checked before any kernel is loaded.
@@ -65,13 +70,18 @@ class Distribution:
     kind: str  # one of DISTRIBUTIONS
     args: tuple[float, float]
 
-    def draw(self, rng: np.random.Generator, n: int) -> np.ndarray:
+    def draw(self, seed: int, name: str, start: int, count: int) -> np.ndarray:
+        """Values start .. start + count - 1 of parameter `name`'s stream (see the module's docstring)."""
+        bits = np.random.PCG64([seed, zlib.crc32(name.encode())])
+        bits.advance(start)
         lo, hi = self.args
         if self.kind == "uniform":
-            return rng.uniform(lo, hi, n)
+            return np.random.Generator(bits).uniform(lo, hi, count)
         if self.kind == "normal":
-            return rng.normal(lo, hi, n)
-        return np.exp(rng.uniform(math.log(lo), math.log(hi), n))
+            from scipy.special import ndtri
+
+            return lo + hi * ndtri(((bits.random_raw(count) >> 12) + 0.5) * 2.0**-52)  # 52 bits, never 0 or 1
+        return np.exp(np.random.Generator(bits).uniform(math.log(lo), math.log(hi), count))
 
 
 @dataclass(frozen=True)
@@ -546,22 +556,30 @@ def load(path: str | Path) -> Spec:
     return parse(text, str(path))
 
 
-def members_table(spec: Spec) -> dict[str, np.ndarray]:
-    """Every member's parameter values, each an array over members (built once, by parse).
+def members_table(spec: Spec, start: int = 0, stop: int | None = None) -> dict[str, np.ndarray]:
+    """The parameter values of members start .. stop - 1 (default: every member), each an array over those
+    members: a slice of the table parse built, or (a spec sent without it, as to a Dask worker) built for
+    that range alone, in time proportional to its length.
 
     Members are ordered sweep point major, replica minor; the table also holds
     `sweep_point`, the index of each member's point on the sweep grids, and how
     each member integrates: `method` (names), `dt`, `rtol`, `atol` (NaN where
     the method takes none).
     """
-    return spec.table if spec.table is not None else _build_table(spec)
+    stop = spec.n_members if stop is None else stop
+    if spec.table is None:
+        return _build_table(spec, start, stop)
+    if (start, stop) == (0, spec.n_members):
+        return spec.table
+    return {name: values[start:stop] for name, values in spec.table.items()}
 
 
-def _build_table(spec: Spec) -> dict[str, np.ndarray]:
-    n = spec.n_members
+def _build_table(spec: Spec, start: int = 0, stop: int | None = None) -> dict[str, np.ndarray]:
+    stop = spec.n_members if stop is None else stop
+    n = stop - start
     points = [dict(zip(grid, combination)) for grid in spec.grids
               for combination in itertools.product(*grid.values())] or [{}]
-    point = np.repeat(np.arange(len(points)), spec.members)
+    point = np.arange(start, stop) // spec.members
     table = {"sweep_point": point}
     for name in spec.sweep:
         if name not in SETTINGS:
@@ -583,8 +601,8 @@ def _build_table(spec: Spec) -> dict[str, np.ndarray]:
         if isinstance(value, Mode):
             modes[name] = value
         elif isinstance(value, Distribution):
-            rng = np.random.default_rng([spec.seed, zlib.crc32(name.encode())])
-            table[name] = value.draw(rng, math.prod(shape)).reshape(shape)
+            per_member = math.prod(shape[1:])
+            table[name] = value.draw(spec.seed, name, start * per_member, n * per_member).reshape(shape)
         elif isinstance(value, list):
             if len(value) != shape[1]:
                 raise SpecError(f"parameters.{name}", f"has {len(value)} values; this chain has {shape[1]} "
