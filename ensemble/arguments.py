@@ -4,7 +4,7 @@ from __future__ import annotations
 import argparse
 
 EXIT_BAD_INPUT = 2  # bad input: nothing was run, nothing written
-EXIT_FAILED = 3  # the run started and failed midway (a full disk, a write error): its .part holds what finished
+EXIT_FAILED = 3  # the run failed midway (a full disk, chunks failing on a cluster): its parts stay for --resume
 EXIT_INTERRUPTED = 130  # Ctrl-C
 
 

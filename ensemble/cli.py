@@ -8,7 +8,7 @@ import sys
 from pathlib import Path
 
 from . import __version__
-from .arguments import EXIT_BAD_INPUT, EXIT_FAILED, EXIT_INTERRUPTED, OneLineParser
+from .arguments import EXIT_BAD_INPUT, EXIT_FAILED, EXIT_INTERRUPTED, OneLineParser, positive_int
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -23,6 +23,14 @@ def _parser() -> argparse.ArgumentParser:
     run.add_argument("--force", action="store_true", help="replace an existing output file")
     run.add_argument("--chunk", type=int, help="members per chunk held in memory (default: about 32 MB of output)")
     run.add_argument("--quiet", action="store_true", help="no progress bar")
+    run.add_argument("--resume", action="store_true",
+                     help="finish a run that stopped midway: keep the parts it finished (OUTPUT.parts/), compute "
+                          "the rest")
+    where = run.add_mutually_exclusive_group()
+    where.add_argument("--scheduler", metavar="ADDRESS",
+                       help="compute on an existing Dask cluster, e.g. tcp://HOST:8786 (needs the dask extra)")
+    where.add_argument("--workers", type=positive_int, metavar="N",
+                       help="compute on N Dask worker processes started here (needs the dask extra)")
     commands.add_parser("methods", help="list the integration methods",
                         description="List each method: order, symplectic or not, and the scenes it applies to.")
     _inertia_parser(commands)
@@ -85,9 +93,9 @@ def _error(message: str) -> int:
 
 
 def _run(args) -> int:
-    from .runner import run
+    from .parts import PartsError, folder_of
+    from .runner import Incomplete, run
     from .spec import SpecError, load
-    from .store import part_path
 
     try:
         spec = load(args.runfile)
@@ -105,19 +113,39 @@ def _run(args) -> int:
     problem = _output_problem(out, args.runfile, args.force) or _space_problem(out, spec)
     if problem:
         return _error(f"{out}: {problem}")
+    resume = f"ensemble run {args.runfile} -o {out} --resume"
+    client = None
     try:
         with OutputLock(out):
+            if args.scheduler or args.workers:
+                from .cluster import ClusterError, connect
+
+                try:
+                    client = connect(args.scheduler, args.workers)
+                except ClusterError as e:
+                    return _error(str(e))
             summary = run(spec, out, chunk=args.chunk, progress=not args.quiet, force=args.force,
-                          command=args.command_line)
+                          resume=args.resume, command=args.command_line, client=client)
     except OutputLocked:
         return _error(f"{out}: another run is writing it now; wait for it or choose another output")
+    except PartsError as e:
+        return _error(str(e))
     except KeyboardInterrupt:
-        print(f"ensemble: interrupted; {_left_behind(part_path(out))}", file=sys.stderr)
+        print(f"ensemble: interrupted; {_left_behind(folder_of(out), resume)}", file=sys.stderr)
         return EXIT_INTERRUPTED
-    except (OSError, RuntimeError) as e:  # netCDF4 reports HDF5 write failures as RuntimeError
-        print(f"ensemble: error: {out}: writing failed ({_cause(e)}); {_failed_behind(part_path(out))}",
+    except Incomplete as e:
+        print(f"ensemble: error: {e}; the others are in {folder_of(out)}; {resume} computes the missing ones",
               file=sys.stderr)
         return EXIT_FAILED
+    except (OSError, RuntimeError) as e:  # netCDF4 reports HDF5 write failures as RuntimeError
+        print(f"ensemble: error: {out}: writing failed ({_cause(e)}); {_left_behind(folder_of(out), resume)}",
+              file=sys.stderr)
+        return EXIT_FAILED
+    finally:
+        if client is not None:
+            from .cluster import close
+
+            close(client)
     print(f"wrote {out}: {summary}")
     return 0
 
@@ -159,12 +187,14 @@ def _memory_problem(spec) -> str | None:
 
 
 def _space_problem(out: Path, spec) -> str | None:
-    """The disk's free space against what the result will take (a full disk midway costs the run)."""
+    """The disk's free space against what the run will take: its parts and the result, until the parts are
+    deleted (a full disk midway costs the run)."""
     from .store import output_bytes
 
-    need, free = output_bytes(spec), shutil.disk_usage(out.parent).free
+    need, free = 2 * output_bytes(spec), shutil.disk_usage(out.parent).free
     if need > free:
-        return f"the result needs about {need / 1e6:.4g} MB and {out.parent} has {free / 1e6:.4g} MB free"
+        return (f"the result needs about {need / 1e6:.4g} MB (twice its size until its parts are deleted) and "
+                f"{out.parent} has {free / 1e6:.4g} MB free")
     return None
 
 
@@ -185,14 +215,12 @@ def _cause(error: Exception) -> str:
     return str(error).splitlines()[0] if str(error) else type(error).__name__
 
 
-def _left_behind(part: Path) -> str:
-    return (f"the members finished so far are in {part} (not a complete result; its attribute members_written "
-            f"counts them)" if part.exists() else "before the output file was opened; nothing was written")
-
-
-def _failed_behind(part: Path) -> str:
-    return (f"{part} holds the members written before (members_written counts them), if the failed write left it "
-            f"readable" if part.exists() else "nothing was written")
+def _left_behind(folder: Path, resume: str) -> str:
+    """What an interrupted or failed run leaves, and how to finish it."""
+    finished = len(list(folder.glob("members-*.nc"))) if folder.exists() else 0
+    if not finished:
+        return "no chunk had finished; nothing was kept"
+    return f"the {finished} chunk(s) finished so far are kept in {folder}; {resume} finishes the run"
 
 
 class OutputLocked(Exception):

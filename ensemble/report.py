@@ -195,23 +195,10 @@ def cannot_write(folder: Path, error: OSError) -> None:
           f"stands", file=sys.stderr)
 
 
-def written_members(ds: xr.Dataset, path: Path) -> xr.Dataset:
-    """The members a result holds: all of a complete result; of a partial one (a `.part` left by an interrupted
-    or failed run), the first members_written, said in one line. Raises ValueError when none was written."""
-    total, written = ds.sizes["member"], int(ds.attrs.get("members_written", ds.sizes["member"]))
-    if written >= total:
-        return ds
-    if written == 0:
-        raise ValueError("a partial result with no member written (members_written = 0)")
-    print(f"{path}: a partial result: {written} of {total} members were written; the other {total - written} "
-          f"are left out")
-    return ds.isel(member=slice(0, written))
-
-
 def load_result(path: Path, fit_function, validate=None):
     """(dataset, fit_function(dataset)) of a result file; None after one line on stderr for bad input."""
     try:
-        ds = written_members(xr.load_dataset(path, engine="netcdf4"), path)
+        ds = xr.load_dataset(path, engine="netcdf4")
         if validate:
             validate(ds)
         return ds, fit_function(ds)

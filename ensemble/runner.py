@@ -9,7 +9,7 @@ import sys
 import tempfile
 import time
 import zlib
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -17,6 +17,7 @@ from tqdm import tqdm
 
 from .engine import launch
 from .methods import METHODS, Method
+from .parts import Parts
 from .records import error_records, growth_per_step, relative_error
 from .results import COUNTS, Outcome, Status
 from .scenes import SCENES
@@ -37,18 +38,22 @@ class Summary:
     underflowed: int = 0  # failed members (status STEP_SIZE_UNDERFLOW)
     closed_form: bool = False  # every member was evaluated in closed form (no steps)
     preparing: float = 0.0  # seconds spent compiling or loading kernels before the run, not in `seconds`
+    resumed: int = 0  # members of the result computed by an earlier, interrupted run (not counted above)
 
     def __str__(self) -> str:
         failed = self.blew_up + self.underflowed
-        failures = (f"; {failed} of {self.members} members failed ({self.blew_up} blew up, {self.underflowed} "
-                    f"step size underflow)" if failed else "")
+        failures = (f"; {failed} of {self.members + self.resumed} members failed ({self.blew_up} blew up, "
+                    f"{self.underflowed} step size underflow)" if failed else "")
+        if not self.members:
+            return f"{self.resumed} members from an earlier run's parts, assembled in {self.seconds:.3g} s" + failures
         if self.closed_form:
             return f"{self.members} members (closed form) in {self.seconds:.3g} s" + failures
         rate = self.member_steps / self.seconds if self.seconds > 0 else float("inf")
         steps = (f"{self.members} members x {self.steps_each} steps" if self.steps_each is not None
                  else f"{self.members} members, {self.member_steps} member-steps")
         compiling = f" (after {self.preparing:.3g} s compiling kernels)" if self.preparing > ANNOUNCE_AFTER else ""
-        return f"{steps} in {self.seconds:.3g} s: {rate:.3g} member-steps/s" + compiling + failures
+        resumed = f" ({self.resumed} more from the parts of an earlier run)" if self.resumed else ""
+        return f"{steps} in {self.seconds:.3g} s: {rate:.3g} member-steps/s" + compiling + resumed + failures
 
 
 def _record_bytes(spec: Spec) -> tuple[int, int]:
@@ -178,7 +183,7 @@ def noise_streams(spec: Spec, name: str, first: int, members: int) -> list[np.ra
 
 
 def chunk_data(spec: Spec, method: Method, values: dict[str, np.ndarray], first: int, write_samples,
-               repeats: int = 0, watch=None):
+               repeats: int = 0, watch=None, threads: int | None = None):
     """Integrate members first, first + 1, ... (one method and dt), handing each segment of their saved variables
     to write_samples(first sample, variables) as it comes; returns (outcome without samples, the per-member
     records to write). watch as launch.integrate's."""
@@ -187,7 +192,7 @@ def chunk_data(spec: Spec, method: Method, values: dict[str, np.ndarray], first:
     call = launch.Launch(scene, method, values, spec.constants, **settings, segment=segment_samples(spec))
     noise = {name: noise_streams(spec, name, first, call.members) for name in spec.noise}
     times, amplitudes, errors = spec.times(), [], []
-    for start, samples in call.segments(watch=watch):
+    for start, samples in call.segments(threads, watch=watch):
         data = scene.observe(samples, spec.save, values, spec.constants)
         for name, streams in noise.items():
             data[name] = data[name] + spec.noise[name] * np.stack([g.standard_normal(data[name].shape[1:])
@@ -211,41 +216,123 @@ def chunk_data(spec: Spec, method: Method, values: dict[str, np.ndarray], first:
     return outcome, records
 
 
+def compute_chunk(spec: Spec, start: int, stop: int, sink, repeats: int = 0, watch=None,
+                  threads: int | None = None) -> dict[str, np.ndarray]:
+    """Integrate members start .. stop - 1 on `threads` threads (default launch.thread_count()), handing their
+    saved variables and records to sink.write_samples(first member, first sample, variables) and
+    sink.write(first member, records) as they come; returns the records (member,). watch(fraction) as
+    launch.integrate's, over the whole range."""
+    table = members_table(spec, start, stop)
+    records = []
+    for k0, k1 in _same_settings(table, 0, stop - start):
+        values = {name: v[k0:k1] for name, v in table.items()}
+        fraction = (lambda f, k0=k0, k1=k1: watch((k0 + f * (k1 - k0)) / (stop - start))) if watch else None
+        _, data = chunk_data(spec, METHODS[str(values["method"][0])], values, start + k0,
+                             lambda first, samples, k0=k0: sink.write_samples(start + k0, first, samples),
+                             repeats, watch=fraction, threads=threads)
+        sink.write(start + k0, data)
+        records.append(data)
+    return {name: np.concatenate([r[name] for r in records]) for name in records[0]}
+
+
+@dataclass
+class Tally:
+    """What this invocation of a run computed: members, member-steps, the distinct step counts."""
+    members: int = 0
+    member_steps: int = 0
+    step_counts: set = field(default_factory=set)
+
+    def add(self, records: dict[str, np.ndarray]) -> None:
+        steps = records["steps_accepted"] + records["steps_rejected"]
+        self.members += len(steps)
+        self.member_steps += int(steps.sum())
+        self.step_counts.update(np.unique(steps).tolist())
+
+
+class Incomplete(Exception):
+    """Some members could not be computed (their chunks kept failing on the cluster); the others are in parts."""
+
+    def __init__(self, ranges: list[tuple[int, int]], cause: str):
+        self.ranges, self.cause = ranges, cause
+        members = ", ".join(f"{a}..{b - 1}" if b - a > 1 else str(a) for a, b in ranges)
+        super().__init__(f"members {members} were not computed ({cause})")
+
+
 def run(spec: Spec, out: str | Path, *, chunk: int | None = None, progress: bool = True, force: bool = False,
-        command: str | None = None) -> Summary:
+        resume: bool = False, command: str | None = None, client=None, task=None) -> Summary:
     """Integrate every member of `spec` and write the dataset to `out` (NetCDF); an existing `out` only with
-    force. `command` is recorded in the file's history (default: `ensemble run <run file>`)."""
-    if Path(out).exists() and not force:
+    force. Finished chunks are kept as parts (ensemble.parts) until the result is complete: with `resume`, a run
+    stopped midway computes only what its parts lack (raises parts.PartsError if they are another run's).
+    `client` (a dask.distributed Client) computes the chunks on its cluster with `task` (default chunk_task);
+    chunks that keep failing there raise Incomplete after the rest are done. `command` is recorded in the
+    file's history (default: `ensemble run <run file>`)."""
+    out = Path(out)
+    if out.exists() and not force:
         raise FileExistsError(f"{out}: exists; pass force=True to replace it")
-    table = members_table(spec)
-    n = spec.n_members
-    chunk = chunk or default_chunk(spec)
-    preparing = prepare_kernels(spec, announce=progress)
-    repeats = spec.measure["repeats"] if spec.measure["timing"] else 0
-    member_steps = 0
-    step_counts = set()
-    failed = np.zeros(len(Status), dtype=np.int64)
-    start = time.perf_counter()
-    with Writer(out, spec, table, chunk, command, segment_samples(spec)) as writer, tqdm(
-        total=n, unit="member", file=sys.stderr, disable=not progress, leave=False, bar_format=BAR
-    ) as bar:
-        if steps_per_member(spec):
-            bar.set_postfix_str(f"about {n * steps_per_member(spec):.2g} member-steps in all", refresh=False)
-        for j0 in range(0, n, chunk):
-            for k0, k1 in _same_settings(table, j0, min(j0 + chunk, n)):
-                values = {name: v[k0:k1] for name, v in table.items()}
-                outcome, records = chunk_data(spec, METHODS[str(values["method"][0])], values, k0,
-                                              lambda start, data, k0=k0: writer.write_samples(k0, start, data),
-                                              repeats, watch=_advance(bar, k1 - k0))
-                member_steps += int(outcome.counts[0].sum() + outcome.counts[1].sum())
-                step_counts.update(np.unique(outcome.counts[0] + outcome.counts[1]).tolist())
-                failed += np.bincount(outcome.status, minlength=len(Status))
-                writer.write(k0, records)
-                bar.n = k1
-                bar.refresh()
-    return Summary(n, member_steps, time.perf_counter() - start, step_counts.pop() if len(step_counts) == 1 else None,
+    if force and not resume:
+        Parts.discard(out)
+    parts = Parts(out, spec, resume=resume)
+    try:
+        n = spec.n_members
+        chunk = chunk or (dask_chunk(spec, sum(client.nthreads().values())) if client else default_chunk(spec))
+        todo = [(j, min(j + chunk, stop)) for start, stop in parts.missing() for j in range(start, stop, chunk)]
+        preparing = 0.0 if client or not todo else prepare_kernels(spec, announce=progress)
+        repeats = spec.measure["repeats"] if spec.measure["timing"] else 0
+        tally = Tally()
+        began = time.perf_counter()
+        with tqdm(total=n, initial=parts.members_done(), unit="member", file=sys.stderr, disable=not progress,
+                  leave=False, bar_format=BAR) as bar:
+            if todo and steps_per_member(spec):
+                bar.set_postfix_str(f"about {n * steps_per_member(spec):.2g} member-steps in all", refresh=False)
+            if client is None:
+                _compute_here(spec, todo, parts, tally, bar, repeats)
+            else:
+                from .cluster import compute_on
+
+                compute_on(client, spec, todo, parts, tally, bar, repeats, task)
+    except BaseException:
+        if not parts.parts:  # nothing finished: nothing to resume
+            Parts.discard(out)
+        raise
+    with Writer(out, spec, members_table(spec), chunk, command, segment_samples(spec)) as writer:
+        records = parts.assemble(writer, segment_samples(spec))
+    Parts.discard(out)
+    seconds = time.perf_counter() - began
+    failed = np.bincount(records["status"], minlength=len(Status))
+    return Summary(tally.members, tally.member_steps, seconds,
+                   tally.step_counts.pop() if len(tally.step_counts) == 1 else None,
                    blew_up=int(failed[Status.BLEW_UP]), underflowed=int(failed[Status.STEP_SIZE_UNDERFLOW]),
-                   closed_form=all(METHODS[name].closed_form for name in spec.methods), preparing=preparing)
+                   closed_form=all(METHODS[name].closed_form for name in spec.methods), preparing=preparing,
+                   resumed=n - tally.members)
+
+
+def _compute_here(spec: Spec, todo: list[tuple[int, int]], parts: Parts, tally: Tally, bar: tqdm,
+                  repeats: int) -> None:
+    """Compute the member ranges `todo` in this process, in order, each streamed into a new part."""
+    for start, stop in todo:
+        writer = parts.begin(start, stop, segment_samples(spec))
+        try:
+            tally.add(compute_chunk(spec, start, stop, writer, repeats, watch=_advance(bar, stop - start)))
+        except BaseException:
+            writer.abandon()
+            raise
+        writer.finish()
+        bar.n = parts.members_done()
+        bar.refresh()
+
+
+TASKS_PER_WORKER_THREAD = 4  # a cluster run is cut into at least this many tasks per worker thread
+
+
+def dask_chunk(spec: Spec, threads: int) -> int:
+    """Members per task on a cluster with `threads` worker threads in all: default_chunk, but small enough that
+    every thread gets TASKS_PER_WORKER_THREAD tasks; a task returns its members' whole record at once, so a
+    record run in segments (segment_samples) gets the smallest chunk."""
+    if segment_samples(spec) < spec.n_save:
+        return smallest_chunk(spec)
+    block = launch.block_size(SCENES[spec.scene], spec.constants)
+    share = -(-spec.n_members // (TASKS_PER_WORKER_THREAD * threads))
+    return max(smallest_chunk(spec), min(default_chunk(spec), -(-share // block) * block))
 
 
 # The bar counts members, and moves within a launch as its blocks store their samples.

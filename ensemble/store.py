@@ -1,7 +1,8 @@
-"""NetCDF output: the dataset contract, streamed to disk by member chunks.
+"""NetCDF output: the dataset contract, written from a run's parts in member order.
 
-A run writes `OUT.part` first and renames it to OUT only when every member is
-in, so an interrupted run never leaves a file that looks complete.
+The result is written as `OUT.tmp`, fsynced, and renamed to OUT only when
+every member is in, so no run leaves a file that looks complete and is not.
+(Finished chunks wait in part files until then: see ensemble.parts.)
 """
 from __future__ import annotations
 
@@ -19,9 +20,18 @@ from .scenes import SCENES
 from .spec import Spec
 
 
-def part_path(path: Path) -> Path:
-    """Where a run writes before it is complete."""
-    return path.with_name(path.name + ".part")
+def temporary_path(path: Path) -> Path:
+    """Where the result is written before it is complete."""
+    return path.with_name(path.name + ".tmp")
+
+
+def fsync_path(path: Path) -> None:
+    """Flush a file's (or a folder's: its entries') bytes to the disk."""
+    descriptor = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(descriptor)
+    finally:
+        os.close(descriptor)
 
 
 def output_bytes(spec: Spec) -> int:
@@ -88,32 +98,43 @@ def global_attributes(spec: Spec, table: dict[str, np.ndarray], command: str | N
         "blowup_factor": spec.blowup_factor,
         "members_per_sweep_point": spec.members,
         "sweep_axes": " ".join(spec.sweep),
+        "members_written": spec.n_members,  # always every member: the file appears only when complete
         "spec": spec.text,
     }
 
 
-class Writer:
-    """Creates the file with every member's parameters; data arrive by chunks.
+def record_names(spec: Spec) -> list[str]:
+    """The per-member records (RUN_RECORDS) a run of `spec` stores: how each member ran, and what [measure]
+    asks for."""
+    records = ["steps_accepted", "steps_rejected", "rhs_evals", "status", "failure_time", "growth_per_step"]
+    records += ["error_max", "error_final"] if spec.measure["error"] else []
+    return records + (["seconds_per_step"] if spec.measure["timing"] else [])
 
-    Use as a context manager: on success the file is renamed into place; on an
-    exception the `.part` file stays, holding the chunks that finished.
+
+class Writer:
+    """Creates the file with every member's parameters; data arrive by member ranges.
+
+    Use as a context manager: on success the file is fsynced and renamed into
+    place; on an exception the temporary file is deleted.
     """
 
     def __init__(self, path: str | Path, spec: Spec, table: dict[str, np.ndarray], chunk: int,
                  command: str | None = None, segment: int | None = None):
         self.path = Path(path)
-        self.part = part_path(self.path)
+        self.temporary = temporary_path(self.path)
         self.scene = SCENES[spec.scene]
         self.spec = spec
-        self.nc = nc = netCDF4.Dataset(self.part, "w", format="NETCDF4")
-        nc.setncatts(global_attributes(spec, table, command))
-        nc.setncattr("members_written", 0)
-        self._dimensions(table)
-        self._parameters(table)
-        self._settings(table)
-        self._records()
-        self._observables(chunk, segment or spec.n_save)
-        self.written = 0
+        self.nc = nc = netCDF4.Dataset(self.temporary, "w", format="NETCDF4")
+        try:
+            nc.setncatts(global_attributes(spec, table, command))
+            self._dimensions(table)
+            self._parameters(table)
+            self._settings(table)
+            self._records()
+            self._observables(chunk, segment or spec.n_save)
+        except BaseException as error:
+            self.__exit__(type(error), error, None)
+            raise
 
     def _dimensions(self, table: dict[str, np.ndarray]) -> None:
         """member, t and the scene's dimensions that a saved variable or a parameter uses, with coordinates."""
@@ -161,10 +182,7 @@ class Writer:
 
     def _records(self) -> None:
         """How each member ran: step counts, status, failure time, growth, and what [measure] asks for."""
-        records = ["steps_accepted", "steps_rejected", "rhs_evals", "status", "failure_time", "growth_per_step"]
-        records += ["error_max", "error_final"] if self.spec.measure["error"] else []
-        records += ["seconds_per_step"] if self.spec.measure["timing"] else []
-        for name in records:
+        for name in record_names(self.spec):
             kind, units, long_name, comment = RUN_RECORDS[name]
             var = self.nc.createVariable(name, kind, ("member",), fill_value=np.nan if kind == "f8" else None)
             if name == "status":
@@ -194,19 +212,14 @@ class Writer:
 
     def write_samples(self, start: int, first: int, data: dict[str, np.ndarray]) -> None:
         """Store saved variables (member, t, ...) of members start, start + 1, ... at samples first, first + 1,
-        ...; they count as written once `write` stores their records."""
+        ..."""
         for name, values in data.items():
             self.nc.variables[name][start:start + values.shape[0], first:first + values.shape[1]] = values
 
     def write(self, start: int, data: dict[str, np.ndarray]) -> None:
-        """Store the per-member records of members start, start + 1, ... (whose samples are stored): then they
-        count in members_written."""
+        """Store the per-member records (member,) of members start, start + 1, ..."""
         for name, values in data.items():
             self.nc.variables[name][start:start + len(values)] = values
-        self.nc.sync()  # the data reach the disk (or raise) before members_written counts them
-        self.written += len(next(iter(data.values())))
-        self.nc.setncattr("members_written", self.written)
-        self.nc.sync()
 
     def __enter__(self):
         return self
@@ -214,10 +227,15 @@ class Writer:
     def __exit__(self, kind, value, traceback):
         try:
             self.nc.close()
+            if kind is None:
+                fsync_path(self.temporary)
+                os.replace(self.temporary, self.path)
+                fsync_path(self.path.parent)
+                return False
         except (OSError, RuntimeError):
             if kind is None:
+                self.temporary.unlink(missing_ok=True)
                 raise
             # a write already failed (a full disk): closing fails too, and the first error is the one to report
-        if kind is None:
-            os.replace(self.part, self.path)
+        self.temporary.unlink(missing_ok=True)
         return False

@@ -44,7 +44,7 @@ def write_runfile(tmp_path):
 
 def refused(text: str, folder, capsys, expected: str) -> str:
     """Run `ensemble run` on run-file text in `folder` and check the promise to users for bad input: exit
-    status 2, one line on stderr containing `expected`, and no output file (not even a .part). Returns the line."""
+    status 2, one line on stderr containing `expected`, and no output file (no parts, no .tmp). Returns the line."""
     from ensemble import cli
 
     path = folder / "bad.toml"

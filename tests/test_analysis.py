@@ -119,23 +119,6 @@ def test_benchmark_options_are_checked_in_one_line(name):
                                                 f"(see {name} --help)"]
 
 
-def test_a_partial_result_is_analysed_over_its_written_members_only(tmp_path):
-    """A .part left by an interrupted run (members_written = 2 of 4; the rest never written: fill values) is
-    fitted over its first two members, and says so."""
-    import netCDF4
-    result = run_small("aerobie.toml", tmp_path, 4, **{"c = [5e-5, 1e-4, 2e-4]": "c = [1e-4]"})
-    part = tmp_path / "aerobie.nc.part"
-    result.rename(part)
-    with netCDF4.Dataset(part, "a") as nc:
-        nc.members_written = 2
-        nc["tilt"][2:] = np.nan
-        nc["status"][2:] = -127  # what an unwritten member's status reads as
-    done = script("tilt_decay.py", part, "--against", "method")
-    assert done.returncode == 0, done.stderr
-    assert f"{part}: a partial result: 2 of 4 members were written; the other 2 are left out" in done.stdout
-    assert re.search(r"^c = 0.0001 .* 2  pass$", done.stdout, flags=re.M), done.stdout
-
-
 def test_an_unwritable_output_is_one_line_and_keeps_the_verdict(tmp_path):
     """When the fits cannot be written (here a folder stands where the fits file goes), the table is printed,
     one line names the folder, and --check still decides the exit status."""

@@ -39,8 +39,7 @@ def cli_run(tmp_path_factory):
 def test_run_writes_the_default_output_and_a_summary(cli_run):
     folder, done = cli_run
     assert done.returncode == 0, done.stderr
-    out = folder / "results" / "sweep.nc"
-    assert out.exists() and not (folder / "results" / "sweep.nc.part").exists()
+    assert sorted(p.name for p in (folder / "results").iterdir()) == ["sweep.nc"]  # no parts, lock or .tmp left
     summary = done.stdout.strip().splitlines()[-1]
     assert "10 members x 1000 steps" in summary and "member-steps/s" in summary
 
@@ -136,17 +135,20 @@ def test_interrupted_run_leaves_no_complete_looking_file(write_runfile, tmp_path
     monkeypatch.setattr(launch.Launch, "segments", interrupted_after_one_chunk)
     out = tmp_path / "out.nc"
     status = cli.main(["run", str(write_runfile(top_runfile(members=300))), "-o", str(out), "--chunk", "128"])
-    assert status == 130 and "interrupted" in capsys.readouterr().err
-    assert not out.exists()
-    with netCDF4.Dataset(tmp_path / "out.nc.part") as part:
-        assert part.members_written == 128
-        assert np.all(np.isfinite(part["omega"][:128]))
+    err = capsys.readouterr().err.strip().splitlines()[-1]  # after the bar
+    assert status == 130 and err == (f"ensemble: interrupted; the 1 chunk(s) finished so far are kept in "
+                                     f"{out}.parts; ensemble run {tmp_path / 'run.toml'} -o {out} --resume finishes "
+                                     f"the run")
+    assert not out.exists() and not out.with_name("out.nc.tmp").exists()
+    (part,) = (out.with_name("out.nc.parts")).glob("members-*.nc")
+    with netCDF4.Dataset(part) as nc:
+        assert nc.dimensions["member"].size == 128 and np.all(np.isfinite(nc["omega"][:]))
 
 
 def test_ctrl_c_inside_a_long_kernel_call_stops_the_run_at_once(tmp_path):
     """One save interval of 5e9 steps (hours): Ctrl-C while the kernel runs ends the process within seconds, exit
-    130, leaving the .part (no member written) and no output. The kernel runs on daemon threads; the main thread
-    only waits, so the interrupt reaches it."""
+    130, keeping nothing (no chunk had finished) and writing no output. The kernel runs on daemon threads; the
+    main thread only waits, so the interrupt reaches it."""
     import signal
     import time
 
@@ -155,7 +157,7 @@ def test_ctrl_c_inside_a_long_kernel_call_stops_the_run_at_once(tmp_path):
     out = tmp_path / "long.nc"
     run = subprocess.Popen([sys.executable, "-m", "ensemble", "run", str(runfile), "-o", str(out)],
                            stderr=subprocess.PIPE, text=True)
-    part = tmp_path / "long.nc.part"
+    part = tmp_path / "long.nc.parts" / "members-000000000000-000000000001.tmp"
     deadline = time.monotonic() + 300
     while not part.exists() and run.poll() is None and time.monotonic() < deadline:
         time.sleep(0.1)
@@ -167,9 +169,8 @@ def test_ctrl_c_inside_a_long_kernel_call_stops_the_run_at_once(tmp_path):
     finally:
         run.kill()
     assert run.returncode == 130 and time.monotonic() - sent < 5, err
-    assert "interrupted" in err.splitlines()[-1] and not out.exists()
-    with netCDF4.Dataset(part) as nc:
-        assert nc.members_written == 0
+    assert err.splitlines()[-1] == "ensemble: interrupted; no chunk had finished; nothing was kept", err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["long.toml"]
 
 
 def test_the_watch_sees_the_fraction_done_grow_to_one():
@@ -275,12 +276,12 @@ def test_a_run_imports_no_analysis_and_parsing_no_numba(write_runfile, tmp_path)
 
 
 @pytest.mark.parametrize("where, expected", [
-    ("kernels", "ensemble: interrupted; before the output file was opened; nothing was written"),
+    ("kernels", "ensemble: interrupted; no chunk had finished; nothing was kept"),
     ("members", "ensemble: interrupted while reading the run file; nothing was written")])
 def test_interrupt_before_the_file_opens_is_one_line_naming_no_file(where, expected, write_runfile, tmp_path,
                                                                     monkeypatch, capsys):
     """Ctrl-C while kernels load, or while members are drawn (a long chain's mode starts solve eigenproblems):
-    one line, status 130, and no .part exists, so the message must not point to one."""
+    one line, status 130, and nothing is left, so the message must not point to anything."""
     from ensemble import spec as spec_module
 
     def interrupted(*args, **kwargs):

@@ -1,6 +1,6 @@
 """Where a run writes: the output path is checked before any work, two runs never share an output, and a write
-that fails midway (a full disk) says so, exits 3 and leaves a .part whose members_written counts only what
-reached the disk."""
+that fails midway (a full disk) says so, exits 3, leaves no file that looks complete and keeps its finished
+parts, which --resume completes."""
 import fcntl
 import os
 import resource
@@ -25,7 +25,7 @@ def refused_output(folder, capsys, out, *options, expected):
     status = cli.main(["run", str(runfile), "-o", str(out), "--quiet", *options])
     err = capsys.readouterr().err.strip()
     assert status == 2 and len(err.splitlines()) == 1 and expected in err, err
-    assert not list(folder.glob("*.part")) and not list(folder.glob("*.lock"))
+    assert not list(folder.glob("*.parts")) and not list(folder.glob("*.tmp")) and not list(folder.glob("*.lock"))
     return err
 
 
@@ -73,23 +73,27 @@ def _small_disk():
     resource.setrlimit(resource.RLIMIT_FSIZE, (600_000, 600_000))
 
 
-def test_a_disk_that_fills_up_is_one_line_exit_3_and_an_honest_part(tmp_path):
+def test_a_disk_that_fills_up_is_one_line_exit_3_and_resume_finishes_the_run(tmp_path):
+    """Each part fits under the limit and the result does not: the run fails while assembling, says so in one
+    line, leaves no .tmp and keeps its parts; with room again, --resume writes the bits of an unhindered run."""
     runfile = tmp_path / "run.toml"
     runfile.write_text(RUN)
     out = tmp_path / "out.nc"
-    done = subprocess.run([sys.executable, "-m", "ensemble", "run", str(runfile), "-o", str(out), "--quiet",
-                           "--chunk", "64"], capture_output=True, text=True, preexec_fn=_small_disk)
+    command = [sys.executable, "-m", "ensemble", "run", str(runfile), "-o", str(out), "--quiet", "--chunk", "64"]
+    done = subprocess.run(command, capture_output=True, text=True, preexec_fn=_small_disk)
     assert done.returncode == 3, done.stderr
     lines = done.stderr.strip().splitlines()
-    assert len(lines) == 1 and "writing failed" in lines[0] and "out.nc.part" in lines[0], lines
-    assert not out.exists() and not (tmp_path / "out.nc.lock").exists()
-    try:  # HDF5 does not promise a readable file after a failed write; if it is, it must not overstate
-        nc = netCDF4.Dataset(tmp_path / "out.nc.part")
-    except OSError:
-        return
-    with nc:
-        written = int(nc.members_written)
-        assert written < 300 and np.all(np.isfinite(nc["tilt"][:written]))
+    assert len(lines) == 1 and "writing failed" in lines[0] and "kept in " + str(out) + ".parts" in lines[0], lines
+    assert not out.exists() and not (tmp_path / "out.nc.lock").exists() and not (tmp_path / "out.nc.tmp").exists()
+    parts = sorted((tmp_path / "out.nc.parts").glob("members-*.nc"))
+    assert len(parts) == 5
+    for part in parts:
+        with netCDF4.Dataset(part) as nc:
+            assert np.all(np.isfinite(nc["tilt"][:]))
+    subprocess.run([*command, "--resume"], check=True)
+    subprocess.run([*command[:6], str(tmp_path / "unhindered.nc"), "--quiet"], check=True)
+    from tests.test_resume import same_bits
+    same_bits(out, tmp_path / "unhindered.nc")
 
 
 def test_a_disk_without_room_for_the_result_is_refused_before_the_run(tmp_path, capsys, monkeypatch):

@@ -1,0 +1,217 @@
+"""Resumable runs: finished chunks kept as immutable part files beside the output, then assembled.
+
+A run of OUT.nc keeps what it finished in the folder OUT.nc.parts/:
+
+    manifest.json                             the run's fingerprint: its run file and the versions that make
+                                              its bits (ensemble, numba, numpy, netCDF4)
+    members-J0-J1-SHA256.nc                   members J0 .. J1 - 1 (12 digits each): their saved variables and
+                                              per-member records; SHA256 is the checksum of the file's bytes
+    members-J0-J1.tmp                         a part being written; a resumed run deletes it
+
+A part is written under its .tmp name, fsynced, checksummed and renamed, so a
+part with a final name is complete unless its bytes changed since, which its
+checksum tells. Once every member is in a part, the parts are copied in
+member order into the result (ensemble.store.Writer), which is fsynced and
+renamed into place; only then is the folder deleted. Until then the disk
+holds the parts and the result: about twice the result's size.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import re
+import shutil
+from dataclasses import dataclass
+from importlib.metadata import version
+from pathlib import Path
+
+import netCDF4
+import numpy as np
+
+from . import __version__
+from .scenes import SCENES
+from .spec import Spec
+from .store import RUN_RECORDS, fsync_path, record_names
+
+MANIFEST = "manifest.json"
+PART_NAME = re.compile(r"members-(\d{12})-(\d{12})-([0-9a-f]{64})\.nc")
+
+
+def folder_of(out: Path) -> Path:
+    """The folder that holds the parts of a run writing `out`."""
+    return out.with_name(out.name + ".parts")
+
+
+def fingerprint(spec: Spec) -> dict[str, str]:
+    """What a part's bits depend on besides the member range: the run file's text and the versions of the
+    packages that compute and store them."""
+    return {"run_file_sha256": hashlib.sha256(spec.text.encode()).hexdigest(), "ensemble": __version__,
+            "numba": version("numba"), "numpy": np.__version__, "netCDF4": netCDF4.__version__}
+
+
+class PartsError(Exception):
+    """The parts folder cannot be used as asked: one line for the user (exit status 2)."""
+
+
+@dataclass(frozen=True)
+class Part:
+    """A finished part: members start .. stop - 1 in the file `path`."""
+    start: int
+    stop: int
+    path: Path
+
+
+class Parts:
+    """The parts folder of one run: what is finished, what is missing, writing new parts and assembling them.
+
+    Parts(out, spec, resume) opens it: it makes a new folder (refusing one that exists unless `resume`); with
+    `resume`, it checks the manifest against this run's fingerprint (PartsError when they differ), deletes
+    leftover .tmp files and parts whose checksum fails, and keeps the rest. `discard(out)` deletes a folder.
+    """
+
+    def __init__(self, out: Path, spec: Spec, resume: bool = False):
+        self.folder = folder_of(out)
+        self.spec = spec
+        self.dropped: list[str] = []  # what a resume found broken and deleted, one phrase each
+        manifest = self.folder / MANIFEST
+        if self.folder.exists() and not resume:
+            raise PartsError(f"{self.folder} holds the parts of an unfinished run; add --resume to finish it or "
+                             f"--force to start over")
+        if self.folder.exists() and manifest.exists():
+            try:
+                found = json.loads(manifest.read_text())
+            except (OSError, ValueError) as e:
+                raise PartsError(f"{manifest}: cannot be read ({e}); use --force to start over") from None
+            if found != fingerprint(spec):
+                changed = ", ".join(key for key in fingerprint(spec) if found.get(key) != fingerprint(spec)[key])
+                raise PartsError(f"{self.folder} was made by another run ({changed} differs); --resume continues "
+                                 f"only the same run file with the same versions; use --force to start over")
+        else:
+            self.folder.mkdir(parents=True, exist_ok=True)
+            _write_atomically(manifest, json.dumps(fingerprint(spec), indent=1).encode())
+        self.parts = self._verified()
+
+    @staticmethod
+    def discard(out: Path) -> None:
+        shutil.rmtree(folder_of(out), ignore_errors=True)
+
+    def _verified(self) -> list[Part]:
+        """The parts whose bytes match their checksum, in member order, without overlaps; the rest deleted."""
+        for path in self.folder.glob("*.tmp"):
+            path.unlink()
+            self.dropped.append(f"{path.name} (unfinished)")
+        parts = []
+        for path in sorted(self.folder.glob("members-*")):
+            match = PART_NAME.fullmatch(path.name)
+            start, stop = (int(match[1]), int(match[2])) if match else (0, 0)
+            if not match or _sha256(path) != match[3] or not 0 <= start < stop <= self.spec.n_members:
+                path.unlink()
+                self.dropped.append(f"{path.name} ({'checksum differs' if match else 'not a part'})")
+            elif parts and start < parts[-1].stop:
+                path.unlink()
+                self.dropped.append(f"{path.name} (overlaps another part)")
+            else:
+                parts.append(Part(start, stop, path))
+        return parts
+
+    def missing(self) -> list[tuple[int, int]]:
+        """The member ranges [start, stop) that no part holds, in order."""
+        gaps, at = [], 0
+        for part in self.parts:
+            if part.start > at:
+                gaps.append((at, part.start))
+            at = part.stop
+        return gaps + ([(at, self.spec.n_members)] if at < self.spec.n_members else [])
+
+    def members_done(self) -> int:
+        return sum(part.stop - part.start for part in self.parts)
+
+    def begin(self, start: int, stop: int, segment: int | None = None) -> PartWriter:
+        """A new part for members start .. stop - 1; HDF5 chunks of `segment` samples (default: whole)."""
+        return PartWriter(self, start, stop, segment or self.spec.n_save)
+
+    def assemble(self, writer, segment: int) -> dict[str, np.ndarray]:
+        """Copy every part, in member order, into `writer` (ensemble.store.Writer), `segment` samples at a time;
+        returns the per-member records of every member."""
+        assert not self.missing(), "assemble needs every member"
+        names = record_names(self.spec)
+        records = {name: [] for name in names}
+        for part in self.parts:
+            with netCDF4.Dataset(part.path) as nc:
+                nc.set_auto_mask(False)
+                for first in range(0, self.spec.n_save, segment):
+                    writer.write_samples(part.start, first, {name: nc.variables[name][:, first:first + segment]
+                                                             for name in self.spec.save})
+                data = {name: nc.variables[name][:] for name in names}
+            writer.write(part.start, data)
+            for name in names:
+                records[name].append(data[name])
+        return {name: np.concatenate(values) for name, values in records.items()}
+
+
+class PartWriter:
+    """Members start .. stop - 1 of a run, written to a .tmp file; finish() makes it a part, abandon() deletes
+    it. Same write_samples and write as ensemble.store.Writer, with the run's member indices."""
+
+    def __init__(self, parts: Parts, start: int, stop: int, segment: int):
+        spec, scene = parts.spec, SCENES[parts.spec.scene]
+        self.parts, self.start, self.stop = parts, start, stop
+        self.temporary = parts.folder / f"members-{start:012d}-{stop:012d}.tmp"
+        self.nc = nc = netCDF4.Dataset(self.temporary, "w", format="NETCDF4")
+        sizes = {"member": stop - start, "t": spec.n_save, **scene.sizes(spec.constants)}
+        for name in spec.save:
+            dims = scene.OBSERVABLES[name][0]
+            for dim in dims:
+                if dim not in nc.dimensions:
+                    nc.createDimension(dim, sizes[dim])
+            chunks = tuple({**sizes, "t": min(segment, spec.n_save)}[d] for d in dims)
+            nc.createVariable(name, "f8", dims, chunksizes=chunks, fill_value=np.nan)
+        for name in record_names(spec):
+            kind = RUN_RECORDS[name][0]
+            nc.createVariable(name, kind, ("member",), fill_value=np.nan if kind == "f8" else None)
+
+    def write_samples(self, start: int, first: int, data: dict[str, np.ndarray]) -> None:
+        for name, values in data.items():
+            offset = start - self.start
+            self.nc.variables[name][offset:offset + values.shape[0], first:first + values.shape[1]] = values
+
+    def write(self, start: int, data: dict[str, np.ndarray]) -> None:
+        for name, values in data.items():
+            self.nc.variables[name][start - self.start:start - self.start + len(values)] = values
+
+    def finish(self) -> Part:
+        """Close, fsync, checksum and rename: the part is complete."""
+        self.nc.close()
+        fsync_path(self.temporary)
+        path = self.parts.folder / f"members-{self.start:012d}-{self.stop:012d}-{_sha256(self.temporary)}.nc"
+        os.replace(self.temporary, path)
+        fsync_path(self.parts.folder)
+        part = Part(self.start, self.stop, path)
+        self.parts.parts = sorted([*self.parts.parts, part], key=lambda p: p.start)
+        return part
+
+    def abandon(self) -> None:
+        try:
+            self.nc.close()
+        except (OSError, RuntimeError):
+            pass  # a write failed already (a full disk); that error is the one to report
+        self.temporary.unlink(missing_ok=True)
+
+
+def _sha256(path: Path) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as file:
+        for block in iter(lambda: file.read(2**20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def _write_atomically(path: Path, data: bytes) -> None:
+    temporary = path.with_name(path.name + ".tmp")
+    with open(temporary, "wb") as file:
+        file.write(data)
+        file.flush()
+        os.fsync(file.fileno())
+    os.replace(temporary, path)
+    fsync_path(path.parent)

@@ -1,0 +1,108 @@
+"""Sweeps on a Dask cluster (issue 16): a LocalCluster of two worker processes gives the bits of a local run; a
+worker killed mid-task has its chunk computed elsewhere; chunks that keep failing leave the rest done, are
+named, and --resume completes them; mismatched versions and a missing dask are refused in one line."""
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+
+import pytest
+
+from ensemble import cli, cluster, runner
+from ensemble.parts import folder_of
+from ensemble.spec import load
+
+from .conftest import top_runfile
+from .test_resume import NOISY_TOPS, same_bits
+
+distributed = pytest.importorskip("distributed")
+CHAIN = """scene = "chain"
+method = "verlet"
+dt = 0.01
+t_end = 1.0
+save_dt = 0.1
+members = 30
+seed = 3
+[parameters]
+n = 5
+boundary = "fixed"
+m = { loguniform = [0.5, 2.0] }
+k = 1.0
+x0 = { normal = [0.0, 0.1] }
+v0 = 0.0
+"""
+
+
+@pytest.fixture(scope="module")
+def client():
+    import dask
+
+    with dask.config.set({"distributed.scheduler.allowed-failures": 1}):
+        with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0",
+                                      env={"NUMBA_NUM_THREADS": "1"}) as local, distributed.Client(local) as c:
+            yield c
+
+
+@pytest.mark.parametrize("text", [NOISY_TOPS, CHAIN], ids=["noisy tops", "chain"])
+def test_two_workers_give_the_bits_of_a_local_run(client, tmp_path, write_runfile, text):
+    path = write_runfile(text)
+    local, remote = tmp_path / "local.nc", tmp_path / "remote.nc"
+    assert cli.main(["run", str(path), "-o", str(local), "--quiet"]) == 0
+    runner.run(load(path), remote, chunk=7, progress=False, client=client)
+    same_bits(remote, local)
+
+
+def _dies_on(marker, start: int, always: bool = False):
+    """A chunk task whose worker process dies when it gets member `start` (once, or every time)."""
+    def task(spec, j0, j1, repeats):
+        if j0 == start and (always or not marker.exists()):
+            marker.touch()
+            os._exit(1)
+        return cluster.chunk_task(spec, j0, j1, repeats)
+    return task
+
+
+def test_a_worker_killed_mid_task_has_its_chunk_computed_again(client, tmp_path, write_runfile):
+    path = write_runfile(NOISY_TOPS)
+    local, remote = tmp_path / "local.nc", tmp_path / "remote.nc"
+    assert cli.main(["run", str(path), "-o", str(local), "--quiet"]) == 0
+    runner.run(load(path), remote, chunk=7, progress=False, client=client, task=_dies_on(tmp_path / "died", 14))
+    assert (tmp_path / "died").exists()
+    same_bits(remote, local)
+
+
+def test_a_chunk_that_keeps_failing_is_named_and_resume_completes_it(client, tmp_path, write_runfile):
+    path = write_runfile(NOISY_TOPS)
+    local, remote = tmp_path / "local.nc", tmp_path / "remote.nc"
+    assert cli.main(["run", str(path), "-o", str(local), "--quiet"]) == 0
+    with pytest.raises(runner.Incomplete, match=r"members (.*, )?21..27(, .*)? were not computed") as failure:
+        runner.run(load(path), remote, chunk=7, progress=False, client=client,
+                   task=_dies_on(tmp_path / "died", 21, always=True))
+    # a chunk queued on a worker that died with it may be blamed too (Dask's suspicious tasks)
+    failed = failure.value.ranges
+    assert (21, 28) in failed and len(failed) <= 3 and "KilledWorker" in failure.value.cause
+    assert not remote.exists() and len(list(folder_of(remote).glob("members-*.nc"))) == 9 - len(failed)
+    runner.run(load(path), remote, chunk=7, progress=False, client=client, resume=True)
+    same_bits(remote, local)
+
+
+def test_workers_with_other_versions_are_refused(client, monkeypatch):
+    monkeypatch.setattr(cluster, "__version__", "0.0.1")  # this process claims another ensemble than the workers
+    with pytest.raises(cluster.ClusterError, match=r"has ensemble .* \(here 0.0.1\); install the same versions"):
+        cluster._check_versions(client, "test")
+
+
+def test_an_unreachable_scheduler_is_one_line(monkeypatch):
+    monkeypatch.setattr(cluster, "CONNECT_SECONDS", 1)
+    with pytest.raises(cluster.ClusterError, match="--scheduler tcp://127.0.0.1:9: cannot connect"):
+        cluster.connect("tcp://127.0.0.1:9")
+
+
+def test_without_dask_the_cluster_options_say_how_to_install_it(tmp_path, write_runfile):
+    path = write_runfile(top_runfile())
+    hide = ("import sys; sys.modules['distributed'] = None; from ensemble.cli import main; "
+            f"sys.exit(main(['run', {str(path)!r}, '-o', {str(tmp_path / 'out.nc')!r}, '--workers', '2']))")
+    done = subprocess.run([sys.executable, "-c", hide], capture_output=True, text=True)
+    assert done.returncode == 2 and done.stderr.count("\n") == 1, done.stderr
+    assert "pip install 'ensemble[dask]'" in done.stderr and not list(tmp_path.glob("out.nc*"))

@@ -1,0 +1,146 @@
+"""Resume after a crash (issue 16): finished chunks are checksummed parts beside the output; a run killed at any
+point (SIGKILL between parts, during assembly) resumes to the bits of an uninterrupted run; a changed run file
+is refused, and a corrupted part is detected and computed again."""
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import xarray as xr
+
+from ensemble import cli, runner
+from ensemble.parts import folder_of
+from ensemble.spec import load
+
+from .conftest import top_runfile
+
+NOISY_TOPS = top_runfile(members=60, t_end=2.0, save_dt=0.01) + "[observe]\nnoise = { tilt = 0.01 }\n"
+
+
+def same_bits(a: Path, b: Path) -> None:
+    """Every variable of two results bitwise equal, and every attribute but the history (it carries a date)."""
+    with xr.open_dataset(a) as x, xr.open_dataset(b) as y:
+        assert set(x.variables) == set(y.variables)
+        for name in x.variables:
+            assert x[name].values.tobytes() == y[name].values.tobytes(), name
+        assert {k: v for k, v in x.attrs.items() if k != "history"} == {
+            k: v for k, v in y.attrs.items() if k != "history"}
+
+
+@pytest.fixture
+def reference(tmp_path, write_runfile):
+    """(run file, the result of one uninterrupted run of it)."""
+    path = write_runfile(NOISY_TOPS)
+    out = tmp_path / "reference.nc"
+    assert cli.main(["run", str(path), "-o", str(out), "--quiet"]) == 0
+    return path, out
+
+
+def _interrupted(spec, out, after: int, monkeypatch) -> None:
+    """Run `spec` in chunks of 7 and interrupt it (KeyboardInterrupt) once `after` chunks are finished."""
+    real, calls = runner.compute_chunk, []
+
+    def compute(*args, **kwargs):
+        if len(calls) == after:
+            raise KeyboardInterrupt
+        calls.append(args[1])
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(runner, "compute_chunk", compute)
+    with pytest.raises(KeyboardInterrupt):
+        runner.run(spec, out, chunk=7, progress=False)
+    monkeypatch.setattr(runner, "compute_chunk", real)
+
+
+def test_chunk_size_and_threads_leave_every_bit_unchanged(reference, tmp_path):
+    """Chunks of 1, 7 and the default; NUMBA_NUM_THREADS 1 and 2 (real processes): the same file."""
+    path, expected = reference
+    for chunk in (1, 7):
+        out = tmp_path / f"chunk{chunk}.nc"
+        assert cli.main(["run", str(path), "-o", str(out), "--quiet", "--chunk", str(chunk)]) == 0
+        same_bits(out, expected)
+    for threads in ("1", "2"):
+        out = tmp_path / f"threads{threads}.nc"
+        subprocess.run([sys.executable, "-m", "ensemble", "run", str(path), "-o", str(out), "--quiet",
+                        "--chunk", "8"], check=True, env={**os.environ, "NUMBA_NUM_THREADS": threads})
+        same_bits(out, expected)
+
+
+def test_an_interrupted_run_resumes_to_the_same_bits(reference, tmp_path, monkeypatch, capsys):
+    path, expected = reference
+    out = tmp_path / "out.nc"
+    _interrupted(load(path), out, after=3, monkeypatch=monkeypatch)
+    parts = sorted(folder_of(out).glob("members-*.nc"))
+    assert len(parts) == 3 and not out.exists()
+    with xr.open_dataset(parts[1]) as part:  # a part is a NetCDF file of its members' data
+        assert part.sizes["member"] == 7 and np.isfinite(part.tilt.values).all()
+    # without --resume, the parts are not overwritten
+    assert cli.main(["run", str(path), "-o", str(out), "--quiet"]) == 2
+    line = capsys.readouterr().err.strip()
+    assert "\n" not in line and "--resume" in line and len(list(folder_of(out).glob("members-*.nc"))) == 3
+    assert cli.main(["run", str(path), "-o", str(out), "--quiet", "--resume"]) == 0
+    assert "(21 more from the parts of an earlier run)" in capsys.readouterr().out
+    same_bits(out, expected)
+    assert not folder_of(out).exists()
+
+
+def test_a_corrupted_part_and_a_leftover_are_computed_again(reference, tmp_path, monkeypatch):
+    path, expected = reference
+    out = tmp_path / "out.nc"
+    _interrupted(load(path), out, after=2, monkeypatch=monkeypatch)
+    first, second = sorted(folder_of(out).glob("members-*.nc"))
+    data = bytearray(second.read_bytes())
+    data[len(data) // 2] ^= 1  # one bit flipped: the file still opens, its checksum fails
+    second.write_bytes(bytes(data))
+    (folder_of(out) / "members-000000000014-000000000021.tmp").write_bytes(b"cut short")
+    calls = []
+    real = runner.compute_chunk
+    monkeypatch.setattr(runner, "compute_chunk", lambda *a, **k: calls.append(a[1:3]) or real(*a, **k))
+    runner.run(load(path), out, chunk=7, progress=False, resume=True)
+    assert calls[0] == (7, 14) and (0, 7) not in calls  # the good part is kept, the corrupted one recomputed
+    same_bits(out, expected)
+
+
+def test_resume_refuses_a_changed_run_file(reference, tmp_path, monkeypatch, capsys):
+    path, _ = reference
+    out = tmp_path / "out.nc"
+    _interrupted(load(path), out, after=2, monkeypatch=monkeypatch)
+    path.write_text(NOISY_TOPS.replace("seed = 7", "seed = 8"))
+    assert cli.main(["run", str(path), "-o", str(out), "--quiet", "--resume"]) == 2
+    line = capsys.readouterr().err.strip()
+    assert "\n" not in line and "run_file_sha256 differs" in line, line
+    assert len(list(folder_of(out).glob("members-*.nc"))) == 2 and not out.exists()
+
+
+def _killed(command: list[str], ready, timeout: float = 60.0) -> None:
+    """Start `command`, SIGKILL it as soon as ready() holds; fails if it ended first."""
+    process = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    end = time.monotonic() + timeout
+    while not ready() and process.poll() is None and time.monotonic() < end:
+        time.sleep(0.001)
+    assert process.poll() is None, "the run ended before it could be killed"
+    process.send_signal(signal.SIGKILL)
+    process.wait()
+
+
+def test_sigkill_between_parts_and_during_assembly_then_resume(tmp_path, write_runfile):
+    """A real `ensemble run`, killed after some parts and again while it assembles the result, resumes to the
+    bits of an uninterrupted run."""
+    path = write_runfile(top_runfile(members=400, t_end=0.2, save_dt=0.01))
+    expected, out = tmp_path / "expected.nc", tmp_path / "out.nc"
+    command = [sys.executable, "-m", "ensemble", "run", str(path), "--quiet", "--chunk", "1"]
+    subprocess.run([*command, "-o", str(expected)], check=True)
+    parts = folder_of(out)
+    _killed([*command, "-o", str(out)], lambda: len(list(parts.glob("members-*.nc"))) >= 5)
+    assert not out.exists() and len(list(parts.glob("members-*.nc"))) >= 5
+    _killed([*command, "-o", str(out), "--resume"], lambda: out.with_name("out.nc.tmp").exists())
+    assert not out.exists() and len(list(parts.glob("members-*.nc"))) == 400
+    subprocess.run([*command, "-o", str(out), "--resume"], check=True)
+    same_bits(out, expected)
+    assert not parts.exists() and not out.with_name("out.nc.tmp").exists()
