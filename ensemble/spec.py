@@ -133,8 +133,8 @@ class Spec:
 
     @property
     def methods(self) -> tuple[str, ...]:
-        """The methods the run uses, in order of first use."""
-        return tuple(dict.fromkeys(members_table(self)["method"]))
+        """The methods the run uses, in order of first use (from the sweep grids: no members table needed)."""
+        return tuple(dict.fromkeys(m for grid in self.grids or ({},) for m in grid.get("method", (self.method,))))
 
     def times(self) -> np.ndarray:
         """Saved sample times (s)."""
