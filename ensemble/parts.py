@@ -22,6 +22,7 @@ import json
 import os
 import re
 import shutil
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from importlib.metadata import version
 from pathlib import Path
@@ -91,6 +92,24 @@ class Parts:
             self.folder.mkdir(parents=True, exist_ok=True)
             _write_atomically(manifest, json.dumps(fingerprint(spec), indent=1).encode())
         self.parts = self._verified()
+        # Parts are sealed (fsync, checksum, rename) on a thread of their own while the next chunk computes.
+        self._sealing = ThreadPoolExecutor(1, thread_name_prefix="ensemble-parts")
+        self._sealed: list[tuple[int, int, Future]] = []  # (start, stop, future of its Part)
+
+    def settle(self) -> list[Part]:
+        """Wait for the parts being sealed (re-raising a failure); returns every finished part, in order."""
+        sealed, self._sealed = self._sealed, []
+        self.parts = sorted([*self.parts, *(future.result() for _, _, future in sealed)], key=lambda p: p.start)
+        return self.parts
+
+    def close(self) -> list[Part]:
+        """settle, then end the sealing thread; after a failure elsewhere, a failed seal only loses its part."""
+        try:
+            return self.settle()
+        except (OSError, RuntimeError):
+            return self.parts
+        finally:
+            self._sealing.shutdown()
 
     @staticmethod
     def discard(out: Path) -> None:
@@ -116,7 +135,7 @@ class Parts:
         return parts
 
     def missing(self) -> list[tuple[int, int]]:
-        """The member ranges [start, stop) that no part holds, in order."""
+        """The member ranges [start, stop) that no finished part holds, in order (see settle)."""
         gaps, at = [], 0
         for part in self.parts:
             if part.start > at:
@@ -125,7 +144,9 @@ class Parts:
         return gaps + ([(at, self.spec.n_members)] if at < self.spec.n_members else [])
 
     def members_done(self) -> int:
-        return sum(part.stop - part.start for part in self.parts)
+        """Members in finished parts, counting those being sealed."""
+        return sum(part.stop - part.start for part in self.parts) + sum(stop - start for start, stop, _ in
+                                                                          self._sealed)
 
     def begin(self, start: int, stop: int, segment: int | None = None) -> PartWriter:
         """A new part for members start .. stop - 1; HDF5 chunks of `segment` samples (default: whole)."""
@@ -133,8 +154,9 @@ class Parts:
 
     def assemble(self, writer, segment: int) -> dict[str, np.ndarray]:
         """Copy every part, in member order, into `writer` (ensemble.store.Writer), `segment` samples at a time;
-        returns the per-member records of every member."""
-        assert not self.missing(), "assemble needs every member"
+        returns the per-member records of every member. Call settle first: every part must be finished."""
+        self.close()
+        assert not self.missing(), "assemble needs every member, settled"
         names = record_names(self.spec)
         records = {name: [] for name in names}
         for part in self.parts:
@@ -180,16 +202,19 @@ class PartWriter:
         for name, values in data.items():
             self.nc.variables[name][start - self.start:start - self.start + len(values)] = values
 
-    def finish(self) -> Part:
-        """Close, fsync, checksum and rename: the part is complete."""
+    def finish(self) -> None:
+        """Close the file and have it sealed (fsync, checksum, rename to the part's name) on the parts' own
+        thread: the part is complete once Parts.settle returns."""
         self.nc.close()
+        future = self.parts._sealing.submit(self._seal)
+        self.parts._sealed.append((self.start, self.stop, future))
+
+    def _seal(self) -> Part:
         fsync_path(self.temporary)
         path = self.parts.folder / f"members-{self.start:012d}-{self.stop:012d}-{_sha256(self.temporary)}.nc"
         os.replace(self.temporary, path)
         fsync_path(self.parts.folder)
-        part = Part(self.start, self.stop, path)
-        self.parts.parts = sorted([*self.parts.parts, part], key=lambda p: p.start)
-        return part
+        return Part(self.start, self.stop, path)
 
     def abandon(self) -> None:
         try:

@@ -291,9 +291,10 @@ def run(spec: Spec, out: str | Path, *, chunk: int | None = None, progress: bool
 
                 compute_on(client, spec, todo, parts, tally, bar, repeats, task)
     except BaseException:
-        if not parts.parts:  # nothing finished: nothing to resume
+        if not parts.close():  # nothing finished: nothing to resume
             Parts.discard(out)
         raise
+    parts.settle()  # every part sealed before the result is begun
     with Writer(out, spec, members_table(spec), chunk, command, segment_samples(spec)) as writer:
         records = parts.assemble(writer, segment_samples(spec))
     Parts.discard(out)

@@ -103,6 +103,37 @@ def test_a_member_keeps_its_draws_when_the_ensemble_grows():
     np.testing.assert_array_equal(small["tilt0"], large["tilt0"][:5])
 
 
+def test_any_range_of_members_draws_what_the_whole_run_draws():
+    """A task builds members start .. stop - 1 alone (the spec sent without its table), per-mass normal draws
+    included: the same values as the whole table, for ranges of every size and place."""
+    from dataclasses import replace
+
+    text = CHAIN_TEXT.replace("members = 2", "members = 257").replace(
+        "x0 = 0.1", "x0 = { normal = [0.0, 0.1] }\nv0 = { uniform = [-1.0, 1.0] }").replace(
+        "m = 1.0", "m = { loguniform = [0.5, 2.0] }")
+    spec = parse(text)
+    whole, alone = members_table(spec), replace(spec, table=None)
+    for start, stop in [(0, 257), (0, 1), (5, 12), (128, 256), (256, 257)]:
+        part = members_table(alone, start, stop)
+        assert part.keys() == whole.keys()
+        for name in whole:
+            np.testing.assert_array_equal(part[name], whole[name][start:stop], err_msg=name)
+
+
+def test_uniform_draws_are_numpys_stream_and_normal_draws_are_normal():
+    """Member i's uniform is the i-th value of numpy's default_rng([seed, crc32(name)]).uniform (an independent
+    computation: no jumping ahead); normal draws pass a Kolmogorov-Smirnov test against N(mu, sigma)."""
+    import zlib
+
+    from scipy import stats
+
+    spec = parse(top_runfile(members=20000, parameters={"spin0": {"normal": [60.0, 2.0]}}))
+    table = members_table(spec)
+    stream = np.random.default_rng([7, zlib.crc32(b"tilt0")])
+    np.testing.assert_array_equal(table["tilt0"], stream.uniform(0.02, 0.2, 20000))
+    assert stats.kstest(table["spin0"], stats.norm(60.0, 2.0).cdf).pvalue > 1e-3
+
+
 SENTINEL = 12345.678  # stands for a raw TOML value (nan, inf, a table) that top_runfile would quote
 
 
