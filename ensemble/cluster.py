@@ -14,6 +14,7 @@ processes with NUMBA_NUM_THREADS = cores / N.
 """
 from __future__ import annotations
 
+import logging
 import os
 from importlib.metadata import version
 
@@ -51,7 +52,8 @@ def connect(scheduler: str | None = None, workers: int | None = None):
     else:
         cores = os.cpu_count() or 1
         cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=":0",
-                               env={"NUMBA_NUM_THREADS": str(max(1, cores // workers))})
+                               env={"NUMBA_NUM_THREADS": str(max(1, cores // workers))},
+                               silence_logs=logging.CRITICAL)  # failures reach the user as one line of ours
         client = Client(cluster)
     try:
         _check_versions(client, scheduler or f"--workers {workers}")
