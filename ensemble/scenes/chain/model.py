@@ -117,9 +117,20 @@ def stiffness(k: np.ndarray, n: int, boundary: str) -> np.ndarray:
     return out.reshape(k.shape[:-1] + (n, n))
 
 
+def extensions(x: np.ndarray, boundary: str) -> np.ndarray:
+    """Spring extensions D @ x (m), (..., springs) from x (..., n), in O(n): each spring's right end minus its
+    left end, a wall counting as 0 (see incidence)."""
+    if boundary == "fixed":
+        wall = np.zeros(x.shape[:-1] + (1,))
+        return np.concatenate([x, wall], axis=-1) - np.concatenate([wall, x], axis=-1)
+    if boundary == "free":
+        return x[..., 1:] - x[..., :-1]
+    return np.roll(x, -1, axis=-1) - x  # periodic
+
+
 def energy(x, v, m, k, boundary: str) -> np.ndarray:
-    """1/2 v.M.v + 1/2 x.K.x (J); x, v (..., n), m (..., n), k (..., springs) broadcast."""
-    stretch = x @ incidence(x.shape[-1], boundary).T
+    """1/2 v.M.v + 1/2 x.K.x (J); x, v (..., n), m (..., n), k (..., springs) broadcast. O(n) per sample."""
+    stretch = extensions(x, boundary)
     return 0.5 * np.sum(m * v * v, axis=-1) + 0.5 * np.sum(k * stretch * stretch, axis=-1)
 
 
