@@ -229,3 +229,23 @@ def test_timed_cost_per_member_grows_in_proportion_to_the_steps():
             per_step.append(seconds)
         ratios.append(per_step[0] / per_step[1])
     assert 0.8 < np.median(ratios) < 1.2, ratios
+
+
+def test_a_run_calls_the_kernel_once_per_chunk_and_setting(monkeypatch):
+    """Adaptive members without dt (NaN) share one launch: a run's kernel launches number at most its chunks
+    times its distinct settings (NaN != NaN once made every member a launch of its own, 1000x slower)."""
+    launches = []
+    real = launch.Launch.__init__
+
+    def counted(self, *args, **kwargs):
+        launches.append(1)
+        real(self, *args, **kwargs)
+
+    monkeypatch.setattr(launch.Launch, "__init__", counted)
+    spec = parse(top_runfile(method="dopri5", dt=None, members=1024, t_end=0.2))
+    runner.simulate(spec, chunk=256)
+    assert len(launches) == 4  # 1024 members / 256 per chunk, one setting
+    swept = parse(top_runfile(method=None, members=100, t_end=0.2, sweep={"method": ["rk4", "dopri5"]}))
+    launches.clear()
+    runner.simulate(swept, chunk=128)
+    assert len(launches) <= 2 * 2, len(launches)  # 200 members in 2 chunks, 2 settings
