@@ -272,6 +272,10 @@ def run(spec: Spec, out: str | Path, *, chunk: int | None = None, progress: bool
     if force and not resume:
         Parts.discard(out)
     parts = Parts(out, spec, resume=resume)
+    if resume and progress:
+        dropped = f"; dropped {', '.join(parts.dropped)}" if parts.dropped else ""
+        print(f"resuming: {parts.members_done()} of {spec.n_members} members in {len(parts.parts)} part(s) kept"
+              f"{dropped}", file=sys.stderr, flush=True)
     try:
         n = spec.n_members
         chunk = chunk or (dask_chunk(spec, sum(client.nthreads().values())) if client else default_chunk(spec))

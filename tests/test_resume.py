@@ -90,7 +90,7 @@ def test_an_interrupted_run_resumes_to_the_same_bits(reference, tmp_path, monkey
     assert not folder_of(out).exists()
 
 
-def test_a_corrupted_part_and_a_leftover_are_computed_again(reference, tmp_path, monkeypatch):
+def test_a_corrupted_part_and_a_leftover_are_computed_again(reference, tmp_path, monkeypatch, capsys):
     path, expected = reference
     out = tmp_path / "out.nc"
     _interrupted(load(path), out, after=2, monkeypatch=monkeypatch)
@@ -102,8 +102,11 @@ def test_a_corrupted_part_and_a_leftover_are_computed_again(reference, tmp_path,
     calls = []
     real = runner.compute_chunk
     monkeypatch.setattr(runner, "compute_chunk", lambda *a, **k: calls.append(a[1:3]) or real(*a, **k))
-    runner.run(load(path), out, chunk=7, progress=False, resume=True)
+    runner.run(load(path), out, chunk=7, progress=True, resume=True)
     assert calls[0] == (7, 14) and (0, 7) not in calls  # the good part is kept, the corrupted one recomputed
+    said = capsys.readouterr().err.splitlines()[0]
+    assert said == (f"resuming: 7 of 60 members in 1 part(s) kept; dropped members-000000000014-000000000021.tmp "
+                    f"(unfinished), {second.name} (checksum differs)"), said
     same_bits(out, expected)
 
 
