@@ -134,8 +134,7 @@ def _run(args) -> int:
         print(f"ensemble: interrupted; {_left_behind(folder_of(out), resume)}", file=sys.stderr)
         return EXIT_INTERRUPTED
     except Incomplete as e:
-        print(f"ensemble: error: {e}; the others are in {folder_of(out)}; {resume} computes the missing ones",
-              file=sys.stderr)
+        print(f"ensemble: error: {e}; {_left_behind(folder_of(out), resume)}", file=sys.stderr)
         return EXIT_FAILED
     except (OSError, RuntimeError) as e:  # netCDF4 reports HDF5 write failures as RuntimeError
         print(f"ensemble: error: {out}: writing failed ({_cause(e)}); {_left_behind(folder_of(out), resume)}",
