@@ -53,14 +53,29 @@ def acceleration(x_left, x, x_right, c_left, c_right):
 
 
 def block_size(constants: dict) -> int:
-    """Members per kernel block for a chain of n masses.
+    """Members per kernel block for a chain of n masses: 64 below 16 masses, else one vector of this host.
 
-    From 16 masses on, a block is 8 members: each row is one 64-byte line (one
-    AVX-512 vector), so a row update is a single vector operation. Shorter
-    chains ran 2x slower in 8-member blocks than in 64-member ones (measured
-    side by side; our guess is too little independent work per step).
+    From 16 masses on, a row of a block is one SIMD vector (vector_doubles: 4
+    with AVX2, 8 with AVX-512), so a row update is a single vector operation.
+    On an AVX2 host (AMD EPYC Zen 3), `python analysis/bench_chain.py` with
+    the block forced to 4, 8, 16 and 64 gave 1.84e9, 8.6e8, 8.4e8 and 1.58e9
+    mass-steps/s at n = 16 (2.1e9, 8.2e8, 8.4e8, 1.98e9 at n = 1024): the 8
+    that suits AVX-512 ran at less than half the speed of 4 there. Shorter
+    chains run best in 64-member blocks (2.5e9 at n = 2 against 7.7e8 in 4).
+    A member's arithmetic does not depend on its block: results are the same
+    bits on every host.
     """
-    return 64 if constants["n"] < 16 else 8
+    return 64 if constants["n"] < 16 else vector_doubles()
+
+
+@cache
+def vector_doubles() -> int:
+    """Doubles in one SIMD vector of this host's widest extension (LLVM's host features): 8 with AVX-512F,
+    4 with AVX, else 2."""
+    from llvmlite import binding
+
+    features = binding.get_host_cpu_features()
+    return 8 if features.get("avx512f") else 4 if features.get("avx") else 2
 
 
 def kernel(method: Method, constants: dict):
