@@ -1,13 +1,18 @@
 """Benchmark: chain kernels against NumPy vectorized over members, at several chain lengths.
 
     python analysis/bench_chain.py [--masses 1048576] [--repeats 7] [--n 2 16 1024] [--steps 200]
+                                   [--method verlet] [--boundary fixed]
 
 For each chain length n the ensemble holds about `masses` masses in all
-(members = masses / n). The Numba verlet kernel and a NumPy velocity Verlet
-(one force evaluation per step, as the kernel does) run side by side in this
-process, in rounds that time each contender once; the script prints median
-mass-steps per second and the median of the ratios taken within each round
-(this machine is shared: its speed drifts between rounds, not within one).
+(members = masses / n). The Numba kernel of --method and a NumPy velocity
+Verlet with fixed ends (one force evaluation per step, as a verlet kernel
+does) run side by side in this process, in rounds that time each contender
+once; the script prints median mass-steps per second and the median of the
+ratios taken within each round (this machine is shared: its speed drifts
+between rounds, not within one). A kernel call runs --steps steps and saves
+once: its fixed cost per call (blocking the inputs, allocating the samples)
+weighs less the more steps a call makes. For a method other than verlet the
+ratio compares unlike work (yoshida4 evaluates forces three times a step).
 """
 from __future__ import annotations
 
@@ -48,19 +53,20 @@ def seconds(fn):
     return time.perf_counter() - start
 
 
-def contenders(n, masses, rng, h, steps, numpy_steps):
+def contenders(n, masses, rng, h, steps, numpy_steps, method="verlet", boundary="fixed"):
     """For a chain of n masses: the members, and the Numba kernel and NumPy calls (each returns mass-steps)."""
     members = max(masses // n, 1)
-    values = {"m": rng.uniform(0.5, 2, (members, n)), "k": rng.uniform(0.5, 2, (members, n + 1)),
+    values = {"m": rng.uniform(0.5, 2, (members, n)),
+              "k": rng.uniform(0.5, 2, (members, chain.spring_count(n, boundary))),
               "x0": rng.normal(0, 0.1, (members, n)), "v0": np.zeros((members, n))}
-    constants = {"n": n, "boundary": "fixed"}
+    constants = {"n": n, "boundary": boundary}
     block = launch.block_size(chain, constants)
     members = max(members - members % block, block)
     values = {name: v[:members] for name, v in values.items()}
     state, rate = chain.inputs(values, constants)
-    verlet = METHODS["verlet"]
-    launch.prepare(chain, verlet, constants)  # compile or load
-    call = launch.Launch(chain, verlet, values, constants, n_save=2, save_dt=h * steps, dt=h, blowup_factor=np.inf)
+    kernel = METHODS[method]
+    launch.prepare(chain, kernel, constants)  # compile or load
+    call = launch.Launch(chain, kernel, values, constants, n_save=2, save_dt=h * steps, dt=h, blowup_factor=np.inf)
 
     def fast():
         call.run()
@@ -80,19 +86,21 @@ def main():
     parser.add_argument("--repeats", type=positive_int, default=7)
     parser.add_argument("--steps", type=positive_int, default=200,
                         help="Numba steps per kernel call (one saved sample)")
+    parser.add_argument("--method", default="verlet", choices=["verlet", "yoshida4", "symplectic_euler"])
+    parser.add_argument("--boundary", default="fixed", choices=["fixed", "free", "periodic"])
     args = parser.parse_args()
     print(host())
     rng = np.random.default_rng(2026)
     h = 1e-2
-    runs = {n: contenders(n, args.masses, rng, h, args.steps, numpy_steps=10) for n in args.n}
+    runs = {n: contenders(n, args.masses, rng, h, args.steps, 10, args.method, args.boundary) for n in args.n}
     fast_rates = {n: [] for n in args.n}
     slow_rates = {n: [] for n in args.n}
     for _ in range(args.repeats):  # rounds: every contender once, so slow spells of the machine hit them all
         for n, (_, fast, slow) in runs.items():
             fast_rates[n].append(fast() / seconds(fast))
             slow_rates[n].append(slow() / seconds(slow))
-    print(f"chain, fixed ends, velocity Verlet, about {args.masses} masses per ensemble, {args.steps} steps per "
-          f"kernel call; medians of {args.repeats} rounds, ratios taken within each round")
+    print(f"chain, {args.boundary} ends, {args.method}, about {args.masses} masses per ensemble, {args.steps} steps "
+          f"per kernel call; medians of {args.repeats} rounds, ratios taken within each round")
     print(f"{'n':>5} {'members':>8} {'numba mass-steps/s':>19} {'numpy mass-steps/s':>19} {'ratio':>6} "
           f"{'ratio range':>12}")
     for n, (members, _, _) in runs.items():
