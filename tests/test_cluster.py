@@ -106,3 +106,16 @@ def test_without_dask_the_cluster_options_say_how_to_install_it(tmp_path, write_
     done = subprocess.run([sys.executable, "-c", hide], capture_output=True, text=True)
     assert done.returncode == 2 and done.stderr.count("\n") == 1, done.stderr
     assert "pip install 'ensemble[dask]'" in done.stderr and not list(tmp_path.glob("out.nc*"))
+
+
+def test_the_command_line_runs_on_two_local_workers(tmp_path, write_runfile):
+    """`ensemble run --workers 2` (a real process: it starts the LocalCluster, checks the workers' versions and
+    closes them) writes the bits of a local run, and says so in its one summary line."""
+    path = write_runfile(NOISY_TOPS)
+    local, remote = tmp_path / "local.nc", tmp_path / "remote.nc"
+    assert cli.main(["run", str(path), "-o", str(local), "--quiet"]) == 0
+    done = subprocess.run([sys.executable, "-m", "ensemble", "run", str(path), "-o", str(remote), "--quiet",
+                           "--workers", "2"], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0 and done.stdout.startswith(f"wrote {remote}: 60 members"), done.stderr
+    assert done.stderr == "", done.stderr  # the cluster's own logging stays quiet
+    same_bits(remote, local)
