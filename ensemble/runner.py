@@ -67,11 +67,18 @@ def _record_bytes(spec: Spec) -> tuple[int, int]:
     return 8 * (state_rows + saved), 8 * work
 
 
+def run_block(spec: Spec) -> int:
+    """Members per kernel block for the run's chunks: the largest block of its methods' kernels (blocks are
+    powers of 2, so a chunk of whole blocks of it is whole blocks of every method's)."""
+    scene = SCENES[spec.scene]
+    return max(launch.block_size(scene, spec.constants, METHODS[name]) for name in spec.methods)
+
+
 def segment_samples(spec: Spec) -> int:
     """Saved samples per kernel call: every one, unless one kernel block's share of them would outgrow
     CHUNK_BYTES; then the record runs in segments of this many samples (each call continues the last)."""
     per_sample, _ = _record_bytes(spec)
-    block = launch.block_size(SCENES[spec.scene], spec.constants)
+    block = run_block(spec)
     return int(max(1, min(spec.n_save, CHUNK_BYTES // (per_sample * block))))
 
 
@@ -84,7 +91,7 @@ def member_bytes(spec: Spec) -> int:
 
 def smallest_chunk(spec: Spec) -> int:
     """Members in the smallest chunk a run can hold: one kernel block (or every member, if fewer)."""
-    return min(launch.block_size(SCENES[spec.scene], spec.constants), spec.n_members)
+    return min(run_block(spec), spec.n_members)
 
 
 def steps_per_member(spec: Spec) -> float:
@@ -99,7 +106,7 @@ def default_chunk(spec: Spec) -> int:
     """Members per chunk: a multiple of the kernel block that keeps a chunk within CHUNK_BYTES of memory
     (member_bytes) and CHUNK_MEMBER_STEPS of work (so chunks end, and finished members reach the file, every few
     seconds)."""
-    block = launch.block_size(SCENES[spec.scene], spec.constants)
+    block = run_block(spec)
     chunk = CHUNK_BYTES // member_bytes(spec) // block * block
     steps = steps_per_member(spec)
     if steps > 0:
@@ -154,7 +161,7 @@ def kernel_seconds_per_step(scene, method: Method, values: dict[str, np.ndarray]
     taken = int(outcome.counts[0].sum() + outcome.counts[1].sum())
     if taken == 0:
         return np.nan
-    members, block = len(outcome.status), launch.block_size(scene, constants)
+    members, block = len(outcome.status), launch.block_size(scene, constants, method)
     whole = block // math.gcd(members, block)  # copies that fill whole kernel blocks: no padded members timed
     copies = -(-max(1, -(-TIMED_MEMBER_STEPS // taken)) // whole) * whole
     tiled = {name: np.tile(v, (copies,) + (1,) * (np.ndim(v) - 1)) for name, v in values.items()}
@@ -335,7 +342,7 @@ def dask_chunk(spec: Spec, threads: int) -> int:
     record run in segments (segment_samples) gets the smallest chunk."""
     if segment_samples(spec) < spec.n_save:
         return smallest_chunk(spec)
-    block = launch.block_size(SCENES[spec.scene], spec.constants)
+    block = run_block(spec)
     share = -(-spec.n_members // (TASKS_PER_WORKER_THREAD * threads))
     return max(smallest_chunk(spec), min(default_chunk(spec), -(-share // block) * block))
 

@@ -214,7 +214,7 @@ def test_default_chunk_keeps_kernel_samples_and_saved_data_near_the_budget(text)
     block alone exceeds the budget. A segment is every sample unless one block's would exceed the budget."""
     spec = parse(text)
     chunk = runner.default_chunk(spec)
-    block = launch.block_size(SCENES[spec.scene], spec.constants)
+    block = runner.run_block(spec)
     state_rows = 3 if spec.scene == "top" else 2 * spec.constants["n"]
     saved = 4 if spec.scene == "top" else 1  # omega (3) + tilt, or energy
     segment = min(spec.n_save, runner.CHUNK_BYTES // (8 * (state_rows + saved) * block))
@@ -335,7 +335,7 @@ def test_default_chunk_bounds_the_work_between_progress_updates():
     """A long record with few saves: the records are small, but a chunk holds at most CHUNK_MEMBER_STEPS of
     work, so the bar moves (and Ctrl-C lands between chunks) every few seconds; never less than one block."""
     spec = parse(top_runfile(members=100_000, t_end=1000.0, save_dt=100.0))  # 1e6 steps a member
-    block = launch.block_size(SCENES["top"], {})
+    block = launch.block_size(SCENES["top"], {}, METHODS["rk4"])
     assert runner.steps_per_member(spec) == pytest.approx(1e6)
     assert runner.default_chunk(spec) == runner.CHUNK_MEMBER_STEPS // 1e6 // block * block
     one_block = parse(top_runfile(members=1000, t_end=1e5, save_dt=1e4))  # 1e8 steps: one block is the least

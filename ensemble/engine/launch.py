@@ -2,7 +2,7 @@
 
 The runner, `prepare`, the tests and every benchmark call this. A scene's
 kernels module (ensemble/scenes/<scene>/kernels.py) provides
-block_size(constants) and kernel(method, constants); its kernels follow one of
+block_size(constants, method) and kernel(method, constants); its kernels follow one of
 two call conventions, over arrays laid out by block (see engine.blocks):
 
 - fixed step: kernel(state0, rate, h, steps_per_save, limit, samples, status, failure_time, progress, works, start,
@@ -48,9 +48,9 @@ def work_rows(scene, method: Method, constants: dict) -> int:
     return 0 if method.closed_form else kernels_of(scene).kernel(method, constants).rows
 
 
-def block_size(scene, constants: dict) -> int:
-    """Members per kernel block of the scene's kernels for a run's constants."""
-    return kernels_of(scene).block_size(constants)
+def block_size(scene, constants: dict, method: Method) -> int:
+    """Members per kernel block of the scene's kernel of `method` for a run's constants."""
+    return kernels_of(scene).block_size(constants, method)
 
 
 def integrate(scene, method: Method, values: dict[str, np.ndarray], constants: dict, *, n_save: int,
@@ -92,7 +92,7 @@ class Launch:
             return
         state0, rate = scene.inputs(values, constants)
         kernels = kernels_of(scene)
-        block = kernels.block_size(constants)
+        block = kernels.block_size(constants, method)
         self.kernel = kernels.kernel(method, constants)
         limit = _limits(state0, blowup_factor)
         if method.adaptive:
@@ -223,7 +223,7 @@ def prepare(scene, method: Method, constants: dict) -> None:
         return
     kernels = kernels_of(scene)
     state_rows, rate_rows = scene.kernel_rows(constants)
-    block = kernels.block_size(constants)
+    block = kernels.block_size(constants, method)
     kernel = kernels.kernel(method, constants)
     works = np.zeros((1, kernel.rows * block))
     state0, rate = np.zeros((1, state_rows, block)), np.zeros((1, rate_rows, block))

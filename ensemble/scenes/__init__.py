@@ -17,7 +17,7 @@ class Scene(Protocol):
     """What a scene's model provides (its package's names). Arrays are over members on their first axis in
     `values` (name -> (members,) or (members, site)); kernel arrays are (rows, members).
 
-    Its `kernels` module provides block_size(constants) -> int and kernel(method, constants) -> compiled
+    Its `kernels` module provides block_size(constants, method) -> int and kernel(method, constants) -> compiled
     kernel, with the call convention in `ensemble.engine.launch`.
     """
 

@@ -55,8 +55,8 @@ def _rhs_of(w1, w2, w3, work, j, B):
                work[8 * B + j])
 
 
-def block_size(constants: dict) -> int:
-    """Members per kernel block: the same for every body run."""
+def block_size(constants: dict, method: Method | None = None) -> int:
+    """Members per kernel block: the same for every method and every body run."""
     return BLOCK
 
 

@@ -52,20 +52,25 @@ def acceleration(x_left, x, x_right, c_left, c_right):
     return c_left * (x_left - x) + c_right * (x_right - x)
 
 
-def block_size(constants: dict) -> int:
-    """Members per kernel block for a chain of n masses: 64 below 16 masses, else one vector of this host.
+def block_size(constants: dict, method: Method) -> int:
+    """Members per kernel block for `method` on a chain of n masses: 64 below 16 masses; from 16 on, one SIMD
+    vector of this host (vector_doubles: 4 with AVX2, 8 with AVX-512) for splittings, 64 for fixed-step
+    Runge-Kutta, and 8 for adaptive pairs.
 
-    From 16 masses on, a row of a block is one SIMD vector (vector_doubles: 4
-    with AVX2, 8 with AVX-512), so a row update is a single vector operation.
-    On an AVX2 host (AMD EPYC Zen 3), `python analysis/bench_chain.py` with
-    the block forced to 4, 8, 16 and 64 gave 1.84e9, 8.6e8, 8.4e8 and 1.58e9
-    mass-steps/s at n = 16 (2.1e9, 8.2e8, 8.4e8, 1.98e9 at n = 1024): the 8
-    that suits AVX-512 ran at less than half the speed of 4 there. Shorter
-    chains run best in 64-member blocks (2.5e9 at n = 2 against 7.7e8 in 4).
-    A member's arithmetic does not depend on its block: results are the same
-    bits on every host.
+    Measured on an AVX2 host (AMD EPYC Zen 3), the block forced to 4, 8, 16 and 64 members:
+    verlet at n = 16 (`python analysis/bench_chain.py`, 200 steps a call) 1.84e9, 8.6e8, 8.4e8 and 1.58e9
+    mass-steps/s; per member-step at n = 16 (`analysis/bench_dopri5.py`'s chains) rk4 8.96e-8, 1.62e-7,
+    1.06e-7 and 6.86e-8 s, dopri5 3.93e-7, 3.11e-7, 3.01e-7 and 4.66e-7 s. A splitting's rows are one vector
+    op each; a tableau's stage sums gain from longer rows; an adaptive block's per-member step control runs
+    scalar, and its members wait for the block's slowest. Shorter chains run best in 64-member blocks (verlet
+    at n = 2: 2.5e9 against 7.7e8 in 4). A member's arithmetic does not depend on its block: results are the
+    same bits on every host.
     """
-    return 64 if constants["n"] < 16 else vector_doubles()
+    if constants["n"] < 16:
+        return 64
+    if method.adaptive:
+        return 8
+    return 64 if method.tableau is not None else vector_doubles()
 
 
 @cache
@@ -219,7 +224,7 @@ def _drift(work, tau, lo, hi, n, B, T):
 def _fixed_kernel(method: Method, n: int, periodic: bool):
     """Chain kernel for n masses: a kick/drift splitting or an explicit Runge-Kutta tableau.
 
-    Work rows (B = block_size({"n": n}) members each): X (n + 2: ghost, masses
+    Work rows (B = block_size({"n": n}, method) members each): X (n + 2: ghost, masses
     1..n, ghost), V (n), then CL and CR (n each: the springs' constants left
     and right of each mass over its mass, see model.inputs); Runge-Kutta adds
     the stage state ZX (n + 2), ZV (n) and slopes KX, KV (stages x n each).
@@ -235,7 +240,7 @@ def _fixed_kernel(method: Method, n: int, periodic: bool):
     constant trip count: with a variable start, Numba's negative-index
     wraparound stays in the loop and LLVM does not vectorize it.
     """
-    B = block_size({"n": n})
+    B = block_size({"n": n}, method)
     X, V = 0, n + 2
     CL = V + n
     CR = CL + n
@@ -316,7 +321,7 @@ def _adaptive_kernel(method: Method, n: int, periodic: bool):
     As for the top, every member of a block takes its own trial step at once,
     clipped to land on the next saved time.
     """
-    B = block_size({"n": n})
+    B = block_size({"n": n}, method)
     X, V = 0, n + 2
     CL = V + n
     CR = CL + n

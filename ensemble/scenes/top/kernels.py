@@ -58,8 +58,8 @@ def drag_decay(r, tau):
     return math.exp(-r * tau)
 
 
-def block_size(constants: dict) -> int:
-    """Members per kernel block: the same for every top run."""
+def block_size(constants: dict, method: Method | None = None) -> int:
+    """Members per kernel block: the same for every method and every top run."""
     return BLOCK
 
 
