@@ -83,7 +83,7 @@ def _check_versions(client, where: str) -> None:
 
 
 class Collected:
-    """A chunk's saved variables and records in memory: the sink compute_chunk writes to on a worker."""
+    """A chunk's saved variables in memory: the sink compute_chunk streams its samples to on a worker."""
 
     def __init__(self, spec: Spec, start: int, stop: int):
         from .scenes import SCENES
@@ -92,15 +92,11 @@ class Collected:
         sizes = {"member": stop - start, "t": spec.n_save, **scene.sizes(spec.constants)}
         self.start = start
         self.samples = {name: np.full([sizes[d] for d in scene.OBSERVABLES[name][0]], np.nan) for name in spec.save}
-        self.records: dict[str, list] = {}
 
     def write_samples(self, start: int, first: int, data: dict[str, np.ndarray]) -> None:
-        for name, values in data.items():
-            offset = start - self.start
-            self.samples[name][offset:offset + values.shape[0], first:first + values.shape[1]] = values
+        from .store import put_samples
 
-    def write(self, start: int, data: dict[str, np.ndarray]) -> None:
-        pass  # compute_chunk returns the records too
+        put_samples(self.samples, start - self.start, first, data)
 
 
 def chunk_task(spec: Spec, start: int, stop: int, repeats: int = 0):

@@ -33,7 +33,7 @@ import numpy as np
 from . import __version__
 from .scenes import SCENES
 from .spec import Spec
-from .store import RUN_RECORDS, fsync_path, record_names
+from .store import RUN_RECORDS, fsync_path, put_records, put_samples, record_names
 
 MANIFEST = "manifest.json"
 PART_NAME = re.compile(r"members-(\d{12})-(\d{12})-([0-9a-f]{64})\.nc")
@@ -155,8 +155,8 @@ class Parts:
     def assemble(self, writer, segment: int) -> dict[str, np.ndarray]:
         """Copy every part, in member order, into `writer` (ensemble.store.Writer), `segment` samples at a time;
         returns the per-member records of every member. Call settle first: every part must be finished."""
-        self.close()
-        assert not self.missing(), "assemble needs every member, settled"
+        self._sealing.shutdown()
+        assert not self._sealed and not self.missing(), "assemble needs every member, settled"
         names = record_names(self.spec)
         records = {name: [] for name in names}
         for part in self.parts:
@@ -194,13 +194,10 @@ class PartWriter:
             nc.createVariable(name, kind, ("member",), fill_value=np.nan if kind == "f8" else None)
 
     def write_samples(self, start: int, first: int, data: dict[str, np.ndarray]) -> None:
-        for name, values in data.items():
-            offset = start - self.start
-            self.nc.variables[name][offset:offset + values.shape[0], first:first + values.shape[1]] = values
+        put_samples(self.nc.variables, start - self.start, first, data)
 
     def write(self, start: int, data: dict[str, np.ndarray]) -> None:
-        for name, values in data.items():
-            self.nc.variables[name][start - self.start:start - self.start + len(values)] = values
+        put_records(self.nc.variables, start - self.start, data)
 
     def finish(self) -> None:
         """Close the file and have it sealed (fsync, checksum, rename to the part's name) on the parts' own

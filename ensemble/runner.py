@@ -192,8 +192,8 @@ def noise_streams(spec: Spec, name: str, first: int, members: int) -> list[np.ra
 def chunk_data(spec: Spec, method: Method, values: dict[str, np.ndarray], first: int, write_samples,
                repeats: int = 0, watch=None, threads: int | None = None):
     """Integrate members first, first + 1, ... (one method and dt), handing each segment of their saved variables
-    to write_samples(first sample, variables) as it comes; returns (outcome without samples, the per-member
-    records to write). watch as launch.integrate's."""
+    to write_samples(first sample, variables) as it comes; returns the per-member records (member,). watch as
+    launch.integrate's."""
     scene = SCENES[spec.scene]
     settings = _settings(spec, method, values)
     call = launch.Launch(scene, method, values, spec.constants, **settings, segment=segment_samples(spec))
@@ -220,25 +220,22 @@ def chunk_data(spec: Spec, method: Method, values: dict[str, np.ndarray], first:
         stepping = {**settings, "n_save": 2, "save_dt": spec.t_end}  # the same steps, saving only the end
         records["seconds_per_step"] = np.full(call.members, np.nan if method.closed_form else kernel_seconds_per_step(
             scene, method, values, spec.constants, outcome, repeats, stepping))
-    return outcome, records
+    return records
 
 
 def compute_chunk(spec: Spec, start: int, stop: int, sink, repeats: int = 0, watch=None,
                   threads: int | None = None) -> dict[str, np.ndarray]:
     """Integrate members start .. stop - 1 on `threads` threads (default launch.thread_count()), handing their
-    saved variables and records to sink.write_samples(first member, first sample, variables) and
-    sink.write(first member, records) as they come; returns the records (member,). watch(fraction) as
-    launch.integrate's, over the whole range."""
+    saved variables to sink.write_samples(first member, first sample, variables) as they come; returns their
+    records (member,). watch(fraction) as launch.integrate's, over the whole range."""
     table = members_table(spec, start, stop)
     records = []
     for k0, k1 in _same_settings(table, 0, stop - start):
         values = {name: v[k0:k1] for name, v in table.items()}
         fraction = (lambda f, k0=k0, k1=k1: watch((k0 + f * (k1 - k0)) / (stop - start))) if watch else None
-        _, data = chunk_data(spec, METHODS[str(values["method"][0])], values, start + k0,
-                             lambda first, samples, k0=k0: sink.write_samples(start + k0, first, samples),
-                             repeats, watch=fraction, threads=threads)
-        sink.write(start + k0, data)
-        records.append(data)
+        records.append(chunk_data(spec, METHODS[str(values["method"][0])], values, start + k0,
+                                  lambda first, samples, k0=k0: sink.write_samples(start + k0, first, samples),
+                                  repeats, watch=fraction, threads=threads))
     return {name: np.concatenate([r[name] for r in records]) for name in records[0]}
 
 
@@ -324,11 +321,13 @@ def _compute_here(spec: Spec, todo: list[tuple[int, int]], parts: Parts, tally: 
     for start, stop in todo:
         writer = parts.begin(start, stop, segment_samples(spec))
         try:
-            tally.add(compute_chunk(spec, start, stop, writer, repeats, watch=_advance(bar, stop - start)))
+            records = compute_chunk(spec, start, stop, writer, repeats, watch=_advance(bar, stop - start))
+            writer.write(start, records)
         except BaseException:
             writer.abandon()
             raise
         writer.finish()
+        tally.add(records)
         bar.n = parts.members_done()
         bar.refresh()
 

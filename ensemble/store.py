@@ -103,6 +103,19 @@ def global_attributes(spec: Spec, table: dict[str, np.ndarray], command: str | N
     }
 
 
+def put_samples(variables, offset: int, first: int, data: dict[str, np.ndarray]) -> None:
+    """Saved variables (member, t, ...) of `data` into `variables` (netCDF4 variables or arrays by name) at
+    members offset, offset + 1, ... and samples first, first + 1, ..."""
+    for name, values in data.items():
+        variables[name][offset:offset + values.shape[0], first:first + values.shape[1]] = values
+
+
+def put_records(variables, offset: int, data: dict[str, np.ndarray]) -> None:
+    """Per-member records (member,) of `data` into `variables` at members offset, offset + 1, ..."""
+    for name, values in data.items():
+        variables[name][offset:offset + len(values)] = values
+
+
 def record_names(spec: Spec) -> list[str]:
     """The per-member records (RUN_RECORDS) a run of `spec` stores: how each member ran, and what [measure]
     asks for."""
@@ -213,13 +226,11 @@ class Writer:
     def write_samples(self, start: int, first: int, data: dict[str, np.ndarray]) -> None:
         """Store saved variables (member, t, ...) of members start, start + 1, ... at samples first, first + 1,
         ..."""
-        for name, values in data.items():
-            self.nc.variables[name][start:start + values.shape[0], first:first + values.shape[1]] = values
+        put_samples(self.nc.variables, start, first, data)
 
     def write(self, start: int, data: dict[str, np.ndarray]) -> None:
         """Store the per-member records (member,) of members start, start + 1, ..."""
-        for name, values in data.items():
-            self.nc.variables[name][start:start + len(values)] = values
+        put_records(self.nc.variables, start, data)
 
     def __enter__(self):
         return self
