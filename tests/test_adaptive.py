@@ -213,22 +213,30 @@ def test_adaptive_run_launches_once_per_chunk_and_setting(monkeypatch):
     assert 0 < len(calls) <= chunks * settings and ds.sizes["member"] == 300
 
 
-def test_timed_cost_per_member_grows_in_proportion_to_the_steps():
-    """seconds_per_step times the kernel alone, on one thread, over blocks of at least TIMED_MEMBER_STEPS
-    member-steps, per-member costs taken out, so a record of 100 steps costs per step what one of 10,000 does,
-    within 20% (the whole call was timed before: the cost hardly grew with the steps). The timed call saves only
-    the end state. The median over nine rounds of the ratio taken within each round: this shared host's speed
-    drifts between rounds, not within one."""
-    short, long = (parse(top_runfile(t_end=t_end, save_dt=t_end / 4, members=2)) for t_end in (0.1, 10.0))
-    ratios = []
-    for _ in range(9):
-        per_step = []
-        for spec in (short, long):
-            outcome, seconds = runner.integrate(spec, METHODS["rk4"], members_table(spec), repeats=5)
-            assert outcome.counts[0][0] == round(spec.t_end / 1e-3)
-            per_step.append(seconds)
-        ratios.append(per_step[0] / per_step[1])
-    assert 0.8 < np.median(ratios) < 1.2, ratios
+def test_timed_cost_per_member_grows_in_proportion_to_the_steps(monkeypatch):
+    """seconds_per_step times the kernel alone, over blocks of at least TIMED_MEMBER_STEPS member-steps, with
+    per-call and per-member costs taken out, so a record of 100 steps costs per step what one of 10,000 does
+    (the whole call was timed before: the cost hardly grew with the steps). Checked against a clock on which a
+    kernel call costs 1 ms, 2 us per member and 3 ns per member-step: the estimate must be the 3 ns exactly.
+    (It was a wall-clock test; on this shared host the ratio of two such timings ranged 0.15 to 3.7 within a
+    minute, so it failed one run in three. Real kernel costs are measured by the benchmarks, not by tests.)"""
+    from types import SimpleNamespace
+
+    clock = [0.0]
+    real_run = launch.Launch.run
+
+    def costed(self, *args, **kwargs):
+        real_run(self, *args, **kwargs)
+        counts = self.outcome().counts
+        clock[0] += 1e-3 + 2e-6 * self.members + 3e-9 * float(counts[0].sum() + counts[1].sum())
+
+    monkeypatch.setattr(launch.Launch, "run", costed)
+    monkeypatch.setattr(runner, "time", SimpleNamespace(perf_counter=lambda: clock[0]))
+    for t_end in (0.1, 10.0):
+        spec = parse(top_runfile(t_end=t_end, save_dt=t_end / 4, members=2))
+        outcome, seconds = runner.integrate(spec, METHODS["rk4"], members_table(spec), repeats=2)
+        assert outcome.counts[0][0] == round(spec.t_end / 1e-3)
+        assert seconds == pytest.approx(3e-9, rel=1e-9), t_end
 
 
 def test_a_run_calls_the_kernel_once_per_chunk_and_setting(monkeypatch):
