@@ -8,12 +8,15 @@ A run of OUT.nc keeps what it finished in the folder OUT.nc.parts/:
                                               per-member records; SHA256 is the checksum of the file's bytes
     members-J0-J1.tmp                         a part being written; a resumed run deletes it
 
-A part is written under its .tmp name, fsynced, checksummed and renamed, so a
-part with a final name is complete unless its bytes changed since, which its
-checksum tells. Once every member is in a part, the parts are copied in
-member order into the result (ensemble.store.Writer), which is fsynced and
-renamed into place; only then is the folder deleted. Until then the disk
-holds the parts and the result: about twice the result's size.
+A part is written under its .tmp name, checksummed and renamed, so a part
+with a final name is complete unless its bytes changed since (or never
+reached the disk, when the machine went down before the system wrote them
+out), which its checksum tells: parts are not fsynced, because a resume
+checks every one. What a run computes goes into its part and, at the same
+time, into the result (ensemble.store.Writer, `OUT.nc.tmp`); parts an earlier
+run left are copied in at the end. Only once every member is in is the
+result fsynced and renamed into place, and the folder deleted. Until then
+the disk holds the parts and the result: about twice the result's size.
 """
 from __future__ import annotations
 
@@ -92,7 +95,9 @@ class Parts:
             self.folder.mkdir(parents=True, exist_ok=True)
             _write_atomically(manifest, json.dumps(fingerprint(spec), indent=1).encode())
         self.parts = self._verified()
-        # Parts are sealed (fsync, checksum, rename) on a thread of their own while the next chunk computes.
+        self.result = None  # the result's Writer: new parts are written into it too (see `streamed`)
+        self.streamed: set[int] = set()  # first members of the parts this run also wrote into `result`
+        # Parts are sealed (checksum, rename) on a thread of their own while the next chunk computes.
         self._sealing = ThreadPoolExecutor(1, thread_name_prefix="ensemble-parts")
         self._sealed: list[tuple[int, int, Future]] = []  # (start, stop, future of its Part)
 
@@ -152,9 +157,9 @@ class Parts:
         """A new part for members start .. stop - 1; HDF5 chunks of `segment` samples (default: whole)."""
         return PartWriter(self, start, stop, segment or self.spec.n_save)
 
-    def assemble(self, writer, segment: int) -> dict[str, np.ndarray]:
-        """Copy every part, in member order, into `writer` (ensemble.store.Writer), `segment` samples at a time;
-        returns the per-member records of every member. Call settle first: every part must be finished."""
+    def assemble(self, segment: int) -> dict[str, np.ndarray]:
+        """Copy the parts not yet in `result` (an earlier run's), `segment` samples at a time; returns the
+        per-member records of every member, in member order. Call settle first: every part must be finished."""
         self._sealing.shutdown()
         assert not self._sealed and not self.missing(), "assemble needs every member, settled"
         names = record_names(self.spec)
@@ -162,60 +167,78 @@ class Parts:
         for part in self.parts:
             with netCDF4.Dataset(part.path) as nc:
                 nc.set_auto_mask(False)
-                for first in range(0, self.spec.n_save, segment):
-                    writer.write_samples(part.start, first, {name: nc.variables[name][:, first:first + segment]
-                                                             for name in self.spec.save})
+                if part.start not in self.streamed:
+                    for first in range(0, self.spec.n_save, segment):
+                        self.result.write_samples(part.start, first, {
+                            name: nc.variables[name][:, first:first + segment] for name in self.spec.save})
                 data = {name: nc.variables[name][:] for name in names}
-            writer.write(part.start, data)
+            if part.start not in self.streamed:
+                self.result.write(part.start, data)
             for name in names:
                 records[name].append(data[name])
         return {name: np.concatenate(values) for name, values in records.items()}
 
 
 class PartWriter:
-    """Members start .. stop - 1 of a run, written to a .tmp file; finish() makes it a part, abandon() deletes
-    it. Same write_samples and write as ensemble.store.Writer, with the run's member indices."""
+    """Members start .. stop - 1 of a run, written to a .tmp file and to the parts' result; finish() makes it a
+    part, abandon() deletes it. Same write_samples and write as ensemble.store.Writer, with the run's member
+    indices."""
 
     def __init__(self, parts: Parts, start: int, stop: int, segment: int):
-        spec, scene = parts.spec, SCENES[parts.spec.scene]
-        self.parts, self.start, self.stop = parts, start, stop
+        self.parts, self.start, self.stop, self.segment = parts, start, stop, segment
         self.temporary = parts.folder / f"members-{start:012d}-{stop:012d}.tmp"
-        self.nc = nc = netCDF4.Dataset(self.temporary, "w", format="NETCDF4")
-        sizes = {"member": stop - start, "t": spec.n_save, **scene.sizes(spec.constants)}
-        for name in spec.save:
-            dims = scene.OBSERVABLES[name][0]
-            for dim in dims:
-                if dim not in nc.dimensions:
-                    nc.createDimension(dim, sizes[dim])
-            chunks = tuple({**sizes, "t": min(segment, spec.n_save)}[d] for d in dims)
-            nc.createVariable(name, "f8", dims, chunksizes=chunks, fill_value=np.nan)
-        for name in record_names(spec):
-            kind = RUN_RECORDS[name][0]
-            nc.createVariable(name, kind, ("member",), fill_value=np.nan if kind == "f8" else None)
+        self._nc = None
+
+    @property
+    def nc(self) -> netCDF4.Dataset:
+        """The part's file, made at the first write (on the thread that writes it)."""
+        if self._nc is None:
+            spec, scene = self.parts.spec, SCENES[self.parts.spec.scene]
+            self._nc = nc = netCDF4.Dataset(self.temporary, "w", format="NETCDF4")
+            sizes = {"member": self.stop - self.start, "t": spec.n_save, **scene.sizes(spec.constants)}
+            for name in spec.save:
+                dims = scene.OBSERVABLES[name][0]
+                for dim in dims:
+                    if dim not in nc.dimensions:
+                        nc.createDimension(dim, sizes[dim])
+                chunks = tuple({**sizes, "t": min(self.segment, spec.n_save)}[d] for d in dims)
+                var = nc.createVariable(name, "f8", dims, chunksizes=chunks, fill_value=np.nan)
+                var.set_var_chunk_cache(0, 0, 0.0)  # whole chunks are written: straight to the file
+            for name in record_names(spec):
+                kind = RUN_RECORDS[name][0]
+                nc.createVariable(name, kind, ("member",), fill_value=np.nan if kind == "f8" else None)
+        return self._nc
 
     def write_samples(self, start: int, first: int, data: dict[str, np.ndarray]) -> None:
         put_samples(self.nc.variables, start - self.start, first, data)
+        if self.parts.result is not None:
+            self.parts.result.write_samples(start, first, data)
 
     def write(self, start: int, data: dict[str, np.ndarray]) -> None:
         put_records(self.nc.variables, start - self.start, data)
+        if self.parts.result is not None:
+            self.parts.result.write(start, data)
 
     def finish(self) -> None:
-        """Close the file and have it sealed (fsync, checksum, rename to the part's name) on the parts' own
-        thread: the part is complete once Parts.settle returns."""
+        """Close the file and have it sealed (checksum, rename to the part's name) on the parts' own thread: the
+        part is complete once Parts.settle returns."""
         self.nc.close()
+        if self.parts.result is not None:
+            self.parts.streamed.add(self.start)
+            # what is written of the result goes to the disk now, while the run goes on, not all at its end
+            self.parts._sealing.submit(fsync_path, self.parts.result.temporary)
         future = self.parts._sealing.submit(self._seal)
         self.parts._sealed.append((self.start, self.stop, future))
 
     def _seal(self) -> Part:
-        fsync_path(self.temporary)
         path = self.parts.folder / f"members-{self.start:012d}-{self.stop:012d}-{_sha256(self.temporary)}.nc"
         os.replace(self.temporary, path)
-        fsync_path(self.parts.folder)
         return Part(self.start, self.stop, path)
 
     def abandon(self) -> None:
         try:
-            self.nc.close()
+            if self._nc is not None:
+                self._nc.close()
         except (OSError, RuntimeError):
             pass  # a write failed already (a full disk); that error is the one to report
         self.temporary.unlink(missing_ok=True)

@@ -5,6 +5,7 @@ These run on the run path, so nothing here imports the analysis layer (fit, stab
 from __future__ import annotations
 
 import numpy as np
+from numba import njit
 
 from .methods import Method
 from .results import Outcome
@@ -25,29 +26,60 @@ def measured_growth(amplitudes: np.ndarray, t: np.ndarray, step: np.ndarray) -> 
     failed (the first ones mix in the motions a step damps), so a transient
     or the last values alone do not decide it. Motions that start at zero
     amplitude are skipped, and samples below DECAY_FLOOR times the start end
-    a motion's record; NaN where fewer than two samples remain.
+    a motion's record; NaN where fewer than two samples remain. Compiled: a
+    run fits every member's record, and in numpy this cost as much as the
+    kernel (it releases the GIL, so it overlaps the next chunk's kernel).
     """
-    a = np.asarray(amplitudes, dtype=float)
-    floor = np.maximum(DECAY_FLOOR * a[:, :1], SUBNORMAL)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        log_a = np.where(a > floor, np.log(a), np.nan)
-    count = np.cumprod(np.isfinite(log_a), axis=1).sum(axis=1, keepdims=True)  # samples before the first unusable
-    start = np.maximum(np.minimum(count // 2, count - 2), 0)
-    index = np.arange(a.shape[1])[None, :, None]
-    window = (index >= start) & (index < count)
-    weight = window.astype(float)
-    total = weight.sum(axis=1)
-    tt = np.broadcast_to(np.asarray(t, dtype=float)[None, :, None], a.shape)
-    y = np.where(window, log_a, 0.0)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t_mean = (weight * tt).sum(axis=1) / total
-        y_mean = y.sum(axis=1) / total
-        dt = np.where(window, tt - t_mean[:, None], 0.0)
-        slope = (dt * (y - y_mean[:, None])).sum(axis=1) / (dt * dt).sum(axis=1)
-    slope = np.where(total >= 2, slope, np.nan)
-    growth = np.exp(slope * np.asarray(step, dtype=float)[None, :])
-    fastest = np.where(np.isnan(growth), -np.inf, growth).max(axis=0)
-    return np.where(np.isfinite(fastest), fastest, np.nan)
+    a = np.ascontiguousarray(amplitudes, dtype=float)
+    growth = np.empty(a.shape[2])
+    _fit_growth(a, np.ascontiguousarray(t, dtype=float), np.ascontiguousarray(np.broadcast_to(
+        np.asarray(step, dtype=float), growth.shape)), growth)
+    return growth
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _fit_growth(a, t, step, growth):
+    """measured_growth into growth (members,). Sums run in sample order, as numpy's over that axis did (the same
+    bits); the inner loops run over members, contiguous in `a`."""
+    motions, samples, members = a.shape
+    growth[:] = -np.inf
+    count = np.empty(members, dtype=np.int64)
+    floor, t_mean, y_mean = np.empty(members), np.empty(members), np.empty(members)
+    cross, square = np.empty(members), np.empty(members)
+    logs = np.empty((samples, members))
+    for m in range(motions):
+        for j in range(members):
+            floor[j] = max(DECAY_FLOOR * a[m, 0, j], SUBNORMAL)
+            count[j] = 0
+        for i in range(samples):  # samples before the first unusable one (not above the floor, or NaN)
+            for j in range(members):
+                if count[j] == i and floor[j] < a[m, i, j] < np.inf:
+                    count[j] = i + 1
+        t_mean[:], y_mean[:], cross[:], square[:] = 0.0, 0.0, 0.0, 0.0
+        for i in range(samples):
+            for j in range(members):
+                if max(min(count[j] // 2, count[j] - 2), 0) <= i < count[j]:
+                    logs[i, j] = np.log(a[m, i, j])
+                    t_mean[j] += t[i]
+                    y_mean[j] += logs[i, j]
+        for j in range(members):
+            total = count[j] - max(min(count[j] // 2, count[j] - 2), 0)
+            t_mean[j] /= total
+            y_mean[j] /= total
+        for i in range(samples):
+            for j in range(members):
+                if max(min(count[j] // 2, count[j] - 2), 0) <= i < count[j]:
+                    dt = t[i] - t_mean[j]
+                    cross[j] += dt * (logs[i, j] - y_mean[j])
+                    square[j] += dt * dt
+        for j in range(members):
+            if count[j] - max(min(count[j] // 2, count[j] - 2), 0) >= 2:
+                g = np.exp(cross[j] / square[j] * step[j])
+                if g == g:
+                    growth[j] = max(growth[j], g)
+    for j in range(members):
+        if not np.isfinite(growth[j]):
+            growth[j] = np.nan
 
 
 def growth_per_step(scene, method: Method, values: dict[str, np.ndarray], amplitudes: np.ndarray, outcome: Outcome,

@@ -9,6 +9,7 @@ import sys
 import tempfile
 import time
 import zlib
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -189,54 +190,109 @@ def noise_streams(spec: Spec, name: str, first: int, members: int) -> list[np.ra
     return [np.random.default_rng([spec.seed, stream, first + i]) for i in range(members)]
 
 
-def chunk_data(spec: Spec, method: Method, values: dict[str, np.ndarray], first: int, write_samples,
-               repeats: int = 0, watch=None, threads: int | None = None):
-    """Integrate members first, first + 1, ... (one method and dt), handing each segment of their saved variables
-    to write_samples(first sample, variables) as it comes; returns the per-member records (member,). watch as
-    launch.integrate's."""
+class _Record:
+    """What a launch's samples become: saved variables (with observation noise) handed to write_samples(first
+    sample, variables) as they come, and the amplitudes and errors kept for the per-member records."""
+
+    def __init__(self, spec: Spec, method: Method, values: dict[str, np.ndarray], first: int, members: int,
+                 write_samples):
+        self.spec, self.method, self.values, self.write_samples = spec, method, values, write_samples
+        self.scene = SCENES[spec.scene]
+        self.noise = {name: noise_streams(spec, name, first, members) for name in spec.noise}
+        self.times, self.amplitudes, self.errors = spec.times(), [], []
+
+    def add(self, start: int, samples: np.ndarray) -> None:
+        """Samples start, start + 1, ... (count, state rows, members) of the launch."""
+        spec, scene = self.spec, self.scene
+        data = scene.observe(samples, spec.save, self.values, spec.constants)
+        for name, streams in self.noise.items():
+            data[name] = data[name] + spec.noise[name] * np.stack([g.standard_normal(data[name].shape[1:])
+                                                                   for g in streams])
+        self.write_samples(start, data)
+        if not self.method.closed_form:
+            self.amplitudes.append(scene.amplitudes(samples, self.values, spec.constants))
+        if spec.measure["error"]:
+            exact = scene.exact(self.values, spec.constants, self.times[start:start + len(samples)])
+            self.errors.append(relative_error(samples, exact))
+
+    def records(self, outcome: Outcome, seconds_per_step=None) -> dict[str, np.ndarray]:
+        """The per-member records (member,) once every sample is added; seconds_per_step() times the kernel when
+        the run measures timing."""
+        spec, method, members = self.spec, self.method, len(outcome.status)
+        records = dict(zip(COUNTS, outcome.counts), status=outcome.status, failure_time=outcome.failure_time)
+        records["growth_per_step"] = (np.full(members, np.nan) if method.closed_form else growth_per_step(
+            self.scene, method, self.values, np.concatenate(self.amplitudes, axis=1), outcome, self.times,
+            spec.t_end))
+        if spec.measure["error"]:
+            records["error_max"], records["error_final"] = error_records(np.concatenate(self.errors))
+        if spec.measure["timing"]:
+            records["seconds_per_step"] = np.full(members, np.nan if method.closed_form else seconds_per_step())
+        return records
+
+
+def integrate_members(spec: Spec, method: Method, values: dict[str, np.ndarray], first: int, write_samples,
+                      repeats: int = 0, watch=None, threads: int | None = None):
+    """Integrate members first, first + 1, ... (one method and dt); returns finish(), which hands their saved
+    variables to write_samples(first sample, variables) and returns the per-member records (member,).
+
+    A record in one kernel call (segment_samples) is observed and written in finish(), so that finish can run on
+    another thread while the next kernel runs; a record in segments is, segment by segment, as it comes (its
+    kernel's buffer is reused). watch as launch.integrate's."""
     scene = SCENES[spec.scene]
     settings = _settings(spec, method, values)
     call = launch.Launch(scene, method, values, spec.constants, **settings, segment=segment_samples(spec))
-    noise = {name: noise_streams(spec, name, first, call.members) for name in spec.noise}
-    times, amplitudes, errors = spec.times(), [], []
+    record = _Record(spec, method, values, first, call.members, write_samples)
+    whole = []
     for start, samples in call.segments(threads, watch=watch):
-        data = scene.observe(samples, spec.save, values, spec.constants)
-        for name, streams in noise.items():
-            data[name] = data[name] + spec.noise[name] * np.stack([g.standard_normal(data[name].shape[1:])
-                                                                   for g in streams])
-        write_samples(start, data)
-        if not method.closed_form:
-            amplitudes.append(scene.amplitudes(samples, values, spec.constants))
-        if spec.measure["error"]:
-            exact = scene.exact(values, spec.constants, times[start:start + len(samples)])
-            errors.append(relative_error(samples, exact))
+        if call.segment == call.n_save:
+            whole.append((start, samples))
+        else:
+            record.add(start, samples)
     outcome = call.outcome()
-    records = dict(zip(COUNTS, outcome.counts), status=outcome.status, failure_time=outcome.failure_time)
-    records["growth_per_step"] = (np.full(call.members, np.nan) if method.closed_form else growth_per_step(
-        scene, method, values, np.concatenate(amplitudes, axis=1), outcome, times, spec.t_end))
-    if spec.measure["error"]:
-        records["error_max"], records["error_final"] = error_records(np.concatenate(errors))
-    if spec.measure["timing"]:
-        stepping = {**settings, "n_save": 2, "save_dt": spec.t_end}  # the same steps, saving only the end
-        records["seconds_per_step"] = np.full(call.members, np.nan if method.closed_form else kernel_seconds_per_step(
-            scene, method, values, spec.constants, outcome, repeats, stepping))
-    return records
+    stepping = {**settings, "n_save": 2, "save_dt": spec.t_end}  # the same steps, saving only the end
+
+    def finish() -> dict[str, np.ndarray]:
+        for start, samples in whole:
+            record.add(start, samples)
+        return record.records(outcome, lambda: kernel_seconds_per_step(scene, method, values, spec.constants,
+                                                                       outcome, repeats, stepping))
+
+    return finish
+
+
+def chunk_data(spec: Spec, method: Method, values: dict[str, np.ndarray], first: int, write_samples,
+               repeats: int = 0, watch=None, threads: int | None = None):
+    """integrate_members, finished at once: returns the per-member records (member,)."""
+    return integrate_members(spec, method, values, first, write_samples, repeats, watch, threads)()
+
+
+def integrate_chunk(spec: Spec, start: int, stop: int, sink, repeats: int = 0, watch=None,
+                    threads: int | None = None):
+    """Integrate members start .. stop - 1 on `threads` threads (default launch.thread_count()); returns finish(),
+    which hands their saved variables to sink.write_samples(first member, first sample, variables) (see
+    integrate_members) and returns their records (member,). watch(fraction) as launch.integrate's, over the
+    whole range."""
+    table = members_table(spec, start, stop)
+    finishes = []
+    for k0, k1 in _same_settings(table, 0, stop - start):
+        values = {name: v[k0:k1] for name, v in table.items()}
+        fraction = (lambda f, k0=k0, k1=k1: watch((k0 + f * (k1 - k0)) / (stop - start))) if watch else None
+        finishes.append(integrate_members(
+            spec, METHODS[str(values["method"][0])], values, start + k0,
+            lambda first, samples, k0=k0: sink.write_samples(start + k0, first, samples),
+            repeats, watch=fraction, threads=threads))
+
+    def finish() -> dict[str, np.ndarray]:
+        records = [f() for f in finishes]
+        return {name: np.concatenate([r[name] for r in records]) for name in records[0]}
+
+    return finish
 
 
 def compute_chunk(spec: Spec, start: int, stop: int, sink, repeats: int = 0, watch=None,
                   threads: int | None = None) -> dict[str, np.ndarray]:
-    """Integrate members start .. stop - 1 on `threads` threads (default launch.thread_count()), handing their
-    saved variables to sink.write_samples(first member, first sample, variables) as they come; returns their
-    records (member,). watch(fraction) as launch.integrate's, over the whole range."""
-    table = members_table(spec, start, stop)
-    records = []
-    for k0, k1 in _same_settings(table, 0, stop - start):
-        values = {name: v[k0:k1] for name, v in table.items()}
-        fraction = (lambda f, k0=k0, k1=k1: watch((k0 + f * (k1 - k0)) / (stop - start))) if watch else None
-        records.append(chunk_data(spec, METHODS[str(values["method"][0])], values, start + k0,
-                                  lambda first, samples, k0=k0: sink.write_samples(start + k0, first, samples),
-                                  repeats, watch=fraction, threads=threads))
-    return {name: np.concatenate([r[name] for r in records]) for name in records[0]}
+    """integrate_chunk, finished at once: returns the records (member,)."""
+    return integrate_chunk(spec, start, stop, sink, repeats, watch, threads)()
 
 
 @dataclass
@@ -288,23 +344,24 @@ def run(spec: Spec, out: str | Path, *, chunk: int | None = None, progress: bool
         repeats = spec.measure["repeats"] if spec.measure["timing"] else 0
         tally = Tally()
         began = time.perf_counter()
-        with tqdm(total=n, initial=parts.members_done(), unit="member", file=sys.stderr, disable=not progress,
-                  leave=False, bar_format=BAR) as bar:
-            if todo and steps_per_member(spec):
-                bar.set_postfix_str(f"about {n * steps_per_member(spec):.2g} member-steps in all", refresh=False)
-            if client is None:
-                _compute_here(spec, todo, parts, tally, bar, repeats)
-            else:
-                from .cluster import compute_on
+        with Writer(out, spec, members_table(spec), chunk, command, segment_samples(spec)) as result:
+            parts.result = result  # what this run computes goes into its parts and the result at once
+            with tqdm(total=n, initial=parts.members_done(), unit="member", file=sys.stderr, disable=not progress,
+                      leave=False, bar_format=BAR) as bar:
+                if todo and steps_per_member(spec):
+                    bar.set_postfix_str(f"about {n * steps_per_member(spec):.2g} member-steps in all", refresh=False)
+                if client is None:
+                    _compute_here(spec, todo, parts, tally, bar, repeats)
+                else:
+                    from .cluster import compute_on
 
-                compute_on(client, spec, todo, parts, tally, bar, repeats, task)
+                    compute_on(client, spec, todo, parts, tally, bar, repeats, task)
+            parts.settle()  # every part sealed before the result is complete
+            records = parts.assemble(segment_samples(spec))
     except BaseException:
         if not parts.close():  # nothing finished: nothing to resume
             Parts.discard(out)
         raise
-    parts.settle()  # every part sealed before the result is begun
-    with Writer(out, spec, members_table(spec), chunk, command, segment_samples(spec)) as writer:
-        records = parts.assemble(writer, segment_samples(spec))
     Parts.discard(out)
     seconds = time.perf_counter() - began
     failed = np.bincount(records["status"], minlength=len(Status))
@@ -317,19 +374,43 @@ def run(spec: Spec, out: str | Path, *, chunk: int | None = None, progress: bool
 
 def _compute_here(spec: Spec, todo: list[tuple[int, int]], parts: Parts, tally: Tally, bar: tqdm,
                   repeats: int) -> None:
-    """Compute the member ranges `todo` in this process, in order, each streamed into a new part."""
-    for start, stop in todo:
-        writer = parts.begin(start, stop, segment_samples(spec))
-        try:
-            records = compute_chunk(spec, start, stop, writer, repeats, watch=_advance(bar, stop - start))
-            writer.write(start, records)
-        except BaseException:
-            writer.abandon()
-            raise
-        writer.finish()
-        tally.add(records)
-        bar.n = parts.members_done()
-        bar.refresh()
+    """Compute the member ranges `todo` in this process, in order, each into a new part. While a chunk's kernel
+    runs, the chunk before it is observed, written and sealed on a thread of its own, unless its record comes in
+    segments (written as they come) or the run times its kernels (which must run alone)."""
+    overlap = segment_samples(spec) == spec.n_save and not spec.measure["timing"]
+    finishing = ThreadPoolExecutor(1, thread_name_prefix="ensemble-finish") if overlap else None
+    pending = None
+    try:
+        for start, stop in todo:
+            writer = parts.begin(start, stop, segment_samples(spec))
+            try:
+                finish = integrate_chunk(spec, start, stop, writer, repeats, watch=_advance(bar, stop - start))
+            except BaseException:
+                writer.abandon()
+                raise
+            if pending is not None:
+                tally.add(pending.result())  # one chunk waits to be finished at a time: memory stays bounded
+            if finishing is None:
+                tally.add(_keep(finish, writer))
+            else:
+                pending = finishing.submit(_keep, finish, writer)
+        if pending is not None:
+            tally.add(pending.result())
+    finally:
+        if finishing is not None:
+            finishing.shutdown()  # waits for the chunk being written: HDF5 must not be used by two threads at once
+
+
+def _keep(finish, writer) -> dict[str, np.ndarray]:
+    """Finish an integrated chunk into its part `writer` (see integrate_chunk); returns its records."""
+    try:
+        records = finish()
+        writer.write(writer.start, records)
+    except BaseException:
+        writer.abandon()
+        raise
+    writer.finish()
+    return records
 
 
 TASKS_PER_WORKER_THREAD = 4  # a cluster run is cut into at least this many tasks per worker thread

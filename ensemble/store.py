@@ -1,8 +1,8 @@
-"""NetCDF output: the dataset contract, written from a run's parts in member order.
+"""NetCDF output: the dataset contract, written as a run's chunks finish.
 
 The result is written as `OUT.tmp`, fsynced, and renamed to OUT only when
 every member is in, so no run leaves a file that looks complete and is not.
-(Finished chunks wait in part files until then: see ensemble.parts.)
+(Each chunk is kept in a part file too, until then: see ensemble.parts.)
 """
 from __future__ import annotations
 
@@ -212,6 +212,7 @@ class Writer:
             dims, units, long_name = self.scene.OBSERVABLES[name]
             chunks = {**self.sizes, "member": min(chunk, spec.n_members), "t": segment}
             var = self.nc.createVariable(name, "f8", dims, chunksizes=tuple(chunks[d] for d in dims), fill_value=np.nan)
+            var.set_var_chunk_cache(0, 0, 0.0)  # each write fills whole chunks: straight to the file, not a cache
             var.setncatts({"units": units, "long_name": long_name})
             if name in spec.noise:
                 var.setncattr("observation_noise_stddev", spec.noise[name])

@@ -157,9 +157,9 @@ def test_ctrl_c_inside_a_long_kernel_call_stops_the_run_at_once(tmp_path):
     out = tmp_path / "long.nc"
     run = subprocess.Popen([sys.executable, "-m", "ensemble", "run", str(runfile), "-o", str(out)],
                            stderr=subprocess.PIPE, text=True)
-    part = tmp_path / "long.nc.parts" / "members-000000000000-000000000001.tmp"
+    result = tmp_path / "long.nc.tmp"  # made once the kernels are ready, before the first chunk
     deadline = time.monotonic() + 300
-    while not part.exists() and run.poll() is None and time.monotonic() < deadline:
+    while not result.exists() and run.poll() is None and time.monotonic() < deadline:
         time.sleep(0.1)
     time.sleep(1.0)  # the kernel is running now
     sent = time.monotonic()

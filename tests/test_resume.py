@@ -1,5 +1,5 @@
 """Resume after a crash (issue 16): finished chunks are checksummed parts beside the output; a run killed at any
-point (SIGKILL between parts, during assembly) resumes to the bits of an uninterrupted run; a changed run file
+point (SIGKILL between parts, the result half written) resumes to the bits of an uninterrupted run; a changed run file
 is refused, and a corrupted part is detected and computed again."""
 from __future__ import annotations
 
@@ -44,7 +44,7 @@ def reference(tmp_path, write_runfile):
 
 def _interrupted(spec, out, after: int, monkeypatch) -> None:
     """Run `spec` in chunks of 7 and interrupt it (KeyboardInterrupt) once `after` chunks are finished."""
-    real, calls = runner.compute_chunk, []
+    real, calls = runner.integrate_chunk, []
 
     def compute(*args, **kwargs):
         if len(calls) == after:
@@ -52,10 +52,10 @@ def _interrupted(spec, out, after: int, monkeypatch) -> None:
         calls.append(args[1])
         return real(*args, **kwargs)
 
-    monkeypatch.setattr(runner, "compute_chunk", compute)
+    monkeypatch.setattr(runner, "integrate_chunk", compute)
     with pytest.raises(KeyboardInterrupt):
         runner.run(spec, out, chunk=7, progress=False)
-    monkeypatch.setattr(runner, "compute_chunk", real)
+    monkeypatch.setattr(runner, "integrate_chunk", real)
 
 
 def test_chunk_size_and_threads_leave_every_bit_unchanged(reference, tmp_path):
@@ -100,8 +100,8 @@ def test_a_corrupted_part_and_a_leftover_are_computed_again(reference, tmp_path,
     second.write_bytes(bytes(data))
     (folder_of(out) / "members-000000000014-000000000021.tmp").write_bytes(b"cut short")
     calls = []
-    real = runner.compute_chunk
-    monkeypatch.setattr(runner, "compute_chunk", lambda *a, **k: calls.append(a[1:3]) or real(*a, **k))
+    real = runner.integrate_chunk
+    monkeypatch.setattr(runner, "integrate_chunk", lambda *a, **k: calls.append(a[1:3]) or real(*a, **k))
     runner.run(load(path), out, chunk=7, progress=True, resume=True)
     assert calls[0] == (7, 14) and (0, 7) not in calls  # the good part is kept, the corrupted one recomputed
     said = capsys.readouterr().err.splitlines()[0]
@@ -132,18 +132,18 @@ def _killed(command: list[str], ready, timeout: float = 60.0) -> None:
     process.wait()
 
 
-def test_sigkill_between_parts_and_during_assembly_then_resume(tmp_path, write_runfile):
-    """A real `ensemble run`, killed after some parts and again while it assembles the result, resumes to the
-    bits of an uninterrupted run."""
+def test_sigkill_between_parts_with_the_result_half_written_then_resume(tmp_path, write_runfile):
+    """A real `ensemble run`, killed after some parts (its result half written beside them), and its resumed
+    run killed again midway, resumes to the bits of an uninterrupted run."""
     path = write_runfile(top_runfile(members=400, t_end=0.2, save_dt=0.01))
     expected, out = tmp_path / "expected.nc", tmp_path / "out.nc"
     command = [sys.executable, "-m", "ensemble", "run", str(path), "--quiet", "--chunk", "1"]
     subprocess.run([*command, "-o", str(expected)], check=True)
-    parts = folder_of(out)
+    parts, half_written = folder_of(out), out.with_name("out.nc.tmp")
     _killed([*command, "-o", str(out)], lambda: len(list(parts.glob("members-*.nc"))) >= 5)
-    assert not out.exists() and len(list(parts.glob("members-*.nc"))) >= 5
-    _killed([*command, "-o", str(out), "--resume"], lambda: out.with_name("out.nc.tmp").exists())
-    assert not out.exists() and len(list(parts.glob("members-*.nc"))) == 400
+    assert not out.exists() and half_written.exists() and len(list(parts.glob("members-*.nc"))) >= 5
+    _killed([*command, "-o", str(out), "--resume"], lambda: len(list(parts.glob("members-*.nc"))) >= 100)
+    assert not out.exists() and 100 <= len(list(parts.glob("members-*.nc"))) < 400
     subprocess.run([*command, "-o", str(out), "--resume"], check=True)
     same_bits(out, expected)
-    assert not parts.exists() and not out.with_name("out.nc.tmp").exists()
+    assert not parts.exists() and not half_written.exists()

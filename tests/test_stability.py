@@ -76,6 +76,31 @@ def test_measured_growth_fits_the_later_samples_and_stops_at_failure():
     assert records.measured_growth(two, t, np.array([0.5])) == pytest.approx(np.sqrt(1.3), rel=1e-12)
 
 
+def test_the_compiled_growth_fit_equals_a_numpy_polyfit_member_by_member():
+    """records.measured_growth (compiled) against np.polyfit over each motion's window: the second half of the
+    samples before the first one that is not above DECAY_FLOOR times the start (failed, NaN, infinite, zero)."""
+    rng = np.random.default_rng(3)
+    t = np.linspace(0.0, 4.0, 41)
+    a = np.exp(np.cumsum(rng.normal(0.0, 0.3, (2, 41, 60)), axis=1))
+    a[0, 30:, :10] = np.nan
+    a[1, 17:, 10:20] = np.inf
+    a[0, 9:, 20:30] = 1e-210 * a[0, 0, 20:30]
+    a[1, :, 30:35] = 0.0
+    a[:, 1:, 35:40] = np.nan  # one sample: no fit
+    step = rng.uniform(0.01, 0.1, 60)
+    expected = np.full(60, np.nan)
+    for j in range(60):
+        for m in range(2):
+            usable = (a[m, :, j] > max(records.DECAY_FLOOR * a[m, 0, j], records.SUBNORMAL)) & (a[m, :, j] < np.inf)
+            count = int(np.argmin(usable)) if not usable.all() else len(t)
+            start = max(min(count // 2, count - 2), 0)
+            if count - start >= 2:
+                slope = np.polyfit(t[start:count], np.log(a[m, start:count, j]), 1)[0]
+                expected[j] = np.fmax(expected[j], np.exp(slope * step[j]))
+    np.testing.assert_allclose(records.measured_growth(a, t, step), expected, rtol=1e-10)
+    assert np.isnan(expected[35:40]).all() and np.isfinite(expected[:35]).all()
+
+
 # --- measured limits -----------------------------------------------------------------------------------------
 
 @pytest.mark.parametrize("method", ["symplectic_euler", "verlet", "rk4", "yoshida4"])
