@@ -1,0 +1,537 @@
+"""The benchmark a user reads: ensemble against this machine's limit and the tools users would pick instead.
+
+    python analysis/benchmark.py [--full] [--out benchmark.nc] [--charts DIR] [--repeats 5]
+
+Every figure is a rate of work: member-steps/s for tops, mass-steps/s for
+chains, the median of --repeats timed calls on all threads. A peer that steps
+differently (solve_ivp, diffrax) is timed doing the same job, the same members
+over the same span to ensemble rk4's (or verlet's) accuracy there, and its rate
+is that job's steps over its time. Cases and peers:
+
+- top rk4, exact, split2, dopri5; chain verlet and yoshida4 at N = 2 and 16
+  (--full: 128 and 1024 too);
+- NumPy vectorized over members; a naive Numba version (one member per
+  thread, prange, the right-hand side and the stepper passed as functions);
+  scipy.integrate.solve_ivp per member, RK45 and DOP853, its rtol lowered by
+  decades until its error is no larger; diffrax (jit of vmap, Tsit5 and
+  Dopri8 with the same rule) when installed (pip install 'ensemble[bench]');
+- the hand-written C of ../shared/limit/limit.py, when it sits beside the
+  checkout (its lines are parsed), for the ratios the targets ask for.
+
+--full adds whole `ensemble run` processes: the two whole-run workloads of
+issue 15, throughput and peak RSS against members (10^2 .. 10^6 tops),
+NUMBA_NUM_THREADS 1 against 2, and the warm start-up of a 10-member run.
+Quick takes about four minutes here (--no-peers: under one), --full about
+half an hour. The figures go to --out (NetCDF) and the charts (rate against members,
+against N and against threads) to --charts; the last lines print each target
+and whether it is met. The first line names the host.
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import re
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import xarray as xr
+from bench_chain import numpy_verlet
+from bench_top import numpy_rk
+from hostinfo import host
+
+from ensemble.arguments import OneLineParser, positive_int
+from ensemble.engine import launch
+from ensemble.methods import METHODS
+from ensemble.scenes import chain, top
+from ensemble.scenes.top.kernels import rhs as top_rhs
+from ensemble.spec import members_table, parse
+
+ROOT = Path(__file__).resolve().parents[1]
+LIMIT = ROOT.parent / "shared" / "limit" / "limit.py"
+PEERS = ("ensemble", "C", "numpy", "numba_naive", "solve_ivp_RK45", "solve_ivp_DOP853", "diffrax_Tsit5",
+         "diffrax_Dopri8")
+_CUBE_ROOT_2 = 2.0 ** (1.0 / 3.0)
+YOSHIDA4 = (1 / (2 - _CUBE_ROOT_2), -_CUBE_ROOT_2 / (2 - _CUBE_ROOT_2), 1 / (2 - _CUBE_ROOT_2))  # Yoshida's triple
+IVP_MEMBERS = 4  # members solve_ivp and diffrax integrate one by one: their rate is per member anyway
+
+
+def median_seconds(fn, repeats: int) -> float:
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - start)
+    return statistics.median(times)
+
+
+# --- the scenes' workloads -------------------------------------------------------------------------------------
+
+def top_values(members: int) -> dict[str, np.ndarray]:
+    """Aerobie tops (runs/aerobie.toml's draws), `members` of them."""
+    text = (ROOT / "runs" / "aerobie.toml").read_text().replace("members = 200", f"members = {members}")
+    table = members_table(parse(text.replace("c = [5e-5, 1e-4, 2e-4]", "c = [1e-4]")))
+    return {name: np.asarray(v) for name, v in table.items()}
+
+
+def chain_values(n: int, members: int, rng) -> dict[str, np.ndarray]:
+    return {"m": rng.uniform(0.5, 2, (members, n)), "k": rng.uniform(0.5, 2, (members, n + 1)),
+            "x0": rng.normal(0, 0.1, (members, n)), "v0": np.zeros((members, n))}
+
+
+def relative_error(y: np.ndarray, exact: np.ndarray) -> float:
+    """Largest over members of max |y - exact| / max |exact| over the state; y, exact (state, members)."""
+    return float((np.abs(y - exact).max(axis=0) / np.abs(exact).max(axis=0)).max())
+
+
+# --- the naive Numba peer: one member per thread, scene and stepper as functions ---------------------------------
+
+def naive_numba():
+    """(integrate, top_f, chain_f, rk4_step, verlet_step, yoshida_step): integrate(f, step, state, rate, h,
+    steps, symplectic) advances every member (state (members, rows), rate (members, parameters)) with prange
+    over members, calling the stepper and the right-hand side it is given (first-class functions: no inlining
+    across them, no cache)."""
+    from numba import njit, prange
+
+    @njit
+    def top_f(y, p, out):  # p = (p, r1, r3), as the top's kernels.rhs
+        out[0] = -p[0] * y[2] * y[1] - p[1] * y[0]
+        out[1] = p[0] * y[2] * y[0] - p[1] * y[1]
+        out[2] = -p[2] * y[2]
+
+    @njit
+    def chain_f(x, p, out):  # fixed ends; p = (k_left / m, k_right / m) per mass, 2n values
+        n = x.shape[0]
+        for i in range(n):
+            left = x[i - 1] if i > 0 else 0.0
+            right = x[i + 1] if i < n - 1 else 0.0
+            out[i] = p[i] * (left - x[i]) + p[n + i] * (right - x[i])
+
+    @njit
+    def rk4_step(f, y, p, h, k):
+        rows = y.shape[0]
+        f(y, p, k[0])
+        for s in range(1, 4):
+            c = 0.5 * h if s < 3 else h
+            for r in range(rows):
+                k[4, r] = y[r] + c * k[s - 1, r]
+            f(k[4], p, k[s])
+        for r in range(rows):
+            y[r] += h / 6 * (k[0, r] + 2 * k[1, r] + 2 * k[2, r] + k[3, r])
+
+    @njit
+    def verlet_step(f, y, p, h, k):  # y = (x, v); k[0] holds the acceleration at x
+        n = y.shape[0] // 2
+        x, v = y[:n], y[n:]
+        for i in range(n):
+            v[i] += 0.5 * h * k[0, i]
+            x[i] += h * v[i]
+        f(x, p, k[0])
+        for i in range(n):
+            v[i] += 0.5 * h * k[0, i]
+
+    w1, w0 = YOSHIDA4[0], YOSHIDA4[1]
+
+    @njit
+    def yoshida_step(f, y, p, h, k):
+        verlet_step(f, y, p, w1 * h, k)
+        verlet_step(f, y, p, w0 * h, k)
+        verlet_step(f, y, p, w1 * h, k)
+
+    @njit(parallel=True)
+    def integrate(f, step, state, rate, h, steps, symplectic):
+        for j in prange(state.shape[0]):
+            y = state[j].copy()
+            k = np.zeros((5, y.shape[0]))
+            if symplectic:
+                f(y[:y.shape[0] // 2], rate[j], k[0])
+            for _ in range(steps):
+                step(f, y, rate[j], h, k)
+            state[j] = y
+
+    return integrate, top_f, chain_f, rk4_step, verlet_step, yoshida_step
+
+
+# --- peers that step their own way: matched to ensemble's error ------------------------------------------------
+
+def matched_ivp(solve, error_of, target: float, tolerances=10.0 ** -np.arange(3, 14)):
+    """The first tolerance whose solve() reaches error_of(result) <= target: (seconds, tolerance, error), the
+    seconds a median of three; NaNs when none does."""
+    for rtol in tolerances:
+        if error_of(solve(rtol)) <= target:
+            return median_seconds(lambda rtol=rtol: solve(rtol), 3), rtol, error_of(solve(rtol))
+    return np.nan, np.nan, np.nan
+
+
+def solve_ivp_seconds(method: str, f, y0: np.ndarray, t_end: float, exact: np.ndarray, target: float):
+    """scipy's solve_ivp on each of the members y0 (state, members) in turn, to error <= target at t_end."""
+    from scipy.integrate import solve_ivp
+
+    def solve(rtol):
+        return np.stack([solve_ivp(f(j), (0.0, t_end), y0[:, j], method=method, rtol=rtol, atol=rtol * 1e-3).y[:, -1]
+                         for j in range(y0.shape[1])], axis=1)
+
+    return matched_ivp(solve, lambda y: relative_error(y, exact), target)
+
+
+def diffrax_seconds(solver: str, vector_field, y0: np.ndarray, args: np.ndarray, t_end: float, exact: np.ndarray,
+                    target: float):
+    """diffrax (jit of vmap over members) to error <= target at t_end; NaNs when diffrax is not installed."""
+    try:
+        import diffrax
+        import jax
+        import jax.numpy as jnp
+    except ImportError:
+        return np.nan, np.nan, np.nan
+    jax.config.update("jax_enable_x64", True)
+
+    def make(rtol):
+        def one(y, a):
+            solution = diffrax.diffeqsolve(diffrax.ODETerm(vector_field), getattr(diffrax, solver)(), 0.0, t_end,
+                                           None, y, args=a, stepsize_controller=diffrax.PIDController(
+                                               rtol=rtol, atol=rtol * 1e-3), max_steps=10**7)
+            return solution.ys[-1]
+        return jax.jit(jax.vmap(one))
+
+    compiled = {}
+
+    def solve(rtol):
+        if rtol not in compiled:
+            compiled[rtol] = make(rtol)
+            compiled[rtol](jnp.asarray(y0.T), jnp.asarray(args)).block_until_ready()  # compile outside the timing
+        return np.asarray(compiled[rtol](jnp.asarray(y0.T), jnp.asarray(args)).block_until_ready()).T
+
+    return matched_ivp(solve, lambda y: relative_error(y, exact), target)
+
+
+# --- the cases -------------------------------------------------------------------------------------------------
+
+def top_case(method: str, members: int, steps: int, repeats: int, peers: bool, naive) -> dict[str, float]:
+    """Rates (member-steps/s) of the top with `method` over `steps` steps of 1e-4 s, and its peers'."""
+    h, values, constants = 1e-4, top_values(members), {}
+    launch.prepare(top, METHODS[method], constants)
+    adaptive = METHODS[method].adaptive
+    settings = dict(rtol=1e-8, atol=1e-12) if adaptive else dict(dt=h)
+    call = launch.Launch(top, METHODS[method], values, constants, n_save=2, save_dt=h * steps,
+                         blowup_factor=np.inf, **settings)
+    seconds = median_seconds(call.run, repeats)
+    taken = call.outcome().counts[:2].sum() if adaptive else members * steps
+    rates = {"ensemble": taken / seconds}
+    if not peers:
+        return rates
+    state, rate = top.inputs(values, constants)
+    exact = top.exact(values, constants, np.array([h * steps]))[-1]
+    target = max(relative_error(call.outcome().samples[-1][:, :IVP_MEMBERS], exact[:, :IVP_MEMBERS]), 1e-13)
+    work = members * steps  # the job: rk4's member-steps over the span
+    few = min(members, 256)
+    rates["numpy"] = few * steps / median_seconds(
+        lambda: numpy_rk(METHODS["rk4"].tableau, state[:, :few].copy(), rate[:, :few], h, steps), 1)
+    integrate, top_f, _, rk4_step, _, _ = naive
+    rows, params = np.ascontiguousarray(state.T), np.ascontiguousarray(rate.T)
+    integrate(top_f, rk4_step, rows[:8].copy(), params[:8], h, 1, False)  # compile
+    rates["numba_naive"] = work / median_seconds(lambda: integrate(top_f, rk4_step, rows.copy(), params, h, steps,
+                                                                   False), repeats)
+    y0, ex = state[:, :IVP_MEMBERS], exact[:, :IVP_MEMBERS]
+    for name in ("RK45", "DOP853"):
+        seconds, _, _ = solve_ivp_seconds(name, lambda j: lambda t, y: np.array(top_rhs.py_func(
+            y[0], y[1], y[2], rate[0, j], rate[1, j], rate[2, j])), y0, h * steps, ex, target)
+        rates[f"solve_ivp_{name}"] = IVP_MEMBERS * steps / seconds
+
+    def field(t, y, a):
+        return _stack(-a[0] * y[2] * y[1] - a[1] * y[0], a[0] * y[2] * y[0] - a[1] * y[1], -a[2] * y[2])
+
+    for name in ("Tsit5", "Dopri8"):
+        seconds, _, _ = diffrax_seconds(name, field, y0, rate[:, :IVP_MEMBERS].T, h * steps, ex, target)
+        rates[f"diffrax_{name}"] = IVP_MEMBERS * steps / seconds
+    return rates
+
+
+def _stack(*rows):
+    import jax.numpy as jnp
+
+    return jnp.stack(rows)
+
+
+def chain_case(method: str, n: int, masses: int, steps: int, repeats: int, peers: bool, naive) -> dict[str, float]:
+    """Rates (mass-steps/s) of fixed chains of n masses with `method`, h = 0.01, and its peers' (verlet's job)."""
+    h, constants, rng = 0.01, {"n": n, "boundary": "fixed"}, np.random.default_rng(1)
+    block = launch.block_size(chain, constants, METHODS[method])
+    members = max(masses // n // block, 1) * block
+    values = chain_values(n, members, rng)
+    launch.prepare(chain, METHODS[method], constants)
+    call = launch.Launch(chain, METHODS[method], values, constants, n_save=2, save_dt=h * steps, dt=h,
+                         blowup_factor=np.inf)
+    rates = {"ensemble": members * n * steps / median_seconds(call.run, repeats)}
+    if not peers:
+        return rates
+    state, rate = chain.inputs(values, constants)
+    few_values = {name: v[:IVP_MEMBERS] for name, v in values.items()}  # the exact solution of all would take
+    exact = chain.exact(few_values, constants, np.array([h * steps]))[-1]  # n^2 floats a member
+    target = max(relative_error(call.outcome().samples[-1][:, :IVP_MEMBERS], exact), 1e-13)
+    few = min(members, max(1, 2**16 // n))
+    substeps = (1.0,) if method == "verlet" else YOSHIDA4  # verlet steps of h times these make one step
+
+    def numpy_steps():
+        x, v = state[:n, :few], state[n:, :few]
+        for _ in range(steps if len(substeps) > 1 else 1):
+            for w in substeps:
+                x, v = numpy_verlet(x, v, rate[:n, :few], rate[n:, :few], w * h, 1 if len(substeps) > 1 else steps)
+
+    rates["numpy"] = few * n * steps / median_seconds(numpy_steps, 1)
+    integrate, _, chain_f, _, verlet_step, yoshida_step = naive
+    step = verlet_step if method == "verlet" else yoshida_step
+    rows, params = np.ascontiguousarray(state.T), np.ascontiguousarray(rate.T)
+    integrate(chain_f, step, rows[:2].copy(), params[:2], h, 1, True)  # compile
+    rates["numba_naive"] = members * n * steps / median_seconds(
+        lambda: integrate(chain_f, step, rows.copy(), params, h, steps, True), repeats)
+    y0, ex = state[:, :IVP_MEMBERS], exact
+
+    def f(j):
+        c_left, c_right = rate[:n, j], rate[n:, j]
+
+        def derivative(t, y):
+            x = np.concatenate(([0.0], y[:n], [0.0]))
+            return np.concatenate((y[n:], c_left * (x[:-2] - x[1:-1]) + c_right * (x[2:] - x[1:-1])))
+        return derivative
+
+    for name in ("RK45", "DOP853"):
+        seconds, _, _ = solve_ivp_seconds(name, f, y0, h * steps, ex, target)
+        rates[f"solve_ivp_{name}"] = IVP_MEMBERS * n * steps / seconds
+
+    def field(t, y, a):
+        import jax.numpy as jnp
+
+        x = jnp.concatenate((jnp.zeros(1), y[:n], jnp.zeros(1)))
+        return jnp.concatenate((y[n:], a[:n] * (x[:-2] - x[1:-1]) + a[n:] * (x[2:] - x[1:-1])))
+
+    for name in ("Tsit5", "Dopri8"):
+        seconds, _, _ = diffrax_seconds(name, field, y0, rate[:, :IVP_MEMBERS].T, h * steps, ex, target)
+        rates[f"diffrax_{name}"] = IVP_MEMBERS * n * steps / seconds
+    return rates
+
+
+def c_limit() -> dict[str, float]:
+    """The C kernels' rates from limit.py beside the checkout ({} when it is not there)."""
+    if not LIMIT.exists():
+        return {}
+    out = subprocess.run([sys.executable, str(LIMIT)], capture_output=True, text=True, check=True).stdout
+    rates = {}
+    for line in out.splitlines():
+        if match := re.match(r"(top rk4|chain verlet N=(\d+))\s+([0-9.e+]+)", line):
+            rates["top rk4" if match[2] is None else f"chain verlet N={match[2]}"] = float(match[3])
+    return rates
+
+
+# --- whole runs (--full) ---------------------------------------------------------------------------------------
+
+TOPS = """scene = "top"
+method = "rk4"
+dt = 1e-3
+t_end = {t_end}
+save_dt = {save_dt}
+members = {members}
+seed = 1
+save = {save}
+[parameters]
+lambda1 = 1.0e-3
+lambda3 = 2.0e-3
+c = 1e-4
+spin0 = 60.0
+tilt0 = {{ uniform = [0.02, 0.2] }}
+azimuth0 = {{ uniform = [0.0, 6.283185307179586] }}
+"""
+CHAINS = """scene = "chain"
+method = "verlet"
+dt = 0.01
+t_end = 40.0
+save_dt = 2.0
+members = 65536
+seed = 1
+save = ["x"]
+[parameters]
+n = 16
+boundary = "fixed"
+m = { uniform = [0.5, 2.0] }
+k = 1.0
+x0 = { uniform = [-0.1, 0.1] }
+"""
+
+
+PEAK = ("import atexit, runpy, sys\n"
+        "def peak():\n"
+        "    for line in open('/proc/self/status'):\n"
+        "        if line.startswith('VmHWM'):\n"
+        "            print('peak', line.split()[1], file=sys.stderr)\n"
+        "atexit.register(peak)\n"
+        "sys.argv = ['ensemble', *sys.argv[1:]]\n"
+        "runpy.run_module('ensemble', run_name='__main__')\n")  # the peak of this process alone: a fork's
+# high-water mark (ru_maxrss) includes the memory of the process it was forked from
+
+
+def whole_run(text: str, folder: Path, threads: int | None = None) -> tuple[float, float, float, float]:
+    """`ensemble run` of a run file's text in a process of its own: (wall seconds, member-steps (mass-steps for
+    chains) in the run, the rate the run reports (its work over its own seconds: start-up and loading the
+    kernels excluded), peak RSS in MB)."""
+    path, out = folder / "run.toml", folder / "run.nc"
+    path.write_text(text)
+    out.unlink(missing_ok=True)
+    env = {**os.environ, **({"NUMBA_NUM_THREADS": str(threads)} if threads else {})}
+    start = time.perf_counter()
+    done = subprocess.run([sys.executable, "-c", PEAK, "run", str(path), "-o", str(out), "--quiet"],
+                          capture_output=True, text=True, env=env)
+    wall = time.perf_counter() - start
+    if done.returncode != 0:
+        raise SystemExit(f"benchmark: ensemble run failed: {done.stderr.strip().splitlines()[-1:]}")
+    spec = parse(text)
+    work = spec.n_members * round(spec.t_end / float(members_table(spec)["dt"][0])) * spec.constants.get("n", 1)
+    seconds = float(re.search(r" in ([0-9.e+-]+) s: ", done.stdout)[1])
+    peak = float(re.search(r"^peak (\d+)", done.stderr, re.M)[1]) / 1024
+    out.unlink(missing_ok=True)
+    return wall, work, work / seconds, peak
+
+
+def warm_start(folder: Path) -> float:
+    """Median wall seconds of a warm-cache 10-member run (three runs after one that fills the cache)."""
+    text = TOPS.format(t_end=1.0, save_dt=0.1, members=10, save='["omega", "tilt"]')
+    whole_run(text, folder)
+    return statistics.median(whole_run(text, folder)[0] for _ in range(3))
+
+
+# --- report ----------------------------------------------------------------------------------------------------
+
+def main() -> None:
+    parser = OneLineParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--full", action="store_true", help="every chain length, whole runs and scaling")
+    parser.add_argument("--repeats", type=positive_int, default=5)
+    parser.add_argument("--out", type=Path, default=Path("benchmark.nc"), help="figures (NetCDF)")
+    parser.add_argument("--charts", type=Path, default=Path("benchmark_charts"), help="folder for the PNG charts")
+    parser.add_argument("--no-peers", action="store_true", help="ensemble and C only (fast)")
+    args = parser.parse_args()
+    print(host(), flush=True)
+    peers, naive = not args.no_peers, naive_numba()
+    lengths = (2, 16, 128, 1024) if args.full else (2, 16)
+    limit = c_limit()
+    print("C limit:", ", ".join(f"{k} {v:.3g}" for k, v in limit.items()) or "limit.py not found", flush=True)
+    cases = {}
+    for method in ("rk4", "exact", "split2", "dopri5"):
+        cases[f"top {method}"] = top_case(method, 65536, 1000, args.repeats, peers and method == "rk4", naive)
+        print(f"top {method}", _row(cases[f"top {method}"]), flush=True)
+    for method in ("verlet", "yoshida4"):
+        for n in lengths:
+            cases[f"chain {method} N={n}"] = chain_case(method, n, 2**20, 1000, args.repeats, peers, naive)
+            print(f"chain {method} N={n}", _row(cases[f"chain {method} N={n}"]), flush=True)
+    for name, rate in limit.items():
+        if name in cases:
+            cases[name]["C"] = rate
+    names = list(cases)
+    rates = np.array([[cases[c].get(p, np.nan) for p in PEERS] for c in names])
+    ds = xr.Dataset({"rate": (("case", "implementation"), rates, {
+        "long_name": "work rate", "units": "steps/s",
+        "comment": "member-steps/s for tops, mass-steps/s for chains; a peer stepping its own way is credited with "
+                   "the ensemble job's steps (same members, span and accuracy) over its time"})},
+        coords={"case": names, "implementation": list(PEERS)}, attrs={"host": host(), "full": int(args.full)})
+    targets = []
+    if "top rk4" in cases and "top dopri5" in cases:
+        ratio = cases["top rk4"]["ensemble"] / cases["top dopri5"]["ensemble"]
+        targets.append(("dopri5 per member-step on tops <= 3x rk4", f"{ratio:.1f}x", ratio <= 3))
+    for name in names:
+        if name.startswith("chain") and "C" in cases.get(f"chain verlet N={name.split('N=')[1]}", {}):
+            c = cases[f"chain verlet N={name.split('N=')[1]}"]["C"]
+            share = cases[name]["ensemble"] / c
+            sweeps = len(YOSHIDA4) if "yoshida4" in name else 1  # force sweeps a step; C verlet makes one
+            per_sweep = f" ({share * sweeps:.2f} per force sweep)" if sweeps > 1 else ""
+            targets.append((f"{name} >= 0.9 of C verlet's mass-steps/s", f"{share:.2f}{per_sweep}", share >= 0.9))
+    if args.full:
+        ds = ds.merge(full_runs(limit, targets))
+    args.out.unlink(missing_ok=True)
+    ds.to_netcdf(args.out)
+    charts(ds, args.charts)
+    print(f"figures in {args.out}, charts in {args.charts}/")
+    for what, value, met in targets:
+        print(f"{'met    ' if met else 'NOT met'}  {what}: {value}")
+
+
+def _row(rates: dict[str, float]) -> str:
+    return "  ".join(f"{p} {rates[p]:.3g}" for p in PEERS if p in rates and np.isfinite(rates[p]))
+
+
+def full_runs(limit: dict[str, float], targets: list) -> xr.Dataset:
+    """Whole `ensemble run` processes: the two workloads against C, members, threads, RSS and the start-up."""
+    with tempfile.TemporaryDirectory() as tmp:
+        folder = Path(tmp)
+        tops = TOPS.format(t_end=8.0, save_dt=0.1, members=262144, save='["omega", "tilt"]')
+        for name, text, c in (("262144 tops", tops, limit.get("top rk4")),
+                              ("65536 16-mass chains", CHAINS, limit.get("chain verlet N=16"))):
+            wall, work, _, _ = whole_run(text, folder)
+            share = work / wall / c if c else np.nan
+            print(f"whole run, {name}: {wall:.1f} s, {work / wall:.3g} steps/s, {share:.2f} of C", flush=True)
+            targets.append((f"whole run of {name} >= 0.9 of C", f"{share:.2f}", share >= 0.9))
+        members = [10**k for k in range(2, 7)]
+        runs = [whole_run(TOPS.format(t_end=2.0, save_dt=0.02, members=m, save='["tilt"]'), folder) for m in members]
+        rate = np.array([r for _, _, r, _ in runs])
+        rss = np.array([p for _, _, _, p in runs])
+        for m, (wall, work, r, mb) in zip(members, runs):
+            print(f"{m:>8} tops (101 samples): {r:.3g} member-steps/s in the run ({work / wall:.3g} with start-up), "
+                  f"peak RSS {mb:.0f} MB", flush=True)
+        spread = rate[2:].min() / rate[2:].max()
+        targets.append(("throughput (the run's own) from 10^4 members within 20% of the best", f"{spread:.2f}",
+                        spread >= 0.8))
+        targets.append(("10^6 tops with 100 samples under 600 MB", f"{rss[-1]:.0f} MB", rss[-1] < 600))
+        threads = [1, 2]
+        text = TOPS.format(t_end=8.0, save_dt=0.1, members=65536, save='["omega", "tilt"]')
+        by_threads = np.array([whole_run(text, folder, t)[2] for t in threads])
+        gain = by_threads[1] / by_threads[0]
+        print(f"threads 1 -> 2 (65536 tops, the run's own rate): {by_threads[0]:.3g} -> {by_threads[1]:.3g} "
+              f"member-steps/s, {gain:.2f}x", flush=True)
+        targets.append(("1 -> 2 threads >= 1.8x", f"{gain:.2f}x", gain >= 1.8))
+        start = warm_start(folder)
+        print(f"warm 10-member run: {start:.2f} s", flush=True)
+        targets.append(("warm 10-member run <= 0.7 s", f"{start:.2f} s", start <= 0.7))
+    return xr.Dataset({"run_rate": ("members", rate, {"units": "member-steps/s", "long_name": "whole-run rate"}),
+                       "peak_rss": ("members", rss, {"units": "MB", "long_name": "peak resident memory"}),
+                       "thread_rate": ("threads", by_threads, {"units": "member-steps/s"}),
+                       "warm_start": ((), start, {"units": "s", "long_name": "warm 10-member run, whole process"})},
+                      coords={"members": members, "threads": threads})
+
+
+def charts(ds: xr.Dataset, folder: Path) -> None:
+    """PNG charts: chain rate against N, and (with --full) whole-run rate against members and threads."""
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        print("no charts: pip install 'ensemble[plot]'")
+        return
+    folder.mkdir(parents=True, exist_ok=True)
+    for method in ("verlet", "yoshida4"):
+        names = [c for c in ds.case.values if str(c).startswith(f"chain {method}")]
+        if not names:
+            continue
+        n = [int(str(c).split("N=")[1]) for c in names]
+        fig, ax = plt.subplots()
+        for peer in ds.implementation.values:
+            y = ds.rate.sel(case=names, implementation=peer).values
+            if np.isfinite(y).any():
+                ax.loglog(n, y, "o-", label=str(peer))
+        ax.set(xlabel="masses N", ylabel="mass-steps/s", title=f"chain {method}, {ds.host}"[:90])
+        ax.legend(fontsize=7)
+        fig.savefig(folder / f"chain_{method}_against_n.png", dpi=120)
+        plt.close(fig)
+    for dim, var, xlabel in (("members", "run_rate", "members"), ("threads", "thread_rate", "NUMBA_NUM_THREADS")):
+        if var in ds:
+            fig, ax = plt.subplots()
+            ax.plot(ds[dim], ds[var], "o-")
+            ax.set(xscale="log" if dim == "members" else "linear", xlabel=xlabel, ylabel="member-steps/s",
+                   title=f"whole run, tops rk4, {ds.host}"[:90], ylim=(0, None))
+            fig.savefig(folder / f"run_rate_against_{dim}.png", dpi=120)
+            plt.close(fig)
+
+
+if __name__ == "__main__":
+    main()
