@@ -19,7 +19,7 @@ from tqdm import tqdm
 from .engine import launch
 from .methods import METHODS, Method
 from .parts import Parts
-from .records import error_records, growth_per_step, relative_error
+from .records import error_records, growth_per_step, measured_growth, relative_error
 from .results import COUNTS, Outcome, Status
 from .scenes import SCENES
 from .spec import Spec, members_table
@@ -446,7 +446,7 @@ ANNOUNCE_AFTER = 1.0  # s: kernels taking longer than this to get ready are bein
 
 
 def prepare_kernels(spec: Spec, announce: bool = True) -> float:
-    """Compile (or load from Numba's disk cache) the run's kernels; returns the seconds it took.
+    """Compile (or load from Numba's disk cache) the run's kernels and the growth fit; returns the seconds it took.
 
     Loading from the cache takes well under a second. When it takes longer
     (compiling, once per machine) and `announce`, one line on stderr says so
@@ -470,6 +470,7 @@ def prepare_kernels(spec: Spec, announce: bool = True) -> float:
     try:
         for name in spec.methods:
             launch.prepare(scene, METHODS[name], spec.constants)
+        measured_growth(np.ones((1, 2, 1)), np.arange(2.0), np.ones(1))  # its compiled fit, too
     finally:
         timer.cancel()
     seconds = time.perf_counter() - start
