@@ -155,8 +155,10 @@ def test_ctrl_c_inside_a_long_kernel_call_stops_the_run_at_once(tmp_path):
     runfile = tmp_path / "long.toml"
     runfile.write_text(top_runfile(members=1, dt=1e-7, t_end=1000.0, save_dt=500.0))
     out = tmp_path / "long.nc"
+    # SIGINT as in a terminal: a shell starts background jobs (a test run with `&`) with SIGINT ignored
     run = subprocess.Popen([sys.executable, "-m", "ensemble", "run", str(runfile), "-o", str(out)],
-                           stderr=subprocess.PIPE, text=True)
+                           stderr=subprocess.PIPE, text=True,
+                           preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     result = tmp_path / "long.nc.tmp"  # made once the kernels are ready, before the first chunk
     deadline = time.monotonic() + 300
     while not result.exists() and run.poll() is None and time.monotonic() < deadline:
