@@ -260,12 +260,6 @@ def integrate_members(spec: Spec, method: Method, values: dict[str, np.ndarray],
     return finish
 
 
-def chunk_data(spec: Spec, method: Method, values: dict[str, np.ndarray], first: int, write_samples,
-               repeats: int = 0, watch=None, threads: int | None = None):
-    """integrate_members, finished at once: returns the per-member records (member,)."""
-    return integrate_members(spec, method, values, first, write_samples, repeats, watch, threads)()
-
-
 def integrate_chunk(spec: Spec, start: int, stop: int, sink, repeats: int = 0, watch=None,
                     threads: int | None = None):
     """Integrate members start .. stop - 1 on `threads` threads (default launch.thread_count()); returns finish(),
