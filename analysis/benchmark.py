@@ -44,6 +44,7 @@ from bench_chain import numpy_verlet
 from bench_top import numpy_rk
 from hostinfo import host
 
+from ensemble import records
 from ensemble.arguments import OneLineParser, positive_int
 from ensemble.engine import launch
 from ensemble.methods import METHODS
@@ -84,8 +85,8 @@ def chain_values(n: int, members: int, rng) -> dict[str, np.ndarray]:
 
 
 def relative_error(y: np.ndarray, exact: np.ndarray) -> float:
-    """Largest over members of max |y - exact| / max |exact| over the state; y, exact (state, members)."""
-    return float((np.abs(y - exact).max(axis=0) / np.abs(exact).max(axis=0)).max())
+    """The largest over members of the runner's relative error; y, exact (state, members)."""
+    return float(records.relative_error(y[None], exact[None]).max())
 
 
 # --- the naive Numba peer: one member per thread, scene and stepper as functions ---------------------------------
@@ -460,7 +461,11 @@ def _row(rates: dict[str, float]) -> str:
 
 
 def full_runs(limit: dict[str, float], targets: list) -> xr.Dataset:
-    """Whole `ensemble run` processes: the two workloads against C, members, threads, RSS and the start-up."""
+    """Whole `ensemble run` processes: the two workloads against C (measured again just before them), members,
+    threads, RSS and the start-up."""
+    limit = c_limit() or limit
+    if limit:
+        print("C limit, again:", ", ".join(f"{k} {v:.3g}" for k, v in limit.items()), flush=True)
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(tmp)
         tops = TOPS.format(t_end=8.0, save_dt=0.1, members=262144, save='["omega", "tilt"]')

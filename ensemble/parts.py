@@ -95,8 +95,8 @@ class Parts:
             self.folder.mkdir(parents=True, exist_ok=True)
             _write_atomically(manifest, json.dumps(fingerprint(spec), indent=1).encode())
         self.parts = self._verified()
-        self.result = None  # the result's Writer: new parts are written into it too (see `streamed`)
-        self.streamed: set[int] = set()  # first members of the parts this run also wrote into `result`
+        self.result = None  # the result's Writer, set before the first part begins: parts are written into it too
+        self.written: dict[int, dict[str, np.ndarray]] = {}  # records of the parts this run wrote, by first member
         # Parts are sealed (checksum, rename) on a thread of their own while the next chunk computes.
         self._sealing = ThreadPoolExecutor(1, thread_name_prefix="ensemble-parts")
         self._sealed: list[tuple[int, int, Future]] = []  # (start, stop, future of its Part)
@@ -165,14 +165,14 @@ class Parts:
         names = record_names(self.spec)
         records = {name: [] for name in names}
         for part in self.parts:
-            with netCDF4.Dataset(part.path) as nc:
-                nc.set_auto_mask(False)
-                if part.start not in self.streamed:
+            data = self.written.get(part.start)
+            if data is None:  # an earlier run's part
+                with netCDF4.Dataset(part.path) as nc:
+                    nc.set_auto_mask(False)
                     for first in range(0, self.spec.n_save, segment):
                         self.result.write_samples(part.start, first, {
                             name: nc.variables[name][:, first:first + segment] for name in self.spec.save})
-                data = {name: nc.variables[name][:] for name in names}
-            if part.start not in self.streamed:
+                    data = {name: nc.variables[name][:] for name in names}
                 self.result.write(part.start, data)
             for name in names:
                 records[name].append(data[name])
@@ -202,8 +202,7 @@ class PartWriter:
                     if dim not in nc.dimensions:
                         nc.createDimension(dim, sizes[dim])
                 chunks = tuple({**sizes, "t": min(self.segment, spec.n_save)}[d] for d in dims)
-                var = nc.createVariable(name, "f8", dims, chunksizes=chunks, fill_value=np.nan)
-                var.set_var_chunk_cache(0, 0, 0.0)  # whole chunks are written: straight to the file
+                nc.createVariable(name, "f8", dims, chunksizes=chunks, fill_value=np.nan)
             for name in record_names(spec):
                 kind = RUN_RECORDS[name][0]
                 nc.createVariable(name, kind, ("member",), fill_value=np.nan if kind == "f8" else None)
@@ -211,22 +210,21 @@ class PartWriter:
 
     def write_samples(self, start: int, first: int, data: dict[str, np.ndarray]) -> None:
         put_samples(self.nc.variables, start - self.start, first, data)
-        if self.parts.result is not None:
-            self.parts.result.write_samples(start, first, data)
+        self.parts.result.write_samples(start, first, data)
 
     def write(self, start: int, data: dict[str, np.ndarray]) -> None:
+        """The records of every member of the part (start is the part's)."""
         put_records(self.nc.variables, start - self.start, data)
-        if self.parts.result is not None:
-            self.parts.result.write(start, data)
+        self.parts.result.write(start, data)
+        self.records = data
 
     def finish(self) -> None:
         """Close the file and have it sealed (checksum, rename to the part's name) on the parts' own thread: the
         part is complete once Parts.settle returns."""
         self.nc.close()
-        if self.parts.result is not None:
-            self.parts.streamed.add(self.start)
-            # what is written of the result goes to the disk now, while the run goes on, not all at its end
-            self.parts._sealing.submit(fsync_path, self.parts.result.temporary)
+        self.parts.written[self.start] = self.records
+        # what is written of the result goes to the disk now, while the run goes on, not all at its end
+        self.parts._sealing.submit(fsync_path, self.parts.result.temporary)
         future = self.parts._sealing.submit(self._seal)
         self.parts._sealed.append((self.start, self.stop, future))
 

@@ -43,7 +43,8 @@ def _fit_growth(a, t, step, growth):
     bits); the inner loops run over members, contiguous in `a`."""
     motions, samples, members = a.shape
     growth[:] = -np.inf
-    count = np.empty(members, dtype=np.int64)
+    count = np.empty(members, dtype=np.int64)  # samples before the first unusable one (not above the floor, NaN)
+    first = np.empty(members, dtype=np.int64)  # the fit's window: samples first .. count - 1
     floor, t_mean, y_mean = np.empty(members), np.empty(members), np.empty(members)
     cross, square = np.empty(members), np.empty(members)
     logs = np.empty((samples, members))
@@ -51,29 +52,30 @@ def _fit_growth(a, t, step, growth):
         for j in range(members):
             floor[j] = max(DECAY_FLOOR * a[m, 0, j], SUBNORMAL)
             count[j] = 0
-        for i in range(samples):  # samples before the first unusable one (not above the floor, or NaN)
+        for i in range(samples):
             for j in range(members):
                 if count[j] == i and floor[j] < a[m, i, j] < np.inf:
                     count[j] = i + 1
+        for j in range(members):
+            first[j] = max(min(count[j] // 2, count[j] - 2), 0)
         t_mean[:], y_mean[:], cross[:], square[:] = 0.0, 0.0, 0.0, 0.0
         for i in range(samples):
             for j in range(members):
-                if max(min(count[j] // 2, count[j] - 2), 0) <= i < count[j]:
+                if first[j] <= i < count[j]:
                     logs[i, j] = np.log(a[m, i, j])
                     t_mean[j] += t[i]
                     y_mean[j] += logs[i, j]
         for j in range(members):
-            total = count[j] - max(min(count[j] // 2, count[j] - 2), 0)
-            t_mean[j] /= total
-            y_mean[j] /= total
+            t_mean[j] /= count[j] - first[j]
+            y_mean[j] /= count[j] - first[j]
         for i in range(samples):
             for j in range(members):
-                if max(min(count[j] // 2, count[j] - 2), 0) <= i < count[j]:
+                if first[j] <= i < count[j]:
                     dt = t[i] - t_mean[j]
                     cross[j] += dt * (logs[i, j] - y_mean[j])
                     square[j] += dt * dt
         for j in range(members):
-            if count[j] - max(min(count[j] // 2, count[j] - 2), 0) >= 2:
+            if count[j] - first[j] >= 2:
                 g = np.exp(cross[j] / square[j] * step[j])
                 if g == g:
                     growth[j] = max(growth[j], g)

@@ -212,7 +212,6 @@ class Writer:
             dims, units, long_name = self.scene.OBSERVABLES[name]
             chunks = {**self.sizes, "member": min(chunk, spec.n_members), "t": segment}
             var = self.nc.createVariable(name, "f8", dims, chunksizes=tuple(chunks[d] for d in dims), fill_value=np.nan)
-            var.set_var_chunk_cache(0, 0, 0.0)  # each write fills whole chunks: straight to the file, not a cache
             var.setncatts({"units": units, "long_name": long_name})
             if name in spec.noise:
                 var.setncattr("observation_noise_stddev", spec.noise[name])
