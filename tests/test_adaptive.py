@@ -257,3 +257,87 @@ def test_a_run_calls_the_kernel_once_per_chunk_and_setting(monkeypatch):
     launches.clear()
     runner.simulate(swept, chunk=128)
     assert len(launches) <= 2 * 2, len(launches)  # 200 members in 2 chunks, 2 settings
+
+
+# --- the step controller -----------------------------------------------------------------------------------
+
+def test_the_controllers_log2_and_exp2_match_numpy():
+    from numba import njit
+
+    from ensemble.engine.blocks import exp2_of, log2_positive
+
+    @njit
+    def both(x, y):
+        return [log2_positive(v) for v in x], [exp2_of(v) for v in y]
+
+    rng = np.random.default_rng(5)
+    x = np.concatenate([10.0 ** rng.uniform(-307, 308, 20_000), [2.0**-1022, 1.0, np.sqrt(2.0), 2.0, 1e300]])
+    y = np.concatenate([rng.uniform(-1000, 1000, 20_000), [-1022.0, -0.5, 0.0, 0.5, 1023.0]])
+    logs, powers = (np.array(v) for v in both(x, y))
+    np.testing.assert_allclose(logs, np.log2(x), rtol=0, atol=1e-10)
+    np.testing.assert_allclose(powers, np.exp2(y), rtol=1e-13)
+
+
+def reference_control(step, err, h, time, log2_previous, rejected_last, target, control):
+    """The controller of methods.StepControl for one member, in plain Python with math.pow: (time, h, err
+    previous, rejected last, err row, counts (accepted, rejected, evaluations), underflowed)."""
+    alpha, beta, safety, min_factor, max_factor = control
+    if step <= 0.0:
+        return time, h, log2_previous, rejected_last, -1.0, (0, 0, 0), False
+    previous = 2.0**log2_previous
+    if np.isfinite(err) and err <= 1.0:
+        factor = safety * max(err, 1e-10) ** -alpha * previous**beta
+        factor = min(factor, 1.0) if rejected_last > 0.0 else factor
+        factor = min(max_factor, max(min_factor, factor))
+        landed = step >= target - time
+        return (target if landed else time + step, max(step * factor, h if landed else 0.0),
+                np.log2(max(err, 1e-4)), 0.0, err, (1, 0, 6), False)
+    new_h = step * (max(min_factor, safety * err**-alpha) if np.isfinite(err) else min_factor)
+    if new_h <= 1e-14 * target:
+        return time, 0.0, log2_previous, 1.0, -2.0, (0, 1, 6), True
+    return time, new_h, log2_previous, 1.0, err, (0, 1, 6), False
+
+
+def test_control_step_chooses_the_steps_of_its_formula_for_every_kind_of_member():
+    from numba import njit
+
+    from ensemble.engine import blocks
+
+    B, rows = 64, blocks.CONTROL_ROWS
+    method = METHODS["dopri5"].control
+    control = alpha, beta, safety, min_factor, max_factor = (method.alpha, method.beta, method.safety,
+                                                               method.min_factor, method.max_factor)
+
+    @njit
+    def step_all(work, target, counts, status, failure_time):
+        blocks.control_step(work, 0, B, target, counts, 0, status, failure_time, 6.0, alpha, beta, safety,
+                            min_factor, max_factor)
+
+    rng = np.random.default_rng(11)
+    target = 1.0
+    for trial in range(20):
+        step = np.where(rng.random(B) < 0.2, 0.0, 10.0 ** rng.uniform(-17, -1, B))
+        err = 10.0 ** rng.uniform(-12, 3, B)
+        err[rng.random(B) < 0.1] = np.nan
+        err[rng.random(B) < 0.05] = np.inf
+        err[rng.random(B) < 0.05] = 0.0
+        h = 10.0 ** rng.uniform(-4, -1, B)
+        time = np.where(rng.random(B) < 0.3, target - step * rng.uniform(0.5, 1.0, B), rng.uniform(0, 0.9, B))
+        log2_previous = np.log2(10.0 ** rng.uniform(-4, 0, B))
+        rejected_last = (rng.random(B) < 0.3).astype(float)
+        work = np.zeros(rows * B)
+        for row, values in ((blocks.STEP, step), (blocks.ERR, err), (blocks.H, h), (blocks.TIME, time),
+                            (blocks.LOG2_ERR_PREVIOUS, log2_previous), (blocks.REJECTED_LAST, rejected_last)):
+            work[row * B:(row + 1) * B] = values
+        counts, status, failure_time = np.zeros((3, B)), np.zeros(B), np.full(B, np.nan)
+        step_all(work, target, counts, status, failure_time)
+        rows_of = work.reshape(rows, B)
+        for j in range(B):
+            want = reference_control(step[j], err[j], h[j], time[j], log2_previous[j], rejected_last[j], target,
+                                     control)
+            got = (rows_of[blocks.TIME, j], rows_of[blocks.H, j], rows_of[blocks.LOG2_ERR_PREVIOUS, j],
+                   rows_of[blocks.REJECTED_LAST, j], rows_of[blocks.ERR, j])
+            np.testing.assert_allclose(got, want[:5], rtol=1e-9, atol=0, equal_nan=True,
+                                       err_msg=f"trial {trial}, member {j}")
+            np.testing.assert_array_equal(counts[:, j], want[5])
+            assert (status[j] == 2) == want[6] and (failure_time[j] == time[j]) == want[6]

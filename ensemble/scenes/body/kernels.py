@@ -248,7 +248,7 @@ def _adaptive_kernel(method: Method):
                         for j in range(B):
                             h = work[(C0 + STEP) * B + j]
                             z1, z2, z3 = work[j], work[B + j], work[2 * B + j]
-                            for r in range(S):  # a is zero from column s on
+                            for r in range(s):  # a is zero from column s on
                                 ha = h * a_array[s * S + r]
                                 z1 += ha * work[(K + 3 * r) * B + j]
                                 z2 += ha * work[(K + 3 * r + 1) * B + j]

@@ -16,7 +16,6 @@ from ...engine.blocks import (
     ATOL,
     CONTROL_ROWS,
     ERR,
-    ERR_PREVIOUS,
     FAST,
     REJECTED_LAST,
     RTOL,
@@ -33,6 +32,7 @@ from ...engine.blocks import (
     rows_in,
     rows_out,
     splitting_schedule,
+    start_control,
     trial_steps,
 )
 from ...methods import Method
@@ -348,8 +348,6 @@ def _adaptive_kernel(method: Method, n: int, periodic: bool):
                 _chain_slopes(work, X, V, KX, KV, n, B)
                 for j in range(B):
                     rtol, atol = control[1, j0 + j], control[2, j0 + j]
-                    work[(C0 + RTOL) * B + j], work[(C0 + ATOL) * B + j] = rtol, atol
-                    work[(C0 + ERR_PREVIOUS) * B + j] = 1e-4
                     counts[RHS_EVALS, j0 + j] = 1.0
                     h = control[0, j0 + j]
                     if h <= 0.0:
@@ -361,7 +359,7 @@ def _adaptive_kernel(method: Method, n: int, periodic: bool):
                             slope = max(slope, abs(v) / (atol + rtol * abs(x)),
                                         abs(work[(KV + i) * B + j]) / (atol + rtol * abs(v)))
                         h = first_step(size, slope, save_dt)
-                    work[(C0 + H) * B + j] = h
+                    start_control(work, C0, B, j, rtol, atol, h)
                 # a non-finite start
                 check_members(work, X + 1, 2 * n + 1, B, j0, limit, status, failure_time, 0.0, C0 + H)
             elif block_done(samples, status, progress, block, B):
