@@ -264,9 +264,9 @@ def test_a_run_calls_the_kernel_once_per_chunk_and_setting(monkeypatch):
 def test_the_controllers_log2_and_exp2_match_numpy():
     from numba import njit
 
-    from ensemble.engine.blocks import exp2_of, log2_positive
+    from ensemble.engine.blocks import FAST, exp2_of, log2_positive
 
-    @njit
+    @njit(**FAST)  # as the kernels that inline them are compiled
     def both(x, y):
         return [log2_positive(v) for v in x], [exp2_of(v) for v in y]
 
@@ -308,7 +308,7 @@ def test_control_step_chooses_the_steps_of_its_formula_for_every_kind_of_member(
     control = alpha, beta, safety, min_factor, max_factor = (method.alpha, method.beta, method.safety,
                                                                method.min_factor, method.max_factor)
 
-    @njit
+    @njit(**blocks.FAST)  # as the kernels that inline it are compiled
     def step_all(work, target, counts, status, failure_time):
         blocks.control_step(work, 0, B, target, counts, 0, status, failure_time, 6.0, alpha, beta, safety,
                             min_factor, max_factor)
