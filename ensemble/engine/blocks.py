@@ -223,46 +223,56 @@ def control_step(work, c0, B, target, counts, j0, status, failure_time, new_stag
     member and libm's pow it cost 45 ns a member, 15 times a top's rk4 step. Fastmath cannot fold the test for
     a non-finite error away: it is made on the integer bits of a value loaded from memory.
     """
+    underflows = 0
     for j in range(B):
+        # Every value is loaded up front and every row stored unconditionally: a load or store under a
+        # condition becomes a masked one (vmaskmovpd), which cost as much as the rest of the loop on AMD Zen 3.
         step = work[(c0 + STEP) * B + j]
-        moving = step > 0.0
         err = work[(c0 + ERR) * B + j]
-        finite = (_int_bits(err) & _EXPONENT) != _EXPONENT
-        err = err if finite else 1.0e300
-        accepted = moving and err <= 1.0
-        log2_err = log2_positive(max(err, 1e-10))
+        time = work[(c0 + TIME) * B + j]
+        h = work[(c0 + H) * B + j]
         log2_previous = work[(c0 + LOG2_ERR_PREVIOUS) * B + j]
+        rejected_last = work[(c0 + REJECTED_LAST) * B + j]
+        moving = step > 0.0
+        finite = (_int_bits(err) & _EXPONENT) != _EXPONENT
+        usable_err = err if finite else 1.0e300
+        accepted = moving and usable_err <= 1.0
+        log2_err = log2_positive(max(usable_err, 1e-10))
         factor = safety * exp2_of(-alpha * log2_err + (beta * log2_previous if accepted else 0.0))
         if accepted:
-            factor = min(factor, 1.0) if work[(c0 + REJECTED_LAST) * B + j] > 0.0 else factor
+            factor = min(factor, 1.0) if rejected_last > 0.0 else factor
             factor = min(max_factor, max(min_factor, factor))
         else:
             factor = max(min_factor, factor) if finite else min_factor
-        time = work[(c0 + TIME) * B + j]
-        h = work[(c0 + H) * B + j]
         landed = step >= target - time
         # A step clipped to land on a saved time does not shrink the next one.
         accepted_h = max(step * factor, h if landed else 0.0)
         rejected_h = step * factor
         underflowed = moving and not accepted and rejected_h <= 1e-14 * target  # the step underflowed: give up
+        underflows += underflowed
         work[(c0 + TIME) * B + j] = (target if landed else time + step) if accepted else time
         work[(c0 + H) * B + j] = accepted_h if accepted else (0.0 if underflowed else (rejected_h if moving else h))
         work[(c0 + LOG2_ERR_PREVIOUS) * B + j] = max(log2_err, FIRST_LOG2_ERR_PREVIOUS) if accepted else log2_previous
-        rejected_last = work[(c0 + REJECTED_LAST) * B + j]
         work[(c0 + REJECTED_LAST) * B + j] = (0.0 if accepted else 1.0) if moving else rejected_last
-        work[(c0 + ERR) * B + j] = (UNDERFLOWED if underflowed else work[(c0 + ERR) * B + j]) if moving else NO_STEP
-    # Counts and status from the rows just written, in loops of their own: with them the loop above would not
-    # vectorize (LLVM could not bound the arrays to check them for overlap).
+        work[(c0 + ERR) * B + j] = (UNDERFLOWED if underflowed else err) if moving else NO_STEP
+    _count_steps(work, c0, B, counts, j0, status, failure_time, new_stages, underflows)
+
+
+@njit(inline="always", **FAST)
+def _count_steps(work, c0, B, counts, j0, status, failure_time, new_stages, underflows):
+    """control_step's counts and failures, from the rows it wrote, in loops of their own: with them its loop
+    would not vectorize (LLVM could not bound the arrays to check them for overlap)."""
     for j in range(B):
         moving = work[(c0 + ERR) * B + j] != NO_STEP
         accepted = moving and work[(c0 + REJECTED_LAST) * B + j] == 0.0
         counts[ACCEPTED, j0 + j] += 1.0 if accepted else 0.0
         counts[REJECTED, j0 + j] += 1.0 if moving and not accepted else 0.0
         counts[RHS_EVALS, j0 + j] += new_stages if moving else 0.0
-    for j in range(B):
-        if work[(c0 + ERR) * B + j] == UNDERFLOWED:
-            status[j0 + j] = UNDERFLOW
-            failure_time[j0 + j] = work[(c0 + TIME) * B + j]
+    if underflows:
+        for j in range(B):
+            if work[(c0 + ERR) * B + j] == UNDERFLOWED:
+                status[j0 + j] = UNDERFLOW
+                failure_time[j0 + j] = work[(c0 + TIME) * B + j]
 
 
 @njit(inline="always", **FAST)
@@ -381,11 +391,12 @@ def rates_error(work, K, NEW, C0, S, e, B):
 def rates_accept(work, K, NEW, C0, S, B):
     """After control_step: members whose step was accepted move to the new state (its last stage is the next
     step's first); members whose step underflowed become NaN."""
-    for j in range(B):
-        if work[(C0 + REJECTED_LAST) * B + j] == 0.0 and work[(C0 + ERR) * B + j] >= 0.0:
-            for c in range(3):
-                work[c * B + j] = work[(NEW + c) * B + j]
-                work[(K + c) * B + j] = work[(K + 3 * (S - 1) + c) * B + j]
-        elif work[(C0 + ERR) * B + j] == UNDERFLOWED:
-            for c in range(3):
-                work[c * B + j] = np.nan
+    for j in range(B):  # selects, not branches: see control_step
+        err = work[(C0 + ERR) * B + j]
+        accepted = work[(C0 + REJECTED_LAST) * B + j] == 0.0 and err >= 0.0
+        underflowed = err == UNDERFLOWED
+        for c in range(3):
+            state, new = work[c * B + j], work[(NEW + c) * B + j]
+            slope, last = work[(K + c) * B + j], work[(K + 3 * (S - 1) + c) * B + j]
+            work[c * B + j] = new if accepted else (np.nan if underflowed else state)
+            work[(K + c) * B + j] = last if accepted else slope
