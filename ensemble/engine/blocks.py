@@ -162,7 +162,7 @@ _LN2 = math.log(2.0)
 _TWO_OVER_LN2 = 2.0 / math.log(2.0)
 
 
-@njit(inline="always", **CAREFUL)
+@njit(inline="always", **FAST)  # inlined into the step control: compiled with its flags
 def log2_positive(x):
     """log2(x) (absolute error below 1e-10) of a finite x >= 2**-1022, in operations that vectorize: libm's log
     is a scalar call, which cost the step controller more than all the stages of a dopri5 step."""
@@ -181,7 +181,7 @@ def log2_positive(x):
     return exponent + _TWO_OVER_LN2 * t * series
 
 
-@njit(inline="always", **CAREFUL)
+@njit(inline="always", **FAST)  # as log2_positive
 def exp2_of(y):
     """2**y (relative error below 1e-13) for -1022 <= y <= 1023, in operations that vectorize (see
     log2_positive)."""
@@ -225,8 +225,9 @@ def control_step(work, c0, B, target, counts, j0, status, failure_time, new_stag
     """
     underflows = 0
     for j in range(B):
-        # Every value is loaded up front and every row stored unconditionally: a load or store under a
-        # condition becomes a masked one (vmaskmovpd), which cost as much as the rest of the loop on AMD Zen 3.
+        # Every value is loaded up front and every row stored unconditionally, since a load or store under a
+        # condition becomes a masked one (vmaskmovpd, slow on AMD Zen 3). LLVM still makes some of the stores
+        # that keep a row's value masked ones.
         step = work[(c0 + STEP) * B + j]
         err = work[(c0 + ERR) * B + j]
         time = work[(c0 + TIME) * B + j]
