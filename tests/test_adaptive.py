@@ -276,6 +276,7 @@ def test_the_controllers_log2_and_exp2_match_numpy():
     logs, powers = (np.array(v) for v in both(x, y))
     np.testing.assert_allclose(logs, np.log2(x), rtol=0, atol=1e-10)
     np.testing.assert_allclose(powers, np.exp2(y), rtol=1e-13)
+    np.testing.assert_array_equal(both(x[:2], np.array([-5000.0, 5000.0]))[1], [2.0**-1022, 2.0**1023])  # clipped
 
 
 def reference_control(step, err, h, time, log2_previous, rejected_last, target, control):
