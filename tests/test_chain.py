@@ -223,6 +223,20 @@ def test_dataset_energy_and_parameters(write_runfile):
     np.testing.assert_allclose(ds.energy.values / ds.energy.values[:, :1], 1, atol=1e-9)  # rk4, small steps
 
 
+@pytest.mark.parametrize("boundary", ["fixed", "free", "periodic"])
+def test_observed_energy_is_the_models_spring_sum(boundary):
+    """The run's compiled energy (kernels.sample_energy, from member-major samples) against model.energy (numpy,
+    its own extensions) on random states, masses and springs: the same sums in another order."""
+    rng = np.random.default_rng(7)
+    for n in (2, 3, 16, 129):
+        samples = rng.standard_normal((9, 5, 2 * n))  # (members, t, (x; v))
+        m, k = rng.uniform(0.5, 2.0, (9, n)), rng.uniform(0.5, 2.0, (9, chain.spring_count(n, boundary)))
+        observed = chain.observe(samples.transpose(1, 2, 0), ("energy",), {"m": m, "k": k},
+                                 {"n": n, "boundary": boundary})["energy"]
+        expected = chain.energy(samples[..., :n], samples[..., n:], m[:, None], k[:, None], boundary)
+        np.testing.assert_allclose(observed, expected, rtol=1e-14)
+
+
 @pytest.mark.parametrize("n", [4, 133])  # blocks of 64 and 8 members (133: the tiled kernel of the tiling test)
 def test_chain_results_do_not_depend_on_chunk_size(n, write_runfile):
     text = chain_runfile({"n": n, "m": "{ uniform = [0.5, 2.0] }", "x0": "{ normal = [0.0, 0.1] }"},

@@ -292,7 +292,12 @@ def observe(samples: np.ndarray, names, values: dict[str, np.ndarray], constants
     if "v" in names:
         out["v"] = np.ascontiguousarray(v)
     if "energy" in names:
-        out["energy"] = energy(x, v, values["m"][:, None, :], values["k"][:, None, :], constants["boundary"])
+        from .kernels import BOUNDARIES, sample_energy  # compiled: the model alone does not import Numba
+
+        out["energy"] = sample_energy(np.ascontiguousarray(samples.transpose(2, 0, 1)),
+                                      np.ascontiguousarray(values["m"], dtype=float),
+                                      np.ascontiguousarray(values["k"], dtype=float),
+                                      BOUNDARIES.index(constants["boundary"]))
     return out
 
 
