@@ -118,12 +118,12 @@ def default_chunk(spec: Spec) -> int:
 def _same_settings(table: dict[str, np.ndarray], j0: int, j1: int):
     """Ranges [k0, k1) within [j0, j1) of consecutive members that one launch can run (same method and dt; a dt
     of NaN, as adaptive and closed-form members have without one, equals NaN here)."""
-    key = [(m, d if d == d else None) for m, d in zip(table["method"][j0:j1], table["dt"][j0:j1])]
-    k0 = j0
-    for k in range(j0 + 1, j1 + 1):
-        if k == j1 or key[k - j0] != key[k0 - j0]:
-            yield k0, k
-            k0 = k
+    if j1 <= j0:
+        return
+    method, dt = np.asarray(table["method"][j0:j1]), np.asarray(table["dt"][j0:j1], dtype=float)
+    same = (method[1:] == method[:-1]) & ((dt[1:] == dt[:-1]) | (np.isnan(dt[1:]) & np.isnan(dt[:-1])))
+    edges = [j0, *(j0 + 1 + np.flatnonzero(~same)).tolist(), j1]
+    yield from zip(edges[:-1], edges[1:])
 
 
 def _settings(spec: Spec, method: Method, values: dict[str, np.ndarray]) -> dict:
@@ -247,13 +247,13 @@ def integrate_members(spec: Spec, method: Method, values: dict[str, np.ndarray],
         if call.segment == call.n_save:
             whole.append((start, samples))
         else:
-            record.add(start, samples)
+            record.add(start, samples())
     outcome = call.outcome()
     stepping = {**settings, "n_save": 2, "save_dt": spec.t_end}  # the same steps, saving only the end
 
     def finish() -> dict[str, np.ndarray]:
         for start, samples in whole:
-            record.add(start, samples)
+            record.add(start, samples())
         return record.records(outcome, lambda: kernel_seconds_per_step(scene, method, values, spec.constants,
                                                                        outcome, repeats, stepping))
 
@@ -464,7 +464,10 @@ def prepare_kernels(spec: Spec, announce: bool = True) -> float:
     try:
         for name in spec.methods:
             launch.prepare(scene, METHODS[name], spec.constants)
-        measured_growth(np.ones((1, 2, 1)), np.arange(2.0), np.ones(1))  # its compiled fit, too
+        one = launch.member_major(np.zeros((1, 1, scene.kernel_rows(spec.constants)[0], 1)), 1).transpose(1, 2, 0)
+        scene.observe(one, tuple(scene.OBSERVABLES), members_table(spec, 0, 1), spec.constants)  # what observing
+        measured_growth(scene.amplitudes(one, members_table(spec, 0, 1), spec.constants), np.zeros(1), np.ones(1))
+        # compiles, too: the layout, the observables and the growth fit
     finally:
         timer.cancel()
     seconds = time.perf_counter() - start

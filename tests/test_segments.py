@@ -43,3 +43,12 @@ def test_segments_give_the_bits_of_one_call(scene):
         failed_midway += np.sum(whole.failure_time > 0)
     if scene != "top":  # no top member grows by 2%; the body shares the top's failure helpers
         assert failed_midway > 0  # the continuation of failed blocks is exercised
+
+
+def test_member_major_is_the_blocked_samples_member_by_member():
+    """launch.member_major against numpy's transpose of the block layout, the padding members cut off."""
+    rng = np.random.default_rng(3)
+    for count, blocks, rows, block, members in ((7, 3, 5, 4, 10), (1, 1, 3, 128, 1), (4, 2, 32, 8, 16)):
+        samples = rng.standard_normal((count, blocks, rows, block))
+        by_numpy = samples.transpose(1, 3, 0, 2).reshape(blocks * block, count, rows)[:members]
+        np.testing.assert_array_equal(launch.member_major(samples, members), by_numpy)

@@ -114,13 +114,16 @@ class Launch:
 
     def segments(self, threads: int | None = None, watch=None):
         """Run the kernel (or evaluate the closed form) from the start, on `threads` threads (default
-        thread_count()); yields (first, samples) per call: samples first .. first + count - 1 as (count, state
-        rows, members), a view of a buffer the next call overwrites. watch(fraction of the run done), if given, is
-        called from this thread while it waits. A run in segments gives the bits of one in a single call: each
-        call continues from the work arrays the last one left."""
+        thread_count()); yields (first, samples) per call, samples() returning samples first .. first + count - 1
+        as (count, state rows, members): a view of an array laid out member by member (see member_major). Call
+        it before the next call is computed, which overwrites the kernel's buffer; until then it may run on
+        another thread. watch(fraction of the run done), if given, is called from this thread while it waits. A
+        run in segments gives the bits of one in a single call: each call continues from the work arrays the last
+        one left."""
         if self.method.closed_form:
             for first in range(0, self.n_save, self.segment):
-                yield first, self.exact(first, min(self.segment, self.n_save - first))
+                exact = self.exact(first, min(self.segment, self.n_save - first))
+                yield first, lambda exact=exact: exact
             return
         self.status[:] = 0.0
         self.failure_time[:] = np.nan
@@ -138,12 +141,11 @@ class Launch:
             done = None if watch is None else (
                 lambda: watch(min(1.0, (first + self.progress.mean()) / max(self.n_save - 1, 1))))
             run_blocks(self.kernel.function, (*head, samples, *tail, first), self.state0.shape[0], threads, done)
-            yield first, unblocked(samples)[:, :, :self.members]
+            yield first, lambda samples=samples: member_major(samples, self.members).transpose(1, 2, 0)
 
     def run(self, threads: int | None = None, watch=None) -> None:
         """Run the whole record (as `segments`), keeping every sample for `outcome`."""
-        parts = [samples if self.segment == self.n_save else samples.copy()
-                 for _, samples in self.segments(threads, watch)]
+        parts = [samples() for _, samples in self.segments(threads, watch)]
         self.samples = parts[0] if len(parts) == 1 else np.concatenate(parts)
 
     def outcome(self) -> Outcome:
@@ -257,7 +259,20 @@ def blocked(x: np.ndarray, block: int) -> np.ndarray:
     return np.ascontiguousarray(x.reshape(rows, members // block, block).transpose(1, 0, 2))
 
 
-def unblocked(samples: np.ndarray) -> np.ndarray:
-    """A kernel's samples (n_save, blocks, rows, block) as (n_save, rows, members)."""
-    n_save, blocks, rows, block = samples.shape
-    return samples.transpose(0, 2, 1, 3).reshape(n_save, rows, blocks * block)
+def member_major(samples: np.ndarray, members: int) -> np.ndarray:
+    """A kernel's samples (count, blocks, rows, block) of the first `members` members as a new array (members,
+    count, rows): the saved variables' layout (member, t, ...), so that observing and writing them copies
+    little."""
+    out = np.empty((members, samples.shape[0], samples.shape[2]))
+    _member_major(samples, out)
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _member_major(samples, out):
+    count, blocks, rows, block = samples.shape
+    for b in range(blocks):
+        for j in range(min(block, out.shape[0] - b * block)):
+            for i in range(count):  # out is written in order; a block's samples (count x rows x block) stay in cache
+                for r in range(rows):
+                    out[b * block + j, i, r] = samples[i, b, r, j]
