@@ -233,8 +233,11 @@ def step_growth(method: Method, values: dict[str, np.ndarray], constants: dict, 
 
 
 def amplitudes(samples: np.ndarray, values: dict[str, np.ndarray], constants: dict) -> np.ndarray:
-    """Amplitudes of the top's two motions, |(w1, w2)| and |w3| (rad/s), shape (2, samples, members)."""
-    return np.stack((np.hypot(samples[:, 0], samples[:, 1]), np.abs(samples[:, 2])))
+    """Amplitudes of the top's two motions, |(w1, w2)| and |w3| (rad/s), shape (2, samples, members), from
+    samples (samples, 3, members)."""
+    from .kernels import observed_amplitudes  # compiled: the model alone does not import Numba
+
+    return observed_amplitudes(np.ascontiguousarray(samples.transpose(2, 0, 1)))
 
 
 def kinetic_energy(omega: np.ndarray, lambda1, lambda3) -> np.ndarray:
@@ -253,10 +256,15 @@ def conserved_energy(ds) -> np.ndarray:
 
 
 def observe(samples: np.ndarray, names, values: dict[str, np.ndarray], constants: dict) -> dict[str, np.ndarray]:
-    """Saved variables from kernel samples of shape (t, 3, members), member-major."""
+    """Saved variables, member-major, from kernel samples of shape (t, 3, members) (a run's are a view of a
+    member-major array, which omega then is). The tilt is compiled (kernels.observed_tilt): it is tilt() to a
+    few units in the last place, at a tenth of libm's cost."""
+    from .kernels import observed_tilt  # compiled: the model alone does not import Numba
+
+    omega = np.ascontiguousarray(samples.transpose(2, 0, 1))
     out = {}
     if "omega" in names:
-        out["omega"] = np.ascontiguousarray(samples.transpose(2, 0, 1))
+        out["omega"] = omega
     if "tilt" in names:
-        out["tilt"] = tilt(samples, axis=1).T
+        out["tilt"] = observed_tilt(omega)
     return out
