@@ -198,6 +198,7 @@ class PartWriter:
         if self._nc is None:
             spec, scene = self.parts.spec, SCENES[self.parts.spec.scene]
             self._nc = nc = netCDF4.Dataset(self.temporary, "w", format="NETCDF4")
+            nc.set_fill_off()  # as the result's (ensemble.store.Writer)
             sizes = {"member": self.stop - self.start, "t": spec.n_save, **scene.sizes(spec.constants)}
             for name in spec.save:
                 dims = scene.OBSERVABLES[name][0]

@@ -138,6 +138,7 @@ class Writer:
         self.scene = SCENES[spec.scene]
         self.spec = spec
         self.nc = nc = netCDF4.Dataset(self.temporary, "w", format="NETCDF4")
+        nc.set_fill_off()  # every value is written (NaN after a failure too): HDF5 need not pre-fill the chunks
         try:
             nc.setncatts(global_attributes(spec, table, command))
             self._dimensions(table)
