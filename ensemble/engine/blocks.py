@@ -65,6 +65,16 @@ def _float_bits(typingctx, bits):
     return types.float64(types.int64), codegen
 
 
+@intrinsic
+def select(typingctx, condition, if_true, if_false):
+    """if_true if condition else if_false, as one LLVM select of two float64s. Python's conditional expression
+    compiles to branches, which LLVM may turn into masked loads and stores (vmaskmovpd, slow on AMD Zen 3) when
+    it vectorizes; a select becomes a blend, and the stores after it stay whole."""
+    def codegen(context, builder, signature, arguments):
+        return builder.select(*arguments)
+    return types.float64(types.boolean, types.float64, types.float64), codegen
+
+
 @njit(inline="always", **FAST)
 def _finite(x):
     """Whether the float64 x is finite, tested on its bits: fastmath assumes no float is NaN or inf, not an int."""
@@ -173,8 +183,8 @@ def log2_positive(x):
     exponent = _float_bits(((bits >> 52) & 0x7FF) | 0x4330000000000000) - (4503599627370496.0 + 1023.0)
     mantissa = _float_bits((bits & 0x000FFFFFFFFFFFFF) | 0x3FF0000000000000)  # in [1, 2)
     high = mantissa > 1.4142135623730951
-    mantissa = 0.5 * mantissa if high else mantissa  # now in [sqrt(1/2), sqrt(2)]
-    exponent = exponent + 1.0 if high else exponent
+    mantissa = select(high, 0.5 * mantissa, mantissa)  # now in [sqrt(1/2), sqrt(2)]
+    exponent = select(high, exponent + 1.0, exponent)
     t = (mantissa - 1.0) / (mantissa + 1.0)  # ln(mantissa) = 2 atanh(t), |t| <= 0.172
     t2 = t * t
     t4 = t2 * t2
@@ -187,7 +197,7 @@ def exp2_of(y):
     """2**y (relative error below 1e-13) for -1022 <= y <= 1023, and y clipped to that range beyond it, in
     operations that vectorize (see log2_positive)."""
     y = min(max(y, -1022.0), 1023.0)
-    whole = math.floor(y + 0.5)
+    whole = np.floor(y + 0.5)  # a float: math.floor's int would be converted back, a scalar at a time
     f = (y - whole) * _LN2  # |f| <= ln(2) / 2
     f2 = f * f  # exp(f) to f**11 / 11!, by Estrin's scheme: four short chains instead of one long one
     f4 = f2 * f2
@@ -220,16 +230,17 @@ def control_step(work, c0, B, target, counts, j0, status, failure_time, new_stag
     UNDERFLOW at their time), and REJECTED_LAST is 0 for members whose step
     was accepted; the caller moves those to their new state.
 
-    Every member goes through the same operations, with selects instead of branches, and the function is
-    inlined, so that B is a constant and LLVM can tell the rows apart: the loop vectorizes. With a branch per
-    member and libm's pow, a top's dopri5 step cost 31.5 times its rk4 step; now 9 to 10 times
+    Every member goes through the same operations, with `select` and & (Python's conditional expressions and
+    `and` compile to branches) and the function is inlined, so that B is a constant and LLVM can tell the rows
+    apart: the loop vectorizes. With a branch per member and libm's pow, a top's dopri5 step cost 31.5 times
+    its rk4 step; with conditional expressions 9 to 11 times; with selects 8.8 to 9 times, the same bits
     (analysis/bench_dopri5.py). The test for a non-finite error is made on its bits (_finite).
     """
     underflows = 0
     for j in range(B):
-        # Every value is loaded up front and every row stored unconditionally, since a load or store under a
-        # condition becomes a masked one (vmaskmovpd, slow on AMD Zen 3). LLVM still makes some of the stores
-        # that keep a row's value masked ones.
+        # Every value is loaded up front and every row stored, since a load or store under a condition becomes a
+        # masked one (vmaskmovpd, slow on AMD Zen 3). LLVM still makes the stores of TIME, LOG2_ERR_PREVIOUS and
+        # REJECTED_LAST masked ones (a select that keeps the loaded value).
         step = work[(c0 + STEP) * B + j]
         err = work[(c0 + ERR) * B + j]
         time = work[(c0 + TIME) * B + j]
@@ -238,26 +249,25 @@ def control_step(work, c0, B, target, counts, j0, status, failure_time, new_stag
         rejected_last = work[(c0 + REJECTED_LAST) * B + j]
         moving = step > 0.0
         finite = _finite(err)
-        usable_err = err if finite else 1.0e300
-        accepted = moving and usable_err <= 1.0
+        usable_err = select(finite, err, 1.0e300)
+        accepted = moving & (usable_err <= 1.0)  # & and |, not and and or: those branch
         log2_err = log2_positive(max(usable_err, 1e-10))
-        factor = safety * exp2_of(-alpha * log2_err + (beta * log2_previous if accepted else 0.0))
-        if accepted:
-            factor = min(factor, 1.0) if rejected_last > 0.0 else factor
-            factor = min(max_factor, max(min_factor, factor))
-        else:
-            factor = max(min_factor, factor) if finite else min_factor
+        factor = safety * exp2_of(-alpha * log2_err + select(accepted, beta * log2_previous, 0.0))
+        accepted_factor = min(max_factor, max(min_factor, select(rejected_last > 0.0, min(factor, 1.0), factor)))
+        rejected_factor = select(finite, max(min_factor, factor), min_factor)
+        factor = select(accepted, accepted_factor, rejected_factor)
         landed = step >= target - time
         # A step clipped to land on a saved time does not shrink the next one.
-        accepted_h = max(step * factor, h if landed else 0.0)
+        accepted_h = max(step * factor, select(landed, h, 0.0))
         rejected_h = step * factor
-        underflowed = moving and not accepted and rejected_h <= 1e-14 * target  # the step underflowed: give up
+        underflowed = moving & (not accepted) & (rejected_h <= 1e-14 * target)  # the step underflowed: give up
         underflows += underflowed
-        work[(c0 + TIME) * B + j] = (target if landed else time + step) if accepted else time
-        work[(c0 + H) * B + j] = accepted_h if accepted else (0.0 if underflowed else (rejected_h if moving else h))
-        work[(c0 + LOG2_ERR_PREVIOUS) * B + j] = max(log2_err, FIRST_LOG2_ERR_PREVIOUS) if accepted else log2_previous
-        work[(c0 + REJECTED_LAST) * B + j] = (0.0 if accepted else 1.0) if moving else rejected_last
-        work[(c0 + ERR) * B + j] = (UNDERFLOWED if underflowed else err) if moving else NO_STEP
+        work[(c0 + TIME) * B + j] = select(accepted, select(landed, target, time + step), time)
+        work[(c0 + H) * B + j] = select(accepted, accepted_h, select(underflowed, 0.0, select(moving, rejected_h, h)))
+        work[(c0 + LOG2_ERR_PREVIOUS) * B + j] = select(accepted, max(log2_err, FIRST_LOG2_ERR_PREVIOUS),
+                                                        log2_previous)
+        work[(c0 + REJECTED_LAST) * B + j] = select(moving, select(accepted, 0.0, 1.0), rejected_last)
+        work[(c0 + ERR) * B + j] = select(moving, select(underflowed, UNDERFLOWED, err), NO_STEP)
     _count_steps(work, c0, B, counts, j0, status, failure_time, new_stages, underflows)
 
 
@@ -267,10 +277,10 @@ def _count_steps(work, c0, B, counts, j0, status, failure_time, new_stages, unde
     would not vectorize (LLVM could not bound the arrays to check them for overlap)."""
     for j in range(B):
         moving = work[(c0 + ERR) * B + j] != NO_STEP
-        accepted = moving and work[(c0 + REJECTED_LAST) * B + j] == 0.0
-        counts[ACCEPTED, j0 + j] += 1.0 if accepted else 0.0
-        counts[REJECTED, j0 + j] += 1.0 if moving and not accepted else 0.0
-        counts[RHS_EVALS, j0 + j] += new_stages if moving else 0.0
+        accepted = moving & (work[(c0 + REJECTED_LAST) * B + j] == 0.0)
+        counts[ACCEPTED, j0 + j] += select(accepted, 1.0, 0.0)
+        counts[REJECTED, j0 + j] += select(moving & (not accepted), 1.0, 0.0)
+        counts[RHS_EVALS, j0 + j] += select(moving, new_stages, 0.0)
     if underflows:
         for j in range(B):
             if work[(c0 + ERR) * B + j] == UNDERFLOWED:
@@ -290,7 +300,7 @@ def trial_steps(work, c0, B, target):
     left = 0
     for j in range(B):
         remaining = target - work[(c0 + TIME) * B + j]
-        step = min(work[(c0 + H) * B + j], remaining) if remaining > 0.0 else 0.0
+        step = select(remaining > 0.0, min(work[(c0 + H) * B + j], remaining), 0.0)
         work[(c0 + STEP) * B + j] = step
         work[(c0 + ERR) * B + j] = 0.0
         left += step > 0.0
@@ -396,10 +406,10 @@ def rates_accept(work, K, NEW, C0, S, B):
     step's first); members whose step underflowed become NaN."""
     for j in range(B):  # selects, not branches: see control_step
         err = work[(C0 + ERR) * B + j]
-        accepted = work[(C0 + REJECTED_LAST) * B + j] == 0.0 and err >= 0.0
+        accepted = (work[(C0 + REJECTED_LAST) * B + j] == 0.0) & (err >= 0.0)
         underflowed = err == UNDERFLOWED
         for c in range(3):
             state, new = work[c * B + j], work[(NEW + c) * B + j]
             slope, last = work[(K + c) * B + j], work[(K + 3 * (S - 1) + c) * B + j]
-            work[c * B + j] = new if accepted else (np.nan if underflowed else state)
-            work[(K + c) * B + j] = last if accepted else slope
+            work[c * B + j] = select(accepted, new, select(underflowed, np.nan, state))
+            work[(K + c) * B + j] = select(accepted, last, slope)
