@@ -7,6 +7,10 @@ import shutil
 import sys
 from pathlib import Path
 
+# A run's threads are its kernels'. OpenBLAS (numpy's, and scipy's, which Numba imports) starts threads of its
+# own at import that spin for a while beside them: set before numpy loads; a user's own setting is kept.
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
 from . import __version__
 from .arguments import EXIT_BAD_INPUT, EXIT_FAILED, EXIT_INTERRUPTED, OneLineParser, positive_int
 
