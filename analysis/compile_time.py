@@ -1,11 +1,14 @@
 """Compile time of kernels, and how soon Ctrl-C stops a run inside a kernel call.
 
     python analysis/compile_time.py [--scene chain] [--n 4] [--methods rk4 verlet euler] [--repeats 3]
-                                    [--interrupts 3]
+                                    [--interrupts 3] [--every]
 
 Compile time: each method's kernel is prepared (`launch.prepare`) in a fresh
 process with an empty NUMBA_CACHE_DIR, so it compiles; the script prints the
-median wall time of --repeats. Interrupts: `ensemble run` on one top whose
+median wall time of --repeats. --every instead compiles every kernel of
+every scene (each method that applies; chains with --n masses and fixed
+ends) into one empty cache, in one process, and prints each and the total
+(interpreter start included). Interrupts: `ensemble run` on one top whose
 single save interval takes hours gets SIGINT one second after its output
 `.part` appears (the kernel is running then); the script prints the median
 time until the process exited and its exit statuses. Prints the host first:
@@ -34,6 +37,19 @@ from ensemble.engine import launch
 from ensemble.methods import METHODS
 from ensemble.scenes import SCENES
 launch.prepare(SCENES[sys.argv[1]], METHODS[sys.argv[2]], {"n": int(sys.argv[3]), "boundary": "fixed"})
+"""
+EVERY = """import sys, time
+start = time.perf_counter()
+from ensemble.engine import launch
+from ensemble.scenes import SCENES, methods_for
+for name, scene in SCENES.items():
+    for method in methods_for(scene):
+        if method.closed_form:
+            continue
+        began = time.perf_counter()
+        launch.prepare(scene, method, {"n": int(sys.argv[1]), "boundary": "fixed"})
+        print(f"{name} {method.name}: {time.perf_counter() - began:.1f} s", flush=True)
+print(f"every kernel: {time.perf_counter() - start:.1f} s since the interpreter started", flush=True)
 """
 # One top whose single save interval is 5e9 steps (hours): the start-up benchmark's tops, changed.
 LONG_TOP = TEN_TOPS.replace("dt = 1e-3\nt_end = 1.0\nsave_dt = 0.1\nmembers = 10",
@@ -76,8 +92,16 @@ def main() -> None:
     parser.add_argument("--methods", nargs="+", default=["rk4", "verlet", "euler"])
     parser.add_argument("--repeats", type=positive_int, default=3)
     parser.add_argument("--interrupts", type=int, default=3, help="0: skip the Ctrl-C measurement")
+    parser.add_argument("--every", action="store_true", help="compile every kernel of every scene, in one process")
     args = parser.parse_args()
     print(host(), flush=True)
+    if args.every:
+        with tempfile.TemporaryDirectory() as cache:
+            start = time.perf_counter()
+            subprocess.run([sys.executable, "-c", EVERY, str(args.n)], check=True,
+                           env={**os.environ, "NUMBA_CACHE_DIR": cache})
+        print(f"process wall time {time.perf_counter() - start:.1f} s")
+        return
     for method in args.methods:
         seconds = [compile_seconds(args.scene, method, args.n) for _ in range(args.repeats)]
         print(f"{args.scene} {method} n={args.n}: compiled in {statistics.median(seconds):.1f} s "
