@@ -127,16 +127,20 @@ def block_done(samples, status, progress, block, B):
 @njit(inline="always", **FAST)
 def rows_in(work, row, source, first, count, B):
     """Rows first .. first + count - 1 of a block's (rows, B) array into the work array from `row` on."""
-    for i in range(count):
-        for j in range(B):
+    for i in range(min(count, source.shape[0] - first)):  # bounds LLVM cannot unroll (see rows_out)
+        for j in range(min(B, source.shape[1])):
             work[(row + i) * B + j] = source[first + i, j]
 
 
 @njit(inline="always", **FAST)
 def rows_out(work, row, target, first, count, B):
-    """Work rows row .. row + count - 1 into rows first .. first + count - 1 of a block's (rows, B) array."""
-    for i in range(count):
-        for j in range(B):
+    """Work rows row .. row + count - 1 into rows first .. first + count - 1 of a block's (rows, B) array.
+
+    The loops' bounds depend on the target's shape, which LLVM does not know: with constant bounds it unrolls
+    a chain's copy (a 64-member block's 2n rows) into one block of thousands of loads and stores, whose
+    instruction scheduling took most of the kernel's compile time (10 of 17 s at n = 16)."""
+    for i in range(min(count, target.shape[0] - first)):
+        for j in range(min(B, target.shape[1])):
             target[first + i, j] = work[(row + i) * B + j]
 
 
