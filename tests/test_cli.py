@@ -263,15 +263,18 @@ def test_a_run_in_segments_writes_the_bits_of_a_run_in_one(tmp_path, monkeypatch
 
 
 def test_a_run_imports_no_analysis_and_parsing_no_numba(write_runfile, tmp_path):
-    """Start-up: `ensemble run` loads neither the fits nor scipy.signal or scipy.stats; reading a run file loads
-    neither Numba nor scipy (run files are checked before any kernel is loaded)."""
+    """Start-up: `ensemble run` loads neither the fits nor scipy.signal, scipy.stats or scipy.linalg (Numba's BLAS
+    probe skipped, cli._skip_numba_blas_probe); reading a run file loads neither Numba nor scipy (run files are
+    checked before any kernel is loaded). Afterwards scipy.linalg imports, and a kernel calling BLAS compiles."""
     runfile = write_runfile(top_runfile(members=10))
     probe = ("import sys\nfrom ensemble import spec\nspec.load(sys.argv[1])\n"
              "assert 'numba' not in sys.modules and 'scipy' not in sys.modules\n"
              "from ensemble import cli\nassert cli.main(['run', sys.argv[1], '-o', sys.argv[2], '--quiet']) == 0\n"
              "loaded = [m for m in ('ensemble.fit', 'ensemble.stability', 'ensemble.report', 'scipy.signal', "
-             "'scipy.stats', 'xarray') if m in sys.modules]\nassert not loaded, loaded\n"
-             "assert 'numba' in sys.modules\n")
+             "'scipy.stats', 'scipy.linalg', 'xarray') if m in sys.modules]\nassert not loaded, loaded\n"
+             "assert 'numba' in sys.modules\n"
+             "import numpy as np, scipy.linalg\nfrom numba import njit\n"
+             "a = np.array([[2.0, 1.0], [0.0, 3.0]])\nassert (njit(lambda x, y: np.dot(x, y))(a, a) == a @ a).all()\n")
     done = subprocess.run([sys.executable, "-c", probe, str(runfile), str(tmp_path / "out.nc")], capture_output=True,
                           text=True)
     assert done.returncode == 0, done.stderr
