@@ -311,8 +311,9 @@ def test_control_step_chooses_the_steps_of_its_formula_for_every_kind_of_member(
 
     @njit(**blocks.FAST)  # as the kernels that inline it are compiled
     def step_all(work, target, counts, status, failure_time):
-        blocks.control_step(work, 0, B, target, counts, 0, status, failure_time, 6.0, alpha, beta, safety,
-                            min_factor, max_factor)
+        blocks.control_step(work, 0, B, target, 0, status, failure_time, 6.0, alpha, beta, safety, min_factor,
+                            max_factor)
+        blocks.counts_out(work, 0, B, counts, 0)
 
     rng = np.random.default_rng(11)
     target = 1.0

@@ -166,9 +166,10 @@ def adaptive_constants(method: Method):
             control.min_factor, control.max_factor)
 
 
-# Rows of an adaptive kernel's per-member control block (after the scene's rows).
-H, TIME, STEP, ERR, LOG2_ERR_PREVIOUS, REJECTED_LAST, RTOL, ATOL = range(8)
-CONTROL_ROWS = 8
+# Rows of an adaptive kernel's per-member control block (after the scene's rows); from COUNTED on, the member's
+# counts so far in results.COUNTS order (accepted, rejected steps, right-hand-side evaluations).
+H, TIME, STEP, ERR, LOG2_ERR_PREVIOUS, REJECTED_LAST, RTOL, ATOL, COUNTED = range(9)
+CONTROL_ROWS = COUNTED + 3
 FIRST_LOG2_ERR_PREVIOUS = math.log2(1e-4)  # the controller's memory before a member's first accepted step
 
 
@@ -213,15 +214,17 @@ def exp2_of(y):
 
 @njit(inline="always", **FAST)
 def start_control(work, c0, B, j, rtol, atol, h):
-    """A member's control rows at its start: tolerances, first trial step h (s), no error remembered."""
+    """A member's control rows at its start: tolerances, first trial step h (s), no error remembered, one
+    right-hand-side evaluation counted (its first slopes)."""
     work[(c0 + RTOL) * B + j], work[(c0 + ATOL) * B + j] = rtol, atol
     work[(c0 + LOG2_ERR_PREVIOUS) * B + j] = FIRST_LOG2_ERR_PREVIOUS
     work[(c0 + H) * B + j] = h
+    work[(c0 + COUNTED + RHS_EVALS) * B + j] = 1.0
 
 
 @njit(inline="always", **FAST)
-def control_step(work, c0, B, target, counts, j0, status, failure_time, new_stages, alpha, beta, safety,
-                  min_factor, max_factor):
+def control_step(work, c0, B, target, j0, status, failure_time, new_stages, alpha, beta, safety, min_factor,
+                 max_factor):
     """After a trial step of every member in a block: accept or reject each and choose its next step.
 
     A trial step costs `new_stages` right-hand-side evaluations (an FSAL pair reuses its last stage).
@@ -272,24 +275,34 @@ def control_step(work, c0, B, target, counts, j0, status, failure_time, new_stag
                                                         log2_previous)
         work[(c0 + REJECTED_LAST) * B + j] = select(moving, select(accepted, 0.0, 1.0), rejected_last)
         work[(c0 + ERR) * B + j] = select(moving, select(underflowed, UNDERFLOWED, err), NO_STEP)
-    _count_steps(work, c0, B, counts, j0, status, failure_time, new_stages, underflows)
+    _count_steps(work, c0, B, j0, status, failure_time, new_stages, underflows)
 
 
 @njit(inline="always", **FAST)
-def _count_steps(work, c0, B, counts, j0, status, failure_time, new_stages, underflows):
-    """control_step's counts and failures, from the rows it wrote, in loops of their own: with them its loop
-    would not vectorize (LLVM could not bound the arrays to check them for overlap)."""
+def _count_steps(work, c0, B, j0, status, failure_time, new_stages, underflows):
+    """control_step's counts (into the COUNTED rows; counts_out hands them on) and failures, from the rows it
+    wrote, in loops of their own: with them its loop would not vectorize (LLVM could not bound the arrays to
+    check them for overlap). Counted into the kernel's `counts` array, a member at a time, the loop stayed
+    scalar: a sixth of a top's dopri5 step."""
     for j in range(B):
         moving = work[(c0 + ERR) * B + j] != NO_STEP
         accepted = moving & (work[(c0 + REJECTED_LAST) * B + j] == 0.0)
-        counts[ACCEPTED, j0 + j] += select(accepted, 1.0, 0.0)
-        counts[REJECTED, j0 + j] += select(moving & (not accepted), 1.0, 0.0)
-        counts[RHS_EVALS, j0 + j] += select(moving, new_stages, 0.0)
+        work[(c0 + COUNTED + ACCEPTED) * B + j] += select(accepted, 1.0, 0.0)
+        work[(c0 + COUNTED + REJECTED) * B + j] += select(moving & (not accepted), 1.0, 0.0)
+        work[(c0 + COUNTED + RHS_EVALS) * B + j] += select(moving, new_stages, 0.0)
     if underflows:
         for j in range(B):
             if work[(c0 + ERR) * B + j] == UNDERFLOWED:
                 status[j0 + j] = UNDERFLOW
                 failure_time[j0 + j] = work[(c0 + TIME) * B + j]
+
+
+@njit(inline="always", **FAST)
+def counts_out(work, c0, B, counts, j0):
+    """A block's counts so far (COUNTED rows) into counts (3, M), at the end of a kernel call."""
+    for c in range(3):
+        for j in range(B):
+            counts[c, j0 + j] = work[(c0 + COUNTED + c) * B + j]
 
 
 @njit(inline="always", **FAST)
@@ -369,7 +382,7 @@ def rates_saved(work, samples, save, block, limit, status, failure_time, progres
 
 
 @njit(inline="always", **FAST)
-def rates_start(work, control, counts, K, C0, B, j, j0, d1, d2, d3, save_dt):
+def rates_start(work, control, K, C0, B, j, j0, d1, d2, d3, save_dt):
     """Start member j of a block of an adaptive three-rate kernel: its first slopes (d1, d2, d3) into rows
     K .. K + 2, its tolerances and first trial step from `control` (Hairer's guess where none is given), one rhs
     evaluation counted."""
@@ -381,7 +394,6 @@ def rates_start(work, control, counts, K, C0, B, j, j0, d1, d2, d3, save_dt):
         scale = atol + rtol * max(abs(y1), abs(y2), abs(y3))
         h = first_step(max(abs(y1), abs(y2), abs(y3)) / scale, max(abs(d1), abs(d2), abs(d3)) / scale, save_dt)
     start_control(work, C0, B, j, rtol, atol, h)
-    counts[RHS_EVALS, j0 + j] = 1.0
 
 
 @njit(inline="always", **FAST)

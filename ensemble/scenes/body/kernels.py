@@ -23,6 +23,7 @@ from ...engine.blocks import (
     block_done,
     check_members,
     control_step,
+    counts_out,
     method_constants,
     rates_accept,
     rates_error,
@@ -237,7 +238,7 @@ def _adaptive_kernel(method: Method):
                 rates_load(work, state0, rate, block, samples, P, BLOCK)
                 for j in range(B):
                     d1, d2, d3 = _rhs_of(work[j], work[B + j], work[2 * B + j], work, j, B)
-                    rates_start(work, control, counts, K, C0, B, j, j0, d1, d2, d3, save_dt)
+                    rates_start(work, control, K, C0, B, j, j0, d1, d2, d3, save_dt)
                 check_members(work, 0, 3, B, j0, limit, status, failure_time, 0.0, C0 + H)  # a non-finite start
             elif block_done(samples, status, progress, block, BLOCK):
                 continue
@@ -259,12 +260,13 @@ def _adaptive_kernel(method: Method):
                             work[(K + 3 * s + 2) * B + j] = d3
                             work[NEW * B + j], work[(NEW + 1) * B + j], work[(NEW + 2) * B + j] = z1, z2, z3
                     rates_error(work, K, NEW, C0, S, e, B)
-                    control_step(work, C0, B, target, counts, j0, status, failure_time, S - 1, alpha, beta, safety,
+                    control_step(work, C0, B, target, j0, status, failure_time, S - 1, alpha, beta, safety,
                                   min_factor, max_factor)
                     rates_accept(work, K, NEW, C0, S, B)
                 if rates_saved(work, samples, i - start, block, limit, status, failure_time, progress,
                                target, C0 + H, BLOCK):
                     break
+            counts_out(work, C0, B, counts, j0)
             works[block] = work
 
     return Kernel(kernel, rows)

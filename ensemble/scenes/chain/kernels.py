@@ -26,6 +26,7 @@ from ...engine.blocks import (
     block_done,
     check_members,
     control_step,
+    counts_out,
     fill_failed,
     first_step,
     method_constants,
@@ -36,7 +37,7 @@ from ...engine.blocks import (
     trial_steps,
 )
 from ...methods import Method
-from ...results import RHS_EVALS, UNDERFLOWED
+from ...results import UNDERFLOWED
 from .model import PIECES
 
 TILE_ROWS, TILE_PIECES = 64, 32  # a long chain's splitting kernel: masses per tile, pieces per sweep
@@ -352,7 +353,6 @@ def _adaptive_kernel(method: Method, n: int, periodic: bool):
                 _chain_slopes(work, X, V, KX, KV, n, B)
                 for j in range(B):
                     rtol, atol = control[1, j0 + j], control[2, j0 + j]
-                    counts[RHS_EVALS, j0 + j] = 1.0
                     h = control[0, j0 + j]
                     if h <= 0.0:
                         size = 0.0
@@ -385,7 +385,7 @@ def _adaptive_kernel(method: Method, n: int, periodic: bool):
                             work[(C0 + ERR) * B + j] += qx * qx + qv * qv
                     for j in range(B):
                         work[(C0 + ERR) * B + j] = math.sqrt(work[(C0 + ERR) * B + j] / (2 * n))
-                    control_step(work, C0, B, target, counts, j0, status, failure_time, S - 1, alpha, beta, safety,
+                    control_step(work, C0, B, target, j0, status, failure_time, S - 1, alpha, beta, safety,
                                   min_factor, max_factor)
                     for i in range(n):
                         for j in range(B):
@@ -401,6 +401,7 @@ def _adaptive_kernel(method: Method, n: int, periodic: bool):
                 if _chain_saved(work, samples, save - start, block, limit, status, failure_time, progress,
                                 target, C0 + H, n, B):
                     break
+            counts_out(work, C0, B, counts, j0)
             works[block] = work
 
     return Kernel(kernel, rows)
