@@ -168,7 +168,7 @@ def _chain_slopes(work, zx, zv, kx, kv, n, B):
     vectorize (a chain's dopri5 spent a third of its time here, scalar)."""
     for q in range(n * B):
         work[kx * B + q] = work[zv * B + q]
-        work[kv * B + q] = _chain_acceleration(work, zx, 0, q, n, B)
+        work[kv * B + q] = _chain_acceleration(work, zx, 0, q, n, B)  # q = i B + j: mass i + 1, member j
 
 
 @njit(inline="always", **FAST)
