@@ -240,8 +240,9 @@ def control_step(work, c0, B, target, j0, status, failure_time, new_stages, alph
     Every member goes through the same operations, with `select` and & (Python's conditional expressions and
     `and` compile to branches) and the function is inlined, so that B is a constant and LLVM can tell the rows
     apart: the loop vectorizes. With a branch per member and libm's pow, a top's dopri5 step cost 31.5 times
-    its rk4 step; with conditional expressions 9 to 11 times; with selects 8.8 to 9 times, the same bits
-    (analysis/bench_dopri5.py). The test for a non-finite error is made on its bits (_finite).
+    its rk4 step; with conditional expressions 9 to 11 times; with selects 8.8 to 9 times, and 7.6 to 8.3 once
+    _count_steps counted into work rows; the same bits (analysis/bench_dopri5.py). The test for a non-finite
+    error is made on its bits (_finite).
     """
     underflows = 0
     for j in range(B):
@@ -280,10 +281,9 @@ def control_step(work, c0, B, target, j0, status, failure_time, new_stages, alph
 
 @njit(inline="always", **FAST)
 def _count_steps(work, c0, B, j0, status, failure_time, new_stages, underflows):
-    """control_step's counts (into the COUNTED rows; counts_out hands them on) and failures, from the rows it
-    wrote, in loops of their own: with them its loop would not vectorize (LLVM could not bound the arrays to
-    check them for overlap). Counted into the kernel's `counts` array, a member at a time, the loop stayed
-    scalar: a sixth of a top's dopri5 step."""
+    """control_step's counts, into the block's COUNTED rows (counts_out hands them on), and its failures, from
+    the rows it wrote. Loops of their own: inside its loop they kept it from vectorizing. Counting straight
+    into the `counts` array kept this loop scalar, a sixth of a top's dopri5 step."""
     for j in range(B):
         moving = work[(c0 + ERR) * B + j] != NO_STEP
         accepted = moving & (work[(c0 + REJECTED_LAST) * B + j] == 0.0)
