@@ -114,7 +114,7 @@ def _skip_numba_blas_probe() -> None:
 
 def _run(args) -> int:
     _skip_numba_blas_probe()
-    from .parts import PartsError, folder_of
+    from .parts import PartsError
     from .runner import Incomplete, run
     from .spec import SpecError, load
 
@@ -152,13 +152,13 @@ def _run(args) -> int:
     except PartsError as e:
         return _error(str(e))
     except KeyboardInterrupt:
-        print(f"ensemble: interrupted; {_left_behind(folder_of(out), resume)}", file=sys.stderr)
+        print(f"ensemble: interrupted; {_left_behind(out, resume)}", file=sys.stderr)
         return EXIT_INTERRUPTED
     except Incomplete as e:
-        print(f"ensemble: error: {e}; {_left_behind(folder_of(out), resume)}", file=sys.stderr)
+        print(f"ensemble: error: {e}; {_left_behind(out, resume)}", file=sys.stderr)
         return EXIT_FAILED
     except (OSError, RuntimeError) as e:  # netCDF4 reports HDF5 write failures as RuntimeError
-        print(f"ensemble: error: {out}: writing failed ({_cause(e)}); {_left_behind(folder_of(out), resume)}",
+        print(f"ensemble: error: {out}: writing failed ({_cause(e)}); {_left_behind(out, resume)}",
               file=sys.stderr)
         return EXIT_FAILED
     finally:
@@ -207,14 +207,14 @@ def _memory_problem(spec) -> str | None:
 
 
 def _space_problem(out: Path, spec) -> str | None:
-    """The disk's free space against what the run will take: its parts and the result, until the parts are
-    deleted (a full disk midway costs the run)."""
-    from .store import output_bytes
+    """The disk's free space against what the run will take: the result, and its parts (a copy of the per-member
+    records) until they are deleted (a full disk midway costs the run)."""
+    from .store import RUN_RECORDS, output_bytes
 
-    need, free = 2 * output_bytes(spec), shutil.disk_usage(out.parent).free
+    need = output_bytes(spec) + 8 * len(RUN_RECORDS) * spec.n_members
+    free = shutil.disk_usage(out.parent).free
     if need > free:
-        return (f"the result needs about {need / 1e6:.4g} MB (twice its size until its parts are deleted) and "
-                f"{out.parent} has {free / 1e6:.4g} MB free")
+        return f"the result needs about {need / 1e6:.4g} MB and {out.parent} has {free / 1e6:.4g} MB free"
     return None
 
 
@@ -235,12 +235,17 @@ def _cause(error: Exception) -> str:
     return str(error).splitlines()[0] if str(error) else type(error).__name__
 
 
-def _left_behind(folder: Path, resume: str) -> str:
+def _left_behind(out: Path, resume: str) -> str:
     """What an interrupted or failed run leaves, and how to finish it."""
+    from .parts import folder_of
+    from .store import temporary_path
+
+    folder = folder_of(out)
     finished = len(list(folder.glob("members-*.nc"))) if folder.exists() else 0
     if not finished:
         return "no chunk had finished; nothing was kept"
-    return f"the {finished} chunk(s) finished so far are kept in {folder}; {resume} finishes the run"
+    return (f"the {finished} chunk(s) finished so far are kept in {temporary_path(out)} and {folder}; {resume} "
+            f"finishes the run")
 
 
 class OutputLocked(Exception):

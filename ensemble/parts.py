@@ -1,24 +1,27 @@
-"""Resumable runs: finished chunks kept as immutable part files beside the output, then assembled.
+"""Resumable runs: finished chunks recorded as immutable part files beside the output.
 
-A run of OUT.nc keeps what it finished in the folder OUT.nc.parts/:
+A run of OUT.nc writes its result as OUT.nc.tmp (ensemble.store.Writer) and
+records what it finished in the folder OUT.nc.parts/:
 
     manifest.json                             the run's fingerprint: its run file and the versions that make
                                               its bits (ensemble, numba, numpy, netCDF4)
-    members-J0-J1-CRC.nc                      members J0 .. J1 - 1 (12 digits each): their saved variables and
+    members-J0-J1-CRC.nc                      members J0 .. J1 - 1 (12 digits each) are in OUT.nc.tmp: their
                                               per-member records; CRC is the CRC-32 of the file's bytes (8 hex
-                                              digits: it tells a torn or changed file, not a forged one, at less
-                                              than half SHA-256's cost)
+                                              digits: it tells a torn or changed file, not a forged one)
     members-J0-J1.tmp                         a part being written; a resumed run deletes it
 
-A part is written under its .tmp name, checksummed and renamed, so a part
-with a final name is complete unless its bytes changed since (or never
-reached the disk, when the machine went down before the system wrote them
-out), which its checksum tells: parts are not fsynced, because a resume
-checks every one. What a run computes goes into its part and, at the same
-time, into the result (ensemble.store.Writer, `OUT.nc.tmp`); parts an earlier
-run left are copied in at the end. Only once every member is in is the
-result fsynced and renamed into place, and the folder deleted. Until then
-the disk holds the parts and the result: about twice the result's size.
+A chunk's saved variables are written once, into OUT.nc.tmp. Its part is
+made only after that: the result is flushed (HDF5's buffers, then fsync),
+then the part is written under its .tmp name, checksummed and renamed. So a
+part with a final name says its members' samples are on the disk in
+OUT.nc.tmp, unless its own bytes changed since (or never reached the disk,
+when the machine went down before the system wrote them out: parts are not
+fsynced), which its checksum tells. Writing more members changes only their
+own bytes of OUT.nc.tmp (see ensemble.store), so a run killed while writing
+a chunk leaves the finished ones intact. A resume checks that OUT.nc.tmp
+opens and is this run's; if not, every part is dropped and the run starts
+over. Only once every member is in is the result fsynced and renamed into
+place, and the folder deleted.
 """
 from __future__ import annotations
 
@@ -37,9 +40,8 @@ import netCDF4
 import numpy as np
 
 from . import __version__
-from .scenes import SCENES
 from .spec import Spec
-from .store import RUN_RECORDS, fsync_path, put_records, put_samples, record_names
+from .store import RUN_RECORDS, fsync_path, put_records, record_names, temporary_path
 
 MANIFEST = "manifest.json"
 PART_NAME = re.compile(r"members-(\d{12})-(\d{12})-([0-9a-f]{8})\.nc")
@@ -74,7 +76,9 @@ class Parts:
 
     Parts(out, spec, resume) opens it: it makes a new folder (refusing one that exists unless `resume`); with
     `resume`, it checks the manifest against this run's fingerprint (PartsError when they differ), deletes
-    leftover .tmp files and parts whose checksum fails, and keeps the rest. `discard(out)` deletes a folder.
+    leftover .tmp files and parts whose checksum fails, and keeps the rest if OUT.tmp can take them (all are
+    deleted if not). `discard(out)` deletes a folder and OUT.tmp. The run sets `result`, the Writer of OUT.tmp
+    (reopened when parts were kept), before the first part begins.
     """
 
     def __init__(self, out: Path, spec: Spec, resume: bool = False):
@@ -98,7 +102,13 @@ class Parts:
             self.folder.mkdir(parents=True, exist_ok=True)
             _write_atomically(manifest, json.dumps(fingerprint(spec), indent=1).encode())
         self.parts = self._verified()
-        self.result = None  # the result's Writer, set before the first part begins: parts are written into it too
+        problem = self._result_problem(temporary_path(out)) if self.parts else None
+        if problem:
+            for part in self.parts:
+                part.path.unlink()
+            self.dropped.append(f"all {len(self.parts)} part(s) ({problem})")
+            self.parts = []
+        self.result = None  # the result's Writer, set before the first part begins
         self.written: dict[int, dict[str, np.ndarray]] = {}  # records of the parts this run wrote, by first member
         # Parts are sealed (checksum, rename) on a thread of their own while the next chunk computes.
         self._sealing = ThreadPoolExecutor(1, thread_name_prefix="ensemble-parts")
@@ -121,7 +131,22 @@ class Parts:
 
     @staticmethod
     def discard(out: Path) -> None:
+        """Delete the parts folder of `out` and its unfinished result, OUT.tmp."""
         shutil.rmtree(folder_of(out), ignore_errors=True)
+        temporary_path(out).unlink(missing_ok=True)
+
+    def _result_problem(self, path: Path) -> str | None:
+        """Why the unfinished result `path` cannot take this run's parts' members (None when it can): it must
+        exist, open, and be a result of this run file with its member count."""
+        if not path.exists():
+            return f"{path.name}, which holds their samples, is missing"
+        try:
+            with netCDF4.Dataset(path) as nc:
+                same = (getattr(nc, "spec", None) == self.spec.text and "member" in nc.dimensions
+                        and nc.dimensions["member"].size == self.spec.n_members)
+        except OSError as e:
+            return f"{path.name}, which holds their samples, cannot be read: {e.strerror or e}"
+        return None if same else f"{path.name}, which holds their samples, is another run's"
 
     def _verified(self) -> list[Part]:
         """The parts whose bytes match their checksum, in member order, without overlaps; the rest deleted."""
@@ -156,13 +181,14 @@ class Parts:
         return sum(part.stop - part.start for part in self.parts) + sum(stop - start for start, stop, _ in
                                                                           self._sealed)
 
-    def begin(self, start: int, stop: int, segment: int | None = None) -> PartWriter:
-        """A new part for members start .. stop - 1; HDF5 chunks of `segment` samples (default: whole)."""
-        return PartWriter(self, start, stop, segment or self.spec.n_save)
+    def begin(self, start: int, stop: int) -> PartWriter:
+        """A new part for members start .. stop - 1."""
+        return PartWriter(self, start, stop)
 
-    def assemble(self, segment: int) -> dict[str, np.ndarray]:
-        """Copy the parts not yet in `result` (an earlier run's), `segment` samples at a time; returns the
-        per-member records of every member, in member order. Call settle first: every part must be finished."""
+    def assemble(self) -> dict[str, np.ndarray]:
+        """Write the records of the parts an earlier run left into `result` (their samples are in it already);
+        returns the per-member records of every member, in member order. Call settle first: every part must be
+        finished."""
         self._sealing.shutdown()
         assert not self._sealed and not self.missing(), "assemble needs every member, settled"
         names = record_names(self.spec)
@@ -172,9 +198,6 @@ class Parts:
             if data is None:  # an earlier run's part
                 with netCDF4.Dataset(part.path) as nc:
                     nc.set_auto_mask(False)
-                    for first in range(0, self.spec.n_save, segment):
-                        self.result.write_samples(part.start, first, {
-                            name: nc.variables[name][:, first:first + segment] for name in self.spec.save})
                     data = {name: nc.variables[name][:] for name in names}
                 self.result.write(part.start, data)
             for name in names:
@@ -183,12 +206,12 @@ class Parts:
 
 
 class PartWriter:
-    """Members start .. stop - 1 of a run, written to a .tmp file and to the parts' result; finish() makes it a
-    part, abandon() deletes it. Same write_samples and write as ensemble.store.Writer, with the run's member
-    indices."""
+    """Members start .. stop - 1 of a run: their samples and records written to the parts' result, their records
+    to a .tmp file too; finish() makes it a part, abandon() deletes it. Same write_samples and write as
+    ensemble.store.Writer, with the run's member indices."""
 
-    def __init__(self, parts: Parts, start: int, stop: int, segment: int):
-        self.parts, self.start, self.stop, self.segment = parts, start, stop, segment
+    def __init__(self, parts: Parts, start: int, stop: int):
+        self.parts, self.start, self.stop = parts, start, stop
         self.temporary = parts.folder / f"members-{start:012d}-{stop:012d}.tmp"
         self._nc = None
 
@@ -196,24 +219,15 @@ class PartWriter:
     def nc(self) -> netCDF4.Dataset:
         """The part's file, made at the first write (on the thread that writes it)."""
         if self._nc is None:
-            spec, scene = self.parts.spec, SCENES[self.parts.spec.scene]
             self._nc = nc = netCDF4.Dataset(self.temporary, "w", format="NETCDF4")
             nc.set_fill_off()  # as the result's (ensemble.store.Writer)
-            sizes = {"member": self.stop - self.start, "t": spec.n_save, **scene.sizes(spec.constants)}
-            for name in spec.save:
-                dims = scene.OBSERVABLES[name][0]
-                for dim in dims:
-                    if dim not in nc.dimensions:
-                        nc.createDimension(dim, sizes[dim])
-                chunks = tuple({**sizes, "t": min(self.segment, spec.n_save)}[d] for d in dims)
-                nc.createVariable(name, "f8", dims, chunksizes=chunks, fill_value=np.nan)
-            for name in record_names(spec):
+            nc.createDimension("member", self.stop - self.start)
+            for name in record_names(self.parts.spec):
                 kind = RUN_RECORDS[name][0]
                 nc.createVariable(name, kind, ("member",), fill_value=np.nan if kind == "f8" else None)
         return self._nc
 
     def write_samples(self, start: int, first: int, data: dict[str, np.ndarray]) -> None:
-        put_samples(self.nc.variables, start - self.start, first, data)
         self.parts.result.write_samples(start, first, data)
 
     def write(self, start: int, data: dict[str, np.ndarray]) -> None:
@@ -223,11 +237,12 @@ class PartWriter:
         self.records = data
 
     def finish(self) -> None:
-        """Close the file and have it sealed (checksum, rename to the part's name) on the parts' own thread: the
-        part is complete once Parts.settle returns."""
+        """Close the file, flush the result, and have the result fsynced and then the part sealed (checksum,
+        rename to the part's name) on the parts' own thread: the part is complete once Parts.settle returns."""
         self.nc.close()
         self.parts.written[self.start] = self.records
-        # what is written of the result goes to the disk now, while the run goes on, not all at its end
+        self.parts.result.sync()
+        # the part's members to the disk, before the part says they are there
         self.parts._sealing.submit(fsync_path, self.parts.result.temporary)
         future = self.parts._sealing.submit(self._seal)
         self.parts._sealed.append((self.start, self.stop, future))

@@ -338,8 +338,8 @@ def run(spec: Spec, out: str | Path, *, chunk: int | None = None, progress: bool
         repeats = spec.measure["repeats"] if spec.measure["timing"] else 0
         tally = Tally()
         began = time.perf_counter()
-        with Writer(out, spec, members_table(spec), chunk, command, segment_samples(spec)) as result:
-            parts.result = result  # what this run computes goes into its parts and the result at once
+        with Writer(out, spec, members_table(spec), command, reopen=bool(parts.parts)) as result:
+            parts.result = result
             with tqdm(total=n, initial=parts.members_done(), unit="member", file=sys.stderr, disable=not progress,
                       leave=False, bar_format=BAR) as bar:
                 if todo and steps_per_member(spec):
@@ -351,7 +351,7 @@ def run(spec: Spec, out: str | Path, *, chunk: int | None = None, progress: bool
 
                     compute_on(client, spec, todo, parts, tally, bar, repeats, task)
             parts.settle()  # every part sealed before the result is complete
-            records = parts.assemble(segment_samples(spec))
+            records = parts.assemble()
     except BaseException:
         if not parts.close():  # nothing finished: nothing to resume
             Parts.discard(out)
@@ -376,7 +376,7 @@ def _compute_here(spec: Spec, todo: list[tuple[int, int]], parts: Parts, tally: 
     pending = None
     try:
         for start, stop in todo:
-            writer = parts.begin(start, stop, segment_samples(spec))
+            writer = parts.begin(start, stop)
             try:
                 finish = integrate_chunk(spec, start, stop, writer, repeats, watch=_advance(bar, stop - start))
             except BaseException:

@@ -2,7 +2,11 @@
 
 The result is written as `OUT.tmp`, fsynced, and renamed to OUT only when
 every member is in, so no run leaves a file that looks complete and is not.
-(Each chunk is kept in a part file too, until then: see ensemble.parts.)
+Its saved variables and records are stored contiguously: HDF5 gives a
+variable all its space at the first write, so once the first chunk is written
+and flushed (sync), writing more members changes only their own bytes, never
+the file's structure. That is what lets a run killed midway keep OUT.tmp and
+resume into it (see ensemble.parts).
 """
 from __future__ import annotations
 
@@ -128,24 +132,29 @@ class Writer:
     """Creates the file with every member's parameters; data arrive by member ranges.
 
     Use as a context manager: on success the file is fsynced and renamed into
-    place; on an exception the temporary file is deleted.
+    place; on an exception the temporary file is closed and left to the caller.
     """
 
-    def __init__(self, path: str | Path, spec: Spec, table: dict[str, np.ndarray], chunk: int,
-                 command: str | None = None, segment: int | None = None):
+    def __init__(self, path: str | Path, spec: Spec, table: dict[str, np.ndarray], command: str | None = None,
+                 reopen: bool = False):
+        """`reopen`: continue the OUT.tmp an interrupted run of the same spec left (ensemble.parts checked it)."""
         self.path = Path(path)
         self.temporary = temporary_path(self.path)
         self.scene = SCENES[spec.scene]
         self.spec = spec
+        if reopen:
+            self.nc = netCDF4.Dataset(self.temporary, "a")
+            self.nc.set_fill_off()
+            return
         self.nc = nc = netCDF4.Dataset(self.temporary, "w", format="NETCDF4")
-        nc.set_fill_off()  # every value is written (NaN after a failure too): HDF5 need not pre-fill the chunks
+        nc.set_fill_off()  # every value is written (NaN after a failure too): HDF5 need not pre-fill the storage
         try:
             nc.setncatts(global_attributes(spec, table, command))
             self._dimensions(table)
             self._parameters(table)
             self._settings(table)
             self._records()
-            self._observables(chunk, segment or spec.n_save)
+            self._observables()
         except BaseException as error:
             self.__exit__(type(error), error, None)
             raise
@@ -198,21 +207,21 @@ class Writer:
         """How each member ran: step counts, status, failure time, growth, and what [measure] asks for."""
         for name in record_names(self.spec):
             kind, units, long_name, comment = RUN_RECORDS[name]
-            var = self.nc.createVariable(name, kind, ("member",), fill_value=np.nan if kind == "f8" else None)
+            var = self.nc.createVariable(name, kind, ("member",), contiguous=True,
+                                         fill_value=np.nan if kind == "f8" else None)
             if name == "status":
                 var.setncatts({"long_name": long_name, "flag_values": Status.flag_values(),
                                "flag_meanings": Status.flag_meanings()})
             else:
                 var.setncatts({"units": units, "long_name": long_name, "comment": comment})
 
-    def _observables(self, chunk: int, segment: int) -> None:
-        """The saved variables in HDF5 chunks of `chunk` members and `segment` samples (what one write holds); NaN
-        marks a member's samples after it failed."""
+    def _observables(self) -> None:
+        """The saved variables, contiguous (member-major, as they are written); NaN marks a member's samples after
+        it failed."""
         spec = self.spec
         for name in spec.save:
             dims, units, long_name = self.scene.OBSERVABLES[name]
-            chunks = {**self.sizes, "member": min(chunk, spec.n_members), "t": segment}
-            var = self.nc.createVariable(name, "f8", dims, chunksizes=tuple(chunks[d] for d in dims), fill_value=np.nan)
+            var = self.nc.createVariable(name, "f8", dims, contiguous=True, fill_value=np.nan)
             var.setncatts({"units": units, "long_name": long_name})
             if name in spec.noise:
                 var.setncattr("observation_noise_stddev", spec.noise[name])
@@ -233,21 +242,25 @@ class Writer:
         """Store the per-member records (member,) of members start, start + 1, ..."""
         put_records(self.nc.variables, start, data)
 
+    def sync(self) -> None:
+        """Hand what is written to the system (HDF5 holds small writes back): fsync_path(temporary) then puts it on
+        the disk. Call it from the thread that writes."""
+        self.nc.sync()
+
     def __enter__(self):
         return self
 
     def __exit__(self, kind, value, traceback):
+        """On success: close, fsync and rename OUT.tmp to OUT. On an exception: close OUT.tmp and leave it; the
+        caller keeps it for a resume or deletes it (ensemble.parts)."""
         try:
             self.nc.close()
-            if kind is None:
-                fsync_path(self.temporary)
-                os.replace(self.temporary, self.path)
-                fsync_path(self.path.parent)
-                return False
         except (OSError, RuntimeError):
             if kind is None:
-                self.temporary.unlink(missing_ok=True)
                 raise
             # a write already failed (a full disk): closing fails too, and the first error is the one to report
-        self.temporary.unlink(missing_ok=True)
+        if kind is None:
+            fsync_path(self.temporary)
+            os.replace(self.temporary, self.path)
+            fsync_path(self.path.parent)
         return False

@@ -67,15 +67,15 @@ def test_a_second_run_on_the_same_output_is_refused_at_once(tmp_path, capsys):
 
 
 def _small_disk():
-    """The child's files may not grow past 600 kB: a disk that fills up midway (SIGXFSZ ignored, so a write past
-    the limit fails with EFBIG, as a full disk fails with ENOSPC)."""
+    """The child's files may not grow past 600 kB: a disk that fills up (SIGXFSZ ignored, so a write past the
+    limit fails with EFBIG, as a full disk fails with ENOSPC)."""
     signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
     resource.setrlimit(resource.RLIMIT_FSIZE, (600_000, 600_000))
 
 
-def test_a_disk_that_fills_up_is_one_line_exit_3_and_resume_finishes_the_run(tmp_path):
-    """Each part fits under the limit and the result does not: the run fails while assembling, says so in one
-    line, leaves no .tmp and keeps its parts; with room again, --resume writes the bits of an unhindered run."""
+def test_a_disk_full_before_the_first_chunk_is_one_line_exit_3_and_leaves_nothing(tmp_path):
+    """A real process whose result cannot grow to its size (HDF5 sizes it at the first chunk's flush): one line,
+    exit 3, and nothing left behind, neither parts nor OUT.nc.tmp."""
     runfile = tmp_path / "run.toml"
     runfile.write_text(RUN)
     out = tmp_path / "out.nc"
@@ -83,15 +83,42 @@ def test_a_disk_that_fills_up_is_one_line_exit_3_and_resume_finishes_the_run(tmp
     done = subprocess.run(command, capture_output=True, text=True, preexec_fn=_small_disk)
     assert done.returncode == 3, done.stderr
     lines = done.stderr.strip().splitlines()
-    assert len(lines) == 1 and "writing failed" in lines[0] and "kept in " + str(out) + ".parts" in lines[0], lines
-    assert not out.exists() and not (tmp_path / "out.nc.lock").exists() and not (tmp_path / "out.nc.tmp").exists()
-    parts = sorted((tmp_path / "out.nc.parts").glob("members-*.nc"))
-    assert len(parts) == 5
-    for part in parts:
-        with netCDF4.Dataset(part) as nc:
-            assert np.all(np.isfinite(nc["tilt"][:]))
-    subprocess.run([*command, "--resume"], check=True)
-    subprocess.run([*command[:6], str(tmp_path / "unhindered.nc"), "--quiet"], check=True)
+    assert len(lines) == 1 and "writing failed" in lines[0] and "nothing was kept" in lines[0], lines
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["run.toml"]
+
+
+def test_a_disk_that_fills_up_midway_is_one_line_exit_3_and_resume_finishes_the_run(tmp_path, capsys, monkeypatch):
+    """The fourth chunk's write fails as on a full disk: one line, exit 3, no file that looks complete, the three
+    finished chunks kept (their samples in OUT.nc.tmp); with room again, --resume writes the bits of an
+    unhindered run."""
+    import errno
+
+    from ensemble import store
+
+    runfile = tmp_path / "run.toml"
+    runfile.write_text(RUN)
+    out = tmp_path / "out.nc"
+    real, writes = store.put_samples, []
+
+    def fills_up(*args):
+        if len(writes) == 3:
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        writes.append(args[1])
+        real(*args)
+
+    monkeypatch.setattr(store, "put_samples", fills_up)
+    command = ["run", str(runfile), "-o", str(out), "--quiet", "--chunk", "64"]
+    assert cli.main(command) == 3
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert len(lines) == 1 and "writing failed (No space left on device)" in lines[0], lines
+    assert f"kept in {out}.tmp and {out}.parts" in lines[0], lines
+    assert not out.exists() and not (tmp_path / "out.nc.lock").exists()
+    assert len(list((tmp_path / "out.nc.parts").glob("members-*.nc"))) == 3
+    with netCDF4.Dataset(tmp_path / "out.nc.tmp") as nc:
+        assert np.all(np.isfinite(nc["tilt"][:3 * 64]))
+    monkeypatch.setattr(store, "put_samples", real)
+    assert cli.main([*command, "--resume"]) == 0
+    assert cli.main([*command[:3], str(tmp_path / "unhindered.nc"), "--quiet"]) == 0
     from tests.test_resume import same_bits
     same_bits(out, tmp_path / "unhindered.nc")
 
@@ -110,7 +137,7 @@ def test_step_counters_hold_more_than_two_billion(tmp_path):
     from ensemble.store import Writer
     spec = parse(top_runfile(members=3), "run.toml")
     counts = np.array([3_000_000_000, 2**40, 7], dtype=np.int64)
-    with Writer(tmp_path / "out.nc", spec, members_table(spec), 3) as writer:
+    with Writer(tmp_path / "out.nc", spec, members_table(spec)) as writer:
         writer.write(0, {"steps_accepted": counts, "rhs_evals": 4 * counts})
     with netCDF4.Dataset(tmp_path / "out.nc") as nc:
         np.testing.assert_array_equal(nc["steps_accepted"][:], counts)

@@ -10,7 +10,7 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
+import netCDF4
 import pytest
 import xarray as xr
 
@@ -78,8 +78,11 @@ def test_an_interrupted_run_resumes_to_the_same_bits(reference, tmp_path, monkey
     _interrupted(load(path), out, after=3, monkeypatch=monkeypatch)
     parts = sorted(folder_of(out).glob("members-*.nc"))
     assert len(parts) == 3 and not out.exists()
-    with xr.open_dataset(parts[1]) as part:  # a part is a NetCDF file of its members' data
-        assert part.sizes["member"] == 7 and np.isfinite(part.tilt.values).all()
+    with xr.open_dataset(parts[1]) as part, xr.open_dataset(expected) as whole:  # a part: its members' records
+        assert part.sizes["member"] == 7 and "tilt" not in part
+        assert part.steps_accepted.values.tobytes() == whole.steps_accepted.values[7:14].tobytes()
+    with netCDF4.Dataset(out.with_name("out.nc.tmp")) as nc, xr.open_dataset(expected) as whole:  # their samples
+        assert nc["tilt"][:21].tobytes() == whole.tilt.values[:21].tobytes()
     # without --resume, the parts are not overwritten
     assert cli.main(["run", str(path), "-o", str(out), "--quiet"]) == 2
     line = capsys.readouterr().err.strip()
@@ -107,6 +110,31 @@ def test_a_corrupted_part_and_a_leftover_are_computed_again(reference, tmp_path,
     said = capsys.readouterr().err.splitlines()[0]
     assert said == (f"resuming: 7 of 60 members in 1 part(s) kept; dropped members-000000000014-000000000021.tmp "
                     f"(unfinished), {second.name} (checksum differs)"), said
+    same_bits(out, expected)
+
+
+@pytest.mark.parametrize("damage", ["deleted", "truncated"])
+def test_parts_whose_result_is_lost_are_dropped_and_computed_again(reference, tmp_path, monkeypatch, capsys,
+                                                                    damage):
+    """The parts say their members' samples are in OUT.nc.tmp: without a readable OUT.nc.tmp they are worth
+    nothing, so a resume drops them all, says why, and computes every member."""
+    path, expected = reference
+    out = tmp_path / "out.nc"
+    _interrupted(load(path), out, after=2, monkeypatch=monkeypatch)
+    result = out.with_name("out.nc.tmp")
+    if damage == "deleted":
+        result.unlink()
+    else:
+        result.write_bytes(result.read_bytes()[:4096])
+    calls = []
+    real = runner.integrate_chunk
+    monkeypatch.setattr(runner, "integrate_chunk", lambda *a, **k: calls.append(a[1:3]) or real(*a, **k))
+    runner.run(load(path), out, chunk=7, progress=True, resume=True)
+    assert calls[0] == (0, 7) and len(calls) == 9
+    said = capsys.readouterr().err.splitlines()[0]
+    assert said.startswith("resuming: 0 of 60 members in 0 part(s) kept; dropped all 2 part(s) (out.nc.tmp, which "
+                           "holds their samples, ") and said.endswith(")"), said
+    assert ("is missing" if damage == "deleted" else "cannot be read") in said, said
     same_bits(out, expected)
 
 
