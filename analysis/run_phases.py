@@ -1,0 +1,113 @@
+"""Where a whole run's seconds go: one `ensemble run` in this process, its steps timed as they happen.
+
+    python analysis/run_phases.py (RUNFILE | --workload tops|chains) [--members N]
+
+Runs RUNFILE, or one of the two whole-run workloads of benchmark.py --whole,
+(into a temporary folder) with the run's own steps wrapped in
+timers and prints each step's total seconds, on whichever thread it ran:
+
+    kernel          the kernel calls (main thread; both cores when alone)
+    finishing       a chunk finished on the finishing thread: what follows
+      laying out      kernel samples to member-major arrays (compiled)
+      observing       the saved variables from the samples (tilt: compiled)
+      amplitudes      what the growth fit reads (compiled)
+      growth fit      growth_per_step (compiled)
+      writing         saved variables into OUT.nc.tmp (HDF5, the system's copy)
+    fsync           OUT.nc.tmp to the disk after each chunk (the parts' thread)
+
+The run's seconds (loading its kernels from the cache included) and this
+script's imports come first. The steps overlap: finishing and fsync run while the next chunk's
+kernel does, on the same two cores. --members replaces the run file's count.
+"""
+from __future__ import annotations
+
+import collections
+import functools
+import re
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+began = time.perf_counter()
+
+from benchmark import CHAINS, TOPS  # noqa: E402
+from hostinfo import host  # noqa: E402
+
+from ensemble import parts, runner, store  # noqa: E402
+from ensemble.arguments import OneLineParser, positive_int  # noqa: E402
+from ensemble.engine import launch  # noqa: E402
+from ensemble.scenes import SCENES  # noqa: E402
+from ensemble.spec import SpecError, load, parse  # noqa: E402
+
+WORKLOADS = {"tops": TOPS.format(t_end=8.0, save_dt=0.1, members=262144, save='["omega", "tilt"]'), "chains": CHAINS}
+totals: dict[str, float] = collections.defaultdict(float)
+_lock = threading.Lock()
+
+
+def timed(owner, name: str, label: str) -> None:
+    """Replace owner.name by a wrapper that adds its seconds to totals[label]."""
+    function = getattr(owner, name)
+
+    @functools.wraps(function)
+    def wrapper(*args, **kwargs):
+        start = time.perf_counter()
+        try:
+            return function(*args, **kwargs)
+        finally:
+            with _lock:
+                totals[label] += time.perf_counter() - start
+
+    setattr(owner, name, wrapper)
+
+
+def time_kernel_calls() -> None:
+    """Launch.segments yields after each kernel call: the time between yields is the kernel's."""
+    segments = launch.Launch.segments
+
+    def wrapper(self, *args, **kwargs):
+        start = time.perf_counter()
+        for item in segments(self, *args, **kwargs):
+            totals["kernel"] += time.perf_counter() - start
+            yield item
+            start = time.perf_counter()
+
+    launch.Launch.segments = wrapper
+
+
+def main(argv=None) -> None:
+    parser = OneLineParser(description=__doc__.split("\n")[0])
+    parser.add_argument("runfile", type=Path, nargs="?")
+    parser.add_argument("--workload", choices=WORKLOADS, help="a whole-run workload of benchmark.py instead")
+    parser.add_argument("--members", type=positive_int, help="replace the run file's member count")
+    args = parser.parse_args(argv)
+    if (args.runfile is None) == (args.workload is None):
+        parser.error("give a run file or --workload")
+    try:
+        spec = parse(WORKLOADS[args.workload], args.workload) if args.workload else load(args.runfile)
+        if args.members:
+            spec = parse(re.sub(r"(?m)^members\s*=.*$", f"members = {args.members}", spec.text))
+    except SpecError as e:
+        parser.error(f"{args.runfile}: {e}")
+    timed(SCENES[spec.scene], "observe", "  observing")
+    timed(SCENES[spec.scene], "amplitudes", "  amplitudes")
+    time_kernel_calls()
+    timed(runner, "_keep", "finishing")
+    timed(launch, "member_major", "  laying out")
+    timed(runner, "growth_per_step", "  growth fit")
+    timed(store, "put_samples", "  writing")
+    timed(parts, "fsync_path", "fsync")
+    print(host(), flush=True)
+    with tempfile.TemporaryDirectory() as folder:
+        start = time.perf_counter()
+        summary = runner.run(spec, Path(folder) / "out.nc", progress=False)
+        seconds = time.perf_counter() - start
+    print(f"{spec.n_members} members, {summary.member_steps:.3g} member-steps: start-up {start - began:.2f} s "
+          f"(this script's imports), the run {seconds:.2f} s (of which {summary.preparing:.2f} s loading kernels)")
+    for label in ("kernel", "finishing", "  laying out", "  observing", "  amplitudes", "  growth fit", "  writing",
+                  "fsync"):
+        print(f"  {label:14s} {totals[label]:7.3f} s")
+
+
+if __name__ == "__main__":
+    main()
