@@ -173,12 +173,12 @@ def test_z_histograms_say_what_they_clip():
 
 def test_run_phases_times_every_step_of_a_run():
     """analysis/run_phases.py wraps the run's own steps: each wrapped step ran (a renamed one would show 0 s), and
-    the steps on the finishing thread add up to no more than finishing itself."""
+    the kernel calls and the finishing, each on one thread, took no longer than the run."""
     done = script("run_phases.py", ROOT / "runs" / "aerobie.toml", "--members", 512)
     assert done.returncode == 0, done.stderr
     seconds = {m[1].strip(): float(m[2]) for m in re.finditer(r"^  (\s*[a-z ]+?)\s+([0-9.]+) s$", done.stdout, re.M)}
     assert set(seconds) == {"kernel", "finishing", "laying out", "observing", "amplitudes", "growth fit", "writing",
                             "fsync"}, done.stdout
     assert all(value > 0 for value in seconds.values()), done.stdout
-    inside = sum(seconds[k] for k in ("laying out", "observing", "amplitudes", "growth fit", "writing"))
-    assert inside <= seconds["finishing"] + 0.003, done.stdout  # each rounded to 0.5 ms
+    run = float(re.search(r"the run ([0-9.]+) s", done.stdout)[1])
+    assert seconds["kernel"] <= run + 0.005 and seconds["finishing"] <= run + 0.005, done.stdout  # rounding
