@@ -381,6 +381,9 @@ k = 1.0
 x0 = { uniform = [-0.1, 0.1] }
 """
 
+#: The two whole-run workloads of issue 15 as run files, by name (run_phases.py and compare_revisions.py).
+WORKLOADS = {"tops": TOPS.format(t_end=8.0, save_dt=0.1, members=262144, save='["omega", "tilt"]'), "chains": CHAINS}
+
 
 PEAK = ("import atexit, runpy, sys\n"
         "def peak():\n"

@@ -31,7 +31,7 @@ from pathlib import Path
 
 began = time.perf_counter()
 
-from benchmark import CHAINS, TOPS  # noqa: E402
+from benchmark import WORKLOADS  # noqa: E402
 from hostinfo import host  # noqa: E402
 
 from ensemble import parts, runner, store  # noqa: E402
@@ -40,7 +40,6 @@ from ensemble.engine import launch  # noqa: E402
 from ensemble.scenes import SCENES  # noqa: E402
 from ensemble.spec import SpecError, load, parse  # noqa: E402
 
-WORKLOADS = {"tops": TOPS.format(t_end=8.0, save_dt=0.1, members=262144, save='["omega", "tilt"]'), "chains": CHAINS}
 totals: dict[str, float] = collections.defaultdict(float)
 _lock = threading.Lock()
 
