@@ -515,8 +515,8 @@ def workloads(limit: dict[str, float], targets: list, folder: Path, repeats: int
     """The two whole-run workloads of issue 15 against the C limit: median wall seconds of `repeats` warm runs each;
     returns their rates by the name of the C kernel they stand beside."""
     rates = {}
-    tops = TOPS.format(t_end=8.0, save_dt=0.1, members=262144, save='["omega", "tilt"]')
-    for name, text, kernel in (("262144 tops", tops, "top rk4"), ("65536 16-mass chains", CHAINS, "chain verlet N=16")):
+    for name, text, kernel in (("262144 tops", WORKLOADS["tops"], "top rk4"),
+                               ("65536 16-mass chains", WORKLOADS["chains"], "chain verlet N=16")):
         whole_run(text, folder)  # untimed: after an install or an edit, the first run compiles its kernels
         walls, works = zip(*(whole_run(text, folder)[:2] for _ in range(repeats)))
         wall, work, c = statistics.median(walls), works[0], limit.get(kernel)

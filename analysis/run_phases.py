@@ -16,7 +16,8 @@ timers and prints each step's total seconds, on whichever thread it ran:
     fsync           OUT.nc.tmp to the disk after each chunk (the parts' thread)
 
 The run's seconds (loading its kernels from the cache included) and this
-script's imports come first. The steps overlap: finishing and fsync run while the next chunk's
+script's imports come first; the C limit (limit.py) is measured just before
+and just after the run. The steps overlap: finishing and fsync run while the next chunk's
 kernel does, on the same two cores. --members replaces the run file's count.
 """
 from __future__ import annotations
@@ -31,7 +32,7 @@ from pathlib import Path
 
 began = time.perf_counter()
 
-from benchmark import WORKLOADS  # noqa: E402
+from benchmark import WORKLOADS, c_limit, print_limit  # noqa: E402
 from hostinfo import host  # noqa: E402
 
 from ensemble import parts, runner, store  # noqa: E402
@@ -75,6 +76,7 @@ def time_kernel_calls() -> None:
 
 
 def main(argv=None) -> None:
+    imports = time.perf_counter() - began
     parser = OneLineParser(description=__doc__.split("\n")[0])
     parser.add_argument("runfile", type=Path, nargs="?")
     parser.add_argument("--workload", choices=WORKLOADS, help="a whole-run workload of benchmark.py instead")
@@ -97,11 +99,13 @@ def main(argv=None) -> None:
     timed(store, "put_samples", "  writing")
     timed(parts, "fsync_path", "fsync")
     print(host(), flush=True)
+    print_limit("C limit, before", c_limit())
     with tempfile.TemporaryDirectory() as folder:
         start = time.perf_counter()
         summary = runner.run(spec, Path(folder) / "out.nc", progress=False)
         seconds = time.perf_counter() - start
-    print(f"{spec.n_members} members, {summary.member_steps:.3g} member-steps: start-up {start - began:.2f} s "
+    print_limit("C limit, after", c_limit())
+    print(f"{spec.n_members} members, {summary.member_steps:.3g} member-steps: start-up {imports:.2f} s "
           f"(this script's imports), the run {seconds:.2f} s (of which {summary.preparing:.2f} s loading kernels)")
     for label in ("kernel", "finishing", "  laying out", "  observing", "  amplitudes", "  growth fit", "  writing",
                   "fsync"):

@@ -139,14 +139,16 @@ class Parts:
         """Why the unfinished result `path` cannot take this run's parts' members (None when it can): it must
         exist, open, and be a result of this run file with its member count."""
         if not path.exists():
-            return f"{path.name}, which holds their samples, is missing"
-        try:
-            with netCDF4.Dataset(path) as nc:
-                same = (getattr(nc, "spec", None) == self.spec.text and "member" in nc.dimensions
-                        and nc.dimensions["member"].size == self.spec.n_members)
-        except OSError as e:
-            return f"{path.name}, which holds their samples, cannot be read: {e.strerror or e}"
-        return None if same else f"{path.name}, which holds their samples, is another run's"
+            problem = "is missing"
+        else:
+            try:
+                with netCDF4.Dataset(path) as nc:
+                    same = (getattr(nc, "spec", None) == self.spec.text and "member" in nc.dimensions
+                            and nc.dimensions["member"].size == self.spec.n_members)
+                problem = None if same else "is another run's"
+            except OSError as e:
+                problem = f"cannot be read: {e.strerror or e}"
+        return problem and f"{path.name}, which holds their samples, {problem}"
 
     def _verified(self) -> list[Part]:
         """The parts whose bytes match their checksum, in member order, without overlaps; the rest deleted."""

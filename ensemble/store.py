@@ -164,8 +164,8 @@ class Writer:
         spec, n = self.spec, self.spec.n_members
         used = {d for name in spec.save for d in self.scene.OBSERVABLES[name][0]}
         used |= {p.per for p in spec.declared.values() if p.per}
-        self.sizes = {"member": n, "t": spec.n_save, **self.scene.sizes(spec.constants)}
-        for dim, size in self.sizes.items():
+        sizes = {"member": n, "t": spec.n_save, **self.scene.sizes(spec.constants)}
+        for dim, size in sizes.items():
             self.nc.createDimension(dim, size)
         self._coordinate("member", np.arange(n, dtype=np.int32), "ensemble member index")
         self._coordinate("t", spec.times(), "time since the start of the run", units="s")
