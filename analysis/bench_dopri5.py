@@ -5,14 +5,23 @@
 1. Kernel seconds per member-step of rk4 and dopri5, side by side in this
    process (medians of --repeats): 8192 aerobie tops (runs/aerobie.toml), and
    4096 disordered 16-mass chains.
-2. Right-hand-side evaluations each needs for a largest error of 1e-10 over
+2. The same for the tops in hand-written C (analysis/c/top_dopri5.c, compiled
+   here with gcc; skipped without it), alternated with ensemble's kernels:
+   rk4 as ../shared/limit/ens.c writes it, and dopri5 with ensemble's step
+   control written the same way: the ratio C can reach on this host.
+3. Right-hand-side evaluations each needs for a largest error of 1e-10 over
    2 s on a top spinning at 200 rad/s: rk4 halves dt until it gets there,
    dopri5 lowers rtol by decades.
 """
 from __future__ import annotations
 
 import argparse
+import ctypes
+import os
+import shutil
 import statistics
+import subprocess
+import tempfile
 import time
 from pathlib import Path
 
@@ -27,6 +36,11 @@ from ensemble.scenes import chain, top
 from ensemble.spec import members_table, parse
 
 RUNS = Path(__file__).resolve().parent.parent / "runs"
+C_SOURCE = Path(__file__).resolve().parent / "c" / "top_dopri5.c"
+# -fallow-store-data-races: without it gcc makes each member's "new value or old" into a masked store (vmaskmovpd,
+# slow on AMD Zen 3) where a blend and a whole store do.
+C_FLAGS = ["-O3", "-march=native", "-ffast-math", "-fopenmp", "-fallow-store-data-races", "-fPIC", "-shared"]
+C_BLOCK = 128  # BS in top_dopri5.c
 CHAIN = """scene = "chain"
 method = "rk4"
 dt = 1e-2
@@ -43,22 +57,67 @@ x0 = { uniform = [-0.1, 0.1] }
 """
 
 
-def per_step(scene, values, constants, dt, save_dt, n_save, repeats):
-    """Median kernel seconds per member-step of rk4 (step dt) and dopri5 (rtol 1e-8)."""
+def per_step(scene, values, constants, dt, save_dt, n_save, repeats, others=None):
+    """Median seconds per member-step of ensemble's rk4 (step dt) and dopri5 (rtol 1e-8) kernels, and of each
+    run() in `others` (by name; it returns the member-steps it took), alternated in every repeat."""
     rk4, dopri5 = METHODS["rk4"], METHODS["dopri5"]
     for method in (rk4, dopri5):
         launch.prepare(scene, method, constants)
     fixed = launch.Launch(scene, rk4, values, constants, n_save=n_save, save_dt=save_dt, dt=dt)
     adaptive = launch.Launch(scene, dopri5, values, constants, n_save=n_save, save_dt=save_dt, rtol=1e-8, atol=1e-12)
-    rk4, dopri5 = [], []
-    for _ in range(repeats):
-        for call, seconds in ((fixed, rk4), (adaptive, dopri5)):
-            start = time.perf_counter()
+
+    def steps_of(call):
+        def run():
             call.run()
-            elapsed = time.perf_counter() - start
             counts = call.outcome().counts
-            seconds.append(elapsed / (counts[0].sum() + counts[1].sum()))
-    return statistics.median(rk4), statistics.median(dopri5)
+            return counts[0].sum() + counts[1].sum()
+        return run
+
+    runs = {"rk4": steps_of(fixed), "dopri5": steps_of(adaptive), **(others or {})}
+    seconds = {name: [] for name in runs}
+    for _ in range(repeats):
+        for name, run in runs.items():
+            start = time.perf_counter()
+            steps = run()
+            seconds[name].append((time.perf_counter() - start) / steps)
+    return {name: statistics.median(s) for name, s in seconds.items()}
+
+
+def c_tops(values, n_save, save_dt, dt, folder):
+    """run() functions (by name) of the hand-written C on the tops of `values` (members a multiple of C_BLOCK),
+    for per_step: rk4 with step dt, dopri5 at rtol 1e-8; None without gcc."""
+    if shutil.which("gcc") is None:
+        return None
+    # OpenMP's threads would otherwise spin after each C call, beside the next kernel timed.
+    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+    library = Path(folder) / "top_dopri5.so"
+    subprocess.run(["gcc", *C_FLAGS, str(C_SOURCE), "-o", str(library), "-lm"], check=True)
+    c = ctypes.CDLL(str(library))
+    double, long, pointer = ctypes.c_double, ctypes.c_long, ctypes.POINTER(ctypes.c_double)
+    c.top_rk4.argtypes = [long, long, long, double, pointer, pointer]
+    c.top_dopri5.argtypes = [long, long, double, double, double, double, *[double] * 5, pointer, pointer, pointer]
+    state0, rate = (np.ascontiguousarray(x) for x in top.inputs(values, {}))
+    members = state0.shape[1]
+    assert members % C_BLOCK == 0, members
+    control = METHODS["dopri5"].control
+    steps_per_save = round(save_dt / dt)
+
+    def rk4():
+        w = state0.copy()
+        c.top_rk4(members, n_save, steps_per_save, dt, _address(w), _address(rate))
+        return members * (n_save - 1) * steps_per_save
+
+    def dopri5():
+        w, counts = state0.copy(), np.zeros((2, members))
+        c.top_dopri5(members, n_save, save_dt, 1e-8, 1e-12, dt, control.alpha, control.beta, control.safety,
+                     control.min_factor, control.max_factor, _address(w), _address(rate), _address(counts))
+        return counts.sum()
+
+    return {"C rk4": rk4, "C dopri5": dopri5}
+
+
+def _address(array):
+    return array.ctypes.data_as(ctypes.POINTER(ctypes.c_double))
 
 
 def evaluations_for(target: float):
@@ -92,10 +151,21 @@ def main():
     print(host())
     spec = parse((RUNS / "aerobie.toml").read_text().replace("members = 200", "members = 4096"))
     tops = {name: v[:8192] for name, v in members_table(spec).items()}
-    rk4, dopri5 = per_step(top, tops, {}, 1e-3, 0.1, 31, args.repeats)
+    with tempfile.TemporaryDirectory() as folder:
+        seconds = per_step(top, tops, {}, 1e-3, 0.1, 31, args.repeats, c_tops(tops, 31, 0.1, 1e-3, folder))
+    rk4, dopri5 = seconds["rk4"], seconds["dopri5"]
     print(f"top, 8192 members: rk4 {rk4:.3g} s, dopri5 {dopri5:.3g} s per member-step, ratio {dopri5 / rk4:.1f}")
+    if "C rk4" in seconds:
+        c_rk4 = seconds["C rk4"]
+        c_dopri5 = seconds["C dopri5"]
+        print(f"  hand-written C ({C_SOURCE.name}): rk4 {c_rk4:.3g} s, dopri5 {c_dopri5:.3g} s, ratio "
+              f"{c_dopri5 / c_rk4:.1f}; ensemble's rk4 takes {rk4 / c_rk4:.2f} and its dopri5 {dopri5 / c_dopri5:.2f} "
+              "of the C's time")
+    else:
+        print("  hand-written C: skipped (no gcc)")
     chain_spec = parse(CHAIN)
-    rk4, dopri5 = per_step(chain, members_table(chain_spec), chain_spec.constants, 1e-2, 1.0, 11, args.repeats)
+    seconds = per_step(chain, members_table(chain_spec), chain_spec.constants, 1e-2, 1.0, 11, args.repeats)
+    rk4, dopri5 = seconds["rk4"], seconds["dopri5"]
     print(f"chain n = 16, 4096 members: rk4 {rk4:.3g} s, dopri5 {dopri5:.3g} s per member-step, "
           f"ratio {dopri5 / rk4:.1f}")
     (rk4_evals, dt), (dopri5_evals, rtol) = evaluations_for(1e-10)

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import re
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -11,6 +12,10 @@ import pytest
 import xarray as xr
 
 from ensemble import runner, spec
+from ensemble.engine import launch
+from ensemble.methods import METHODS
+from ensemble.scenes import top
+from ensemble.spec import members_table
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -117,6 +122,22 @@ def test_benchmark_options_are_checked_in_one_line(name):
     assert done.returncode == 2
     assert done.stderr.strip().splitlines() == [f"{name}: error: argument --repeats: must be >= 1, got 0 "
                                                 f"(see {name} --help)"]
+
+
+@pytest.mark.skipif(shutil.which("gcc") is None, reason="the C yardstick needs gcc")
+def test_the_c_dopri5_yardstick_steps_as_ensembles_dopri5(tmp_path, monkeypatch):
+    """bench_dopri5.py's hand-written C dopri5 is a fair yardstick only if it does ensemble's job: on 128
+    aerobie tops it takes ensemble's steps (accepted and rejected) to 1% (its first step is dt, not Hairer's
+    guess)."""
+    monkeypatch.syspath_prepend(str(ROOT / "analysis"))
+    import bench_dopri5
+    table = members_table(spec.parse((ROOT / "runs" / "aerobie.toml").read_text()))
+    tops = {name: values[:128] for name, values in table.items()}
+    c = bench_dopri5.c_tops(tops, 11, 0.1, 1e-3, tmp_path)
+    outcome = launch.integrate(top, METHODS["dopri5"], tops, {}, n_save=11, save_dt=0.1, rtol=1e-8, atol=1e-12)
+    steps = outcome.counts[:2].sum()
+    assert steps > 128 * 100  # the tops need more than 100 steps each at this tolerance
+    assert c["C dopri5"]() == pytest.approx(steps, rel=0.01)
 
 
 def test_an_unwritable_output_is_one_line_and_keeps_the_verdict(tmp_path):
