@@ -30,6 +30,7 @@ from ...engine.blocks import (
     rates_load,
     rates_saved,
     rates_start,
+    stack_array,
     trial_steps,
 )
 from ...methods import Method
@@ -150,13 +151,14 @@ def _splitting_kernel(method: Method):
 def _fixed_kernel(method: Method):
     """Kernel for an explicit Runge-Kutta tableau.
 
-    Work rows: w1, w2, w3, the P parameters, then the stage slopes k[s, c] at
-    row K + 3 s + c. Stage loops have constant trip counts, so LLVM unrolls
-    them and folds the tableau's coefficients.
+    Work rows: w1, w2, w3, the P parameters. The stage slopes are a member's
+    own, within a step (stack_array). Stage loops have constant trip counts,
+    so LLVM unrolls them, folds the tableau's coefficients and keeps the
+    slopes in registers.
     """
     _, S, a, b, _, _, _ = method_constants(method)
-    K = 3 + P
-    rows = K + 3 * S
+    rows = 3 + P
+    SLOPES = 3 * S
 
     @njit(nogil=True, cache=True, **FAST)
     def kernel(state0, rate, h, steps_per_save, limit, samples, status, failure_time, progress,
@@ -165,6 +167,7 @@ def _fixed_kernel(method: Method):
         status (M,), failure_time (M,) (s; set only where a member fails); M = blocks x BLOCK."""
         for block in range(first_block, end_block):
             work = works[block].copy()  # a local copy: LLVM knows it aliases nothing
+            slopes = stack_array(SLOPES)  # stage s's k[c] at 3 s + c
             if start == 0:
                 rates_load(work, state0, rate, block, samples, P, BLOCK)
                 check_members(work, 0, 3, BLOCK, block * BLOCK, limit, status, failure_time, 0.0)  # a non-finite start
@@ -185,15 +188,13 @@ def _fixed_kernel(method: Method):
                             z1 = y1
                             z2 = y2
                             z3 = y3
-                            for r in range(S):
+                            for r in range(s):  # a is zero from column s on
                                 ha = h * a[s * S + r]
-                                z1 += ha * work[(K + 3 * r) * BLOCK + j]
-                                z2 += ha * work[(K + 1 + 3 * r) * BLOCK + j]
-                                z3 += ha * work[(K + 2 + 3 * r) * BLOCK + j]
+                                z1 += ha * slopes[3 * r]
+                                z2 += ha * slopes[3 * r + 1]
+                                z3 += ha * slopes[3 * r + 2]
                             d1, d2, d3 = rhs(z1, z2, z3, a1, a2, a3, r1, r2, r3)
-                            work[(K + 3 * s) * BLOCK + j] = d1
-                            work[(K + 1 + 3 * s) * BLOCK + j] = d2
-                            work[(K + 2 + 3 * s) * BLOCK + j] = d3
+                            slopes[3 * s], slopes[3 * s + 1], slopes[3 * s + 2] = d1, d2, d3
                             s1 += b[s] * d1
                             s2 += b[s] * d2
                             s3 += b[s] * d3
