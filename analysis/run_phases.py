@@ -35,7 +35,7 @@ began = time.perf_counter()
 from benchmark import WORKLOADS, c_limit, print_limit  # noqa: E402
 from hostinfo import host  # noqa: E402
 
-from ensemble import parts, runner, store  # noqa: E402
+from ensemble import cli, parts, runner, store  # noqa: E402
 from ensemble.arguments import OneLineParser, positive_int  # noqa: E402
 from ensemble.engine import launch  # noqa: E402
 from ensemble.scenes import SCENES  # noqa: E402
@@ -90,6 +90,7 @@ def main(argv=None) -> None:
             spec = parse(re.sub(r"(?m)^members\s*=.*$", f"members = {args.members}", spec.text))
     except SpecError as e:
         parser.error(f"{args.runfile}: {e}")
+    cli._skip_numba_blas_probe()  # as `ensemble run` does, so loading the kernels takes what it takes there
     timed(SCENES[spec.scene], "observe", "  observing")
     timed(SCENES[spec.scene], "amplitudes", "  amplitudes")
     time_kernel_calls()
