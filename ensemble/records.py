@@ -19,7 +19,7 @@ SUBNORMAL = 1e-290
 def measured_growth(amplitudes: np.ndarray, t: np.ndarray, step: np.ndarray) -> np.ndarray:
     """Amplitude growth factor per step of each member's fastest-growing motion; shape (members,).
 
-    amplitudes (motions, samples, members) at times t (s); step (members,) s,
+    amplitudes (members, motions, samples) at times t (s); step (members,) s,
     the step each member took (an adaptive method's mean accepted step). Per
     motion, the slope of log amplitude against time is fitted by least
     squares over the second half of the samples taken before the member
@@ -31,7 +31,7 @@ def measured_growth(amplitudes: np.ndarray, t: np.ndarray, step: np.ndarray) -> 
     kernel (it releases the GIL, so it overlaps the next chunk's kernel).
     """
     a = np.ascontiguousarray(amplitudes, dtype=float)
-    growth = np.empty(a.shape[2])
+    growth = np.empty(a.shape[0])
     _fit_growth(a, np.ascontiguousarray(t, dtype=float), np.ascontiguousarray(np.broadcast_to(
         np.asarray(step, dtype=float), growth.shape)), growth)
     return growth
@@ -39,55 +39,42 @@ def measured_growth(amplitudes: np.ndarray, t: np.ndarray, step: np.ndarray) -> 
 
 @njit(cache=True, nogil=True, error_model="numpy")
 def _fit_growth(a, t, step, growth):
-    """measured_growth into growth (members,). Sums run in sample order, as numpy's over that axis did (the same
-    bits); the inner loops run over members, contiguous in `a`."""
-    motions, samples, members = a.shape
-    growth[:] = -np.inf
-    count = np.empty(members, dtype=np.int64)  # samples before the first unusable one (not above the floor, NaN)
-    first = np.empty(members, dtype=np.int64)  # the fit's window: samples first .. count - 1
-    floor, t_mean, y_mean = np.empty(members), np.empty(members), np.empty(members)
-    cross, square = np.empty(members), np.empty(members)
-    logs = np.empty((samples, members))
-    for m in range(motions):
-        for j in range(members):
-            floor[j] = max(DECAY_FLOOR * a[m, 0, j], SUBNORMAL)
-            count[j] = 0
-        for i in range(samples):
-            for j in range(members):
-                if count[j] == i and floor[j] < a[m, i, j] < np.inf:
-                    count[j] = i + 1
-        for j in range(members):
-            first[j] = max(min(count[j] // 2, count[j] - 2), 0)
-        t_mean[:], y_mean[:], cross[:], square[:] = 0.0, 0.0, 0.0, 0.0
-        for i in range(samples):
-            for j in range(members):
-                if first[j] <= i < count[j]:
-                    logs[i, j] = np.log(a[m, i, j])
-                    t_mean[j] += t[i]
-                    y_mean[j] += logs[i, j]
-        for j in range(members):
-            t_mean[j] /= count[j] - first[j]
-            y_mean[j] /= count[j] - first[j]
-        for i in range(samples):
-            for j in range(members):
-                if first[j] <= i < count[j]:
-                    dt = t[i] - t_mean[j]
-                    cross[j] += dt * (logs[i, j] - y_mean[j])
-                    square[j] += dt * dt
-        for j in range(members):
-            if count[j] - first[j] >= 2:
-                g = np.exp(cross[j] / square[j] * step[j])
-                if g == g:
-                    growth[j] = max(growth[j], g)
+    """measured_growth into growth (members,), a member at a time (its samples are contiguous in `a`). Sums run
+    in sample order, as numpy's over that axis did (the same bits)."""
+    members, motions, samples = a.shape
+    logs = np.empty(samples)
     for j in range(members):
-        if not np.isfinite(growth[j]):
-            growth[j] = np.nan
+        fastest = -np.inf
+        for m in range(motions):
+            floor = max(DECAY_FLOOR * a[j, m, 0], SUBNORMAL)
+            count = 0  # samples before the first unusable one (not above the floor, NaN)
+            while count < samples and floor < a[j, m, count] < np.inf:
+                count += 1
+            first = max(min(count // 2, count - 2), 0)  # the fit's window: samples first .. count - 1
+            if count - first < 2:
+                continue
+            t_mean, y_mean = 0.0, 0.0
+            for i in range(first, count):
+                logs[i] = np.log(a[j, m, i])
+                t_mean += t[i]
+                y_mean += logs[i]
+            t_mean /= count - first
+            y_mean /= count - first
+            cross, square = 0.0, 0.0
+            for i in range(first, count):
+                dt = t[i] - t_mean
+                cross += dt * (logs[i] - y_mean)
+                square += dt * dt
+            g = np.exp(cross / square * step[j])
+            if g == g:
+                fastest = max(fastest, g)
+        growth[j] = fastest if np.isfinite(fastest) else np.nan
 
 
 def growth_per_step(scene, method: Method, values: dict[str, np.ndarray], amplitudes: np.ndarray, outcome: Outcome,
                     t: np.ndarray, t_end: float) -> np.ndarray:
-    """Each member's measured growth factor per step (see measured_growth) from the scene's amplitudes (motions,
-    samples, members) at times t (s); per mean accepted step (time reached, t_end or its failure, over steps
+    """Each member's measured growth factor per step (see measured_growth) from the scene's amplitudes (members,
+    motions, samples) at times t (s); per mean accepted step (time reached, t_end or its failure, over steps
     accepted) for adaptive methods."""
     step = values["dt"]
     if method.adaptive:

@@ -221,7 +221,7 @@ class _Record:
         spec, method, members = self.spec, self.method, len(outcome.status)
         records = dict(zip(COUNTS, outcome.counts), status=outcome.status, failure_time=outcome.failure_time)
         records["growth_per_step"] = (np.full(members, np.nan) if method.closed_form else growth_per_step(
-            self.scene, method, self.values, np.concatenate(self.amplitudes, axis=1), outcome, self.times,
+            self.scene, method, self.values, np.concatenate(self.amplitudes, axis=2), outcome, self.times,
             spec.t_end))
         if spec.measure["error"]:
             records["error_max"], records["error_final"] = error_records(np.concatenate(self.errors))

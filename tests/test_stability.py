@@ -68,11 +68,11 @@ def test_measured_growth_fits_the_later_samples_and_stops_at_failure():
     growing[30:] = np.nan  # failed at sample 30
     decaying = 0.9**t
     decaying[25:] = 0.0  # reached zero
-    amplitudes = np.stack([growing, decaying], axis=-1)[None]  # (1 motion, 40 samples, 2 members)
+    amplitudes = np.stack([growing, decaying])[:, None]  # (2 members, 1 motion, 40 samples)
     # the fade leaves 3e-6 of the amplitude at sample 15: the fitted factor is off by about 1e-7
     np.testing.assert_allclose(records.measured_growth(amplitudes, t, np.ones(2)), [1.2, 0.9], rtol=1e-6)
     # the fastest of two motions, and per step of 0.5 s
-    two = np.stack([1.1 ** t, 1.3 ** t])[:, :, None]
+    two = np.stack([1.1 ** t, 1.3 ** t])[None]  # (1 member, 2 motions, 40 samples)
     assert records.measured_growth(two, t, np.array([0.5])) == pytest.approx(np.sqrt(1.3), rel=1e-12)
 
 
@@ -97,7 +97,7 @@ def test_the_compiled_growth_fit_equals_a_numpy_polyfit_member_by_member():
             if count - start >= 2:
                 slope = np.polyfit(t[start:count], np.log(a[m, start:count, j]), 1)[0]
                 expected[j] = np.fmax(expected[j], np.exp(slope * step[j]))
-    np.testing.assert_allclose(records.measured_growth(a, t, step), expected, rtol=1e-10)
+    np.testing.assert_allclose(records.measured_growth(a.transpose(2, 0, 1), t, step), expected, rtol=1e-10)
     assert np.isnan(expected[35:40]).all() and np.isfinite(expected[:35]).all()
 
 

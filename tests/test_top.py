@@ -160,7 +160,7 @@ def test_observed_tilt_and_amplitudes_are_numpys_arctan2_and_hypot():
     expected = np.arctan2(transverse, omega[..., 2])
     tilt = top.observe(samples, ("tilt",), {}, {})["tilt"]
     amplitudes = top.amplitudes(samples, {}, {})
-    for got, want in ((tilt, expected), (amplitudes[0], transverse.T), (amplitudes[1], np.abs(omega[..., 2]).T)):
+    for got, want in ((tilt, expected), (amplitudes[:, 0], transverse), (amplitudes[:, 1], np.abs(omega[..., 2]))):
         np.testing.assert_array_equal(np.isnan(got), np.isnan(want))
         finite = ~np.isnan(want)
         assert np.all(np.abs(got - want)[finite] <= 4 * np.spacing(np.abs(want[finite])))

@@ -363,7 +363,7 @@ def step_growth(method: Method, values: dict[str, np.ndarray], constants: dict, 
 
 
 def amplitudes(samples: np.ndarray, values: dict[str, np.ndarray], constants: dict) -> np.ndarray:
-    """The tilt's two motions: |rates across the spin axis| and |rate along it| (rad/s), (2, samples, members)."""
+    """The tilt's two motions: |rates across the spin axis| and |rate along it| (rad/s), (members, 2, samples)."""
     w = samples.transpose(1, 0, 2)
     k, i, j = spin_axes(values["spin_axis"])
-    return np.stack((np.hypot(_pick(w, i), _pick(w, j)), np.abs(_pick(w, k))))
+    return np.stack((np.hypot(_pick(w, i), _pick(w, j)), np.abs(_pick(w, k)))).transpose(2, 0, 1)

@@ -213,10 +213,10 @@ def step_growth(method: Method, values: dict[str, np.ndarray], constants: dict, 
 
 
 def amplitudes(samples: np.ndarray, values: dict[str, np.ndarray], constants: dict) -> np.ndarray:
-    """sqrt(energy) (sqrt(J)) of each member at each sample, shape (1, samples, members): the chain's one motion
+    """sqrt(energy) (sqrt(J)) of each member at each sample, shape (members, 1, samples): the chain's one motion
     whose growth is measured (its fastest-growing mode soon dominates the energy)."""
-    e = observe(samples, ("energy",), values, constants)["energy"]
-    return np.sqrt(e.T)[None]
+    e = observe(samples, ("energy",), values, constants)["energy"]  # (members, samples)
+    return np.sqrt(e)[:, None, :]
 
 
 def mode_start(mode: Mode, m, k, boundary: str) -> np.ndarray:

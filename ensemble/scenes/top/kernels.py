@@ -275,14 +275,14 @@ def observed_tilt(omega):
 
 @njit(cache=True, nogil=True, **OBSERVING)
 def observed_amplitudes(omega):
-    """|(w1, w2)| and |w3| (rad/s), (2, t, members), of member-major rates omega (members, t, 3) (see
+    """|(w1, w2)| and |w3| (rad/s), (members, 2, t), of member-major rates omega (members, t, 3) (see
     model.amplitudes)."""
     members, count, _ = omega.shape
-    out, row = np.empty((2, count, members)), np.empty((3, count))
+    out, row = np.empty((members, 2, count)), np.empty((3, count))
     for a in range(members):
         for i in range(count):
             row[0, i], row[1, i], row[2, i] = omega[a, i, 0], omega[a, i, 1], omega[a, i, 2]
         for i in range(count):
-            out[0, i, a] = _tilt_and_transverse(row[0, i], row[1, i], row[2, i])[1]
-            out[1, i, a] = abs(row[2, i])
+            out[a, 0, i] = _tilt_and_transverse(row[0, i], row[1, i], row[2, i])[1]
+            out[a, 1, i] = abs(row[2, i])
     return out

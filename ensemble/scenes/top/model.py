@@ -233,7 +233,7 @@ def step_growth(method: Method, values: dict[str, np.ndarray], constants: dict, 
 
 
 def amplitudes(samples: np.ndarray, values: dict[str, np.ndarray], constants: dict) -> np.ndarray:
-    """Amplitudes of the top's two motions, |(w1, w2)| and |w3| (rad/s), shape (2, samples, members), from
+    """Amplitudes of the top's two motions, |(w1, w2)| and |w3| (rad/s), shape (members, 2, samples), from
     samples (samples, 3, members)."""
     from .kernels import observed_amplitudes  # compiled: the model alone does not import Numba
 
