@@ -116,7 +116,7 @@ def test_bad_options_are_one_line_and_exit_2(tmp_path):
     assert refused.returncode == 2 and len(refused.stderr.strip().splitlines()) == 1
 
 
-@pytest.mark.parametrize("name", ["bench_chain.py", "bench_top.py", "bench_dopri5.py"])
+@pytest.mark.parametrize("name", ["bench_chain.py", "bench_top.py", "bench_dopri5.py", "fresh_pages.py"])
 def test_benchmark_options_are_checked_in_one_line(name):
     done = script(name, "--repeats", 0)
     assert done.returncode == 2

@@ -1,0 +1,69 @@
+"""What writing a new file costs this host, by how recently its memory was last used.
+
+    python analysis/fresh_pages.py [--mb 680] [--pause 5] [--repeats 3]
+
+A run writes its samples into new pages of the system's page cache. On a
+virtual machine whose host takes back the memory its guest frees (virtio-balloon
+free page reporting), a page freed a few seconds ago must be backed again by
+the host at its first touch, which costs several times the copy. This writes
+--mb MB (a 262,144-top run's samples are 680 MB) to a new file in the system's
+temporary folder, deletes it, and times writing it again: right after
+("recycled": the pages the deletion freed) and after --pause seconds idle
+("after a pause"). Medians of --repeats; each write is flushed to the page
+cache, not to the disk.
+"""
+from __future__ import annotations
+
+import os
+import statistics
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+from hostinfo import host
+
+from ensemble.arguments import OneLineParser, positive_int
+
+CHUNK = 16 << 20  # bytes per write call
+
+
+def write_seconds(path: Path, data: np.ndarray, total: int) -> float:
+    """Seconds to write `total` bytes of `data` (CHUNK bytes) into the new file `path`, then delete it."""
+    start = time.perf_counter()
+    descriptor = os.open(path, os.O_CREAT | os.O_EXCL | os.O_WRONLY)
+    try:
+        for _ in range(total // CHUNK):
+            os.write(descriptor, data)
+    finally:
+        os.close(descriptor)
+    seconds = time.perf_counter() - start
+    path.unlink()
+    return seconds
+
+
+def main(argv=None) -> None:
+    parser = OneLineParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--mb", type=positive_int, default=680, help="megabytes per write (default 680)")
+    parser.add_argument("--pause", type=positive_int, default=5, help="seconds idle before a write (default 5)")
+    parser.add_argument("--repeats", type=positive_int, default=3)
+    args = parser.parse_args(argv)
+    print(host())
+    data = np.random.default_rng(0).random(CHUNK // 8)
+    total = args.mb * (1 << 20) // CHUNK * CHUNK
+    recycled, paused = [], []
+    with tempfile.TemporaryDirectory() as folder:
+        path = Path(folder) / "fresh_pages.bin"
+        write_seconds(path, data, total)  # untimed: whatever the memory's state at the start
+        for _ in range(args.repeats):
+            recycled.append(write_seconds(path, data, total))
+            time.sleep(args.pause)
+            paused.append(write_seconds(path, data, total))
+    mb = total / (1 << 20)
+    print(f"writing {mb:.0f} MB to a new file: {statistics.median(recycled):.3f} s with recycled pages, "
+          f"{statistics.median(paused):.3f} s after {args.pause} s idle (medians of {args.repeats}; "
+          f"ratio {statistics.median(paused) / statistics.median(recycled):.1f})")
+
+
+if __name__ == "__main__":
+    main()
