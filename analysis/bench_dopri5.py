@@ -39,7 +39,7 @@ RUNS = Path(__file__).resolve().parent.parent / "runs"
 C_SOURCE = Path(__file__).resolve().parent / "c" / "top_dopri5.c"
 # -fallow-store-data-races: without it gcc makes each member's "new value or old" into a masked store (vmaskmovpd,
 # slow on AMD Zen 3) where a blend and a whole store do.
-C_FLAGS = ["-O3", "-march=native", "-ffast-math", "-fopenmp", "-fallow-store-data-races", "-fPIC", "-shared"]
+C_FLAGS = ["-O3", "-march=native", "-ffast-math", "-fopenmp", "-fallow-store-data-races", "-fPIC"]
 C_BLOCK = 128  # BS in top_dopri5.c
 CHAIN = """scene = "chain"
 method = "rk4"
@@ -90,8 +90,11 @@ def c_tops(values, n_save, save_dt, dt, folder):
         return None
     # OpenMP's threads would otherwise spin after each C call, beside the next kernel timed.
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
-    library = Path(folder) / "top_dopri5.so"
-    subprocess.run(["gcc", *C_FLAGS, str(C_SOURCE), "-o", str(library), "-lm"], check=True)
+    objects, library = Path(folder) / "top_dopri5.o", Path(folder) / "top_dopri5.so"
+    subprocess.run(["gcc", *C_FLAGS, "-c", str(C_SOURCE), "-o", str(objects)], check=True)
+    # Linked without -ffast-math: with it gcc adds crtfastmath.o, which on loading sets the process's
+    # flush-to-zero and denormals-are-zero modes, and ensemble's kernels in this process would run with them.
+    subprocess.run(["gcc", "-shared", "-fopenmp", str(objects), "-o", str(library), "-lm"], check=True)
     c = ctypes.CDLL(str(library))
     double, long, pointer = ctypes.c_double, ctypes.c_long, ctypes.POINTER(ctypes.c_double)
     c.top_rk4.argtypes = [long, long, long, double, pointer, pointer]

@@ -128,7 +128,7 @@ def test_benchmark_options_are_checked_in_one_line(name):
 def test_the_c_dopri5_yardstick_steps_as_ensembles_dopri5(tmp_path, monkeypatch):
     """bench_dopri5.py's hand-written C dopri5 is a fair yardstick only if it does ensemble's job: on 128
     aerobie tops it takes ensemble's steps (accepted and rejected) to 1% (its first step is dt, not Hairer's
-    guess)."""
+    guess); and loading it must not change how this process computes."""
     monkeypatch.syspath_prepend(str(ROOT / "analysis"))
     import bench_dopri5
     table = members_table(spec.parse((ROOT / "runs" / "aerobie.toml").read_text()))
@@ -138,6 +138,7 @@ def test_the_c_dopri5_yardstick_steps_as_ensembles_dopri5(tmp_path, monkeypatch)
     steps = outcome.counts[:2].sum()
     assert steps > 128 * 100  # the tops need more than 100 steps each at this tolerance
     assert c["C dopri5"]() == pytest.approx(steps, rel=0.01)
+    assert np.array([5e-324]) > 0.0  # loading the C left subnormal numbers alone (no flush-to-zero modes)
 
 
 def test_an_unwritable_output_is_one_line_and_keeps_the_verdict(tmp_path):
