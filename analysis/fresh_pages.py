@@ -11,6 +11,12 @@ temporary folder, deletes it, and times writing it again: right after
 ("recycled": the pages the deletion freed) and after --pause seconds idle
 ("after a pause"). Medians of --repeats; each write is flushed to the page
 cache, not to the disk.
+
+Then the price of what a run does after each chunk (store.fsync_path with
+release: fsync, then let the system drop the file's cached pages, so that the
+next chunk writes into pages just freed): reading the file back right after
+it is written and fsynced, from the page cache, and after its pages were
+released (from the disk, or the host's cache of it).
 """
 from __future__ import annotations
 
@@ -24,6 +30,7 @@ import numpy as np
 from hostinfo import host
 
 from ensemble.arguments import OneLineParser, positive_int
+from ensemble.store import fsync_path
 
 CHUNK = 16 << 20  # bytes per write call
 
@@ -42,6 +49,23 @@ def write_seconds(path: Path, data: np.ndarray, total: int) -> float:
     return seconds
 
 
+def read_seconds(path: Path, data: np.ndarray, total: int, release: bool) -> float:
+    """Seconds to read back the new file `path` of `total` bytes right after writing and fsyncing it (with
+    `release`, fsync_path's release of its cached pages); the file is deleted afterwards."""
+    with open(path, "xb") as file:
+        for _ in range(total // CHUNK):
+            file.write(data)
+    fsync_path(path, release=release)
+    start = time.perf_counter()
+    with open(path, "rb", buffering=0) as file:
+        buffer = bytearray(CHUNK)
+        while file.readinto(buffer):
+            pass
+    seconds = time.perf_counter() - start
+    path.unlink()
+    return seconds
+
+
 def main(argv=None) -> None:
     parser = OneLineParser(description=__doc__.split("\n")[0])
     parser.add_argument("--mb", type=positive_int, default=680, help="megabytes per write (default 680)")
@@ -51,7 +75,7 @@ def main(argv=None) -> None:
     print(host())
     data = np.random.default_rng(0).random(CHUNK // 8)
     total = args.mb * (1 << 20) // CHUNK * CHUNK
-    recycled, paused = [], []
+    recycled, paused, cached, released = [], [], [], []
     with tempfile.TemporaryDirectory() as folder:
         path = Path(folder) / "fresh_pages.bin"
         write_seconds(path, data, total)  # untimed: whatever the memory's state at the start
@@ -59,10 +83,14 @@ def main(argv=None) -> None:
             recycled.append(write_seconds(path, data, total))
             time.sleep(args.pause)
             paused.append(write_seconds(path, data, total))
+            cached.append(read_seconds(path, data, total, release=False))
+            released.append(read_seconds(path, data, total, release=True))
     mb = total / (1 << 20)
     print(f"writing {mb:.0f} MB to a new file: {statistics.median(recycled):.3f} s with recycled pages, "
           f"{statistics.median(paused):.3f} s after {args.pause} s idle (medians of {args.repeats}; "
           f"ratio {statistics.median(paused) / statistics.median(recycled):.1f})")
+    print(f"reading it back right after writing and fsyncing it: {statistics.median(cached):.3f} s from the page "
+          f"cache, {statistics.median(released):.3f} s once its pages were released (medians of {args.repeats})")
 
 
 if __name__ == "__main__":

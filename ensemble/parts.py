@@ -245,7 +245,7 @@ class PartWriter:
         self.parts.written[self.start] = self.records
         self.parts.result.sync()
         # the part's members to the disk, before the part says they are there
-        self.parts._sealing.submit(fsync_path, self.parts.result.temporary)
+        self.parts._sealing.submit(fsync_path, self.parts.result.temporary, release=True)
         future = self.parts._sealing.submit(self._seal)
         self.parts._sealed.append((self.start, self.stop, future))
 

@@ -29,11 +29,19 @@ def temporary_path(path: Path) -> Path:
     return path.with_name(path.name + ".tmp")
 
 
-def fsync_path(path: Path) -> None:
-    """Flush a file's (or a folder's: its entries') bytes to the disk."""
+def fsync_path(path: Path, release: bool = False) -> None:
+    """Flush a file's (or a folder's: its entries') bytes to the disk; with `release`, then let the system drop
+    the file's pages from its page cache (they are on the disk). A run's later chunks then write into pages just
+    freed: on a virtual machine whose host takes back freed memory, new pages cost several times the copy
+    (analysis/fresh_pages.py)."""
     descriptor = os.open(path, os.O_RDONLY)
     try:
         os.fsync(descriptor)
+        if release and hasattr(os, "posix_fadvise"):  # not on macOS
+            try:
+                os.posix_fadvise(descriptor, 0, 0, os.POSIX_FADV_DONTNEED)
+            except OSError:
+                pass  # advice only: a file system that refuses it loses nothing
     finally:
         os.close(descriptor)
 

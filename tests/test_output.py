@@ -142,3 +142,28 @@ def test_step_counters_hold_more_than_two_billion(tmp_path):
     with netCDF4.Dataset(tmp_path / "out.nc") as nc:
         np.testing.assert_array_equal(nc["steps_accepted"][:], counts)
         np.testing.assert_array_equal(nc["rhs_evals"][:], 4 * counts)
+
+
+@pytest.mark.skipif(not hasattr(os, "posix_fadvise"), reason="no posix_fadvise here")
+def test_a_finished_chunk_is_on_the_disk_before_its_pages_are_released(tmp_path, monkeypatch):
+    """store.fsync_path(release=True), which seals every chunk: fsync first, then the advice that the system may
+    drop the file's cached pages (DONTNEED, the whole file); without release, no advice; advice refused loses
+    nothing."""
+    from ensemble import store
+
+    path, calls = tmp_path / "result.nc.tmp", []
+    path.write_bytes(b"samples")
+    monkeypatch.setattr(os, "fsync", lambda fd: calls.append("fsync"))
+    monkeypatch.setattr(os, "posix_fadvise", lambda fd, offset, length, advice: calls.append((offset, length, advice)))
+    store.fsync_path(path, release=True)
+    assert calls == ["fsync", (0, 0, os.POSIX_FADV_DONTNEED)]
+    calls.clear()
+    store.fsync_path(path)
+    assert calls == ["fsync"]
+
+    def refuses(*args):
+        raise OSError(22, "Invalid argument")
+
+    monkeypatch.setattr(os, "posix_fadvise", refuses)
+    store.fsync_path(path, release=True)
+    assert path.read_bytes() == b"samples"
