@@ -20,7 +20,6 @@ released (from the disk, or the host's cache of it).
 """
 from __future__ import annotations
 
-import os
 import statistics
 import tempfile
 import time
@@ -35,15 +34,17 @@ from ensemble.store import fsync_path
 CHUNK = 16 << 20  # bytes per write call
 
 
-def write_seconds(path: Path, data: np.ndarray, total: int) -> float:
-    """Seconds to write `total` bytes of `data` (CHUNK bytes) into the new file `path`, then delete it."""
-    start = time.perf_counter()
-    descriptor = os.open(path, os.O_CREAT | os.O_EXCL | os.O_WRONLY)
-    try:
+def write_file(path: Path, data: np.ndarray, total: int) -> None:
+    """Write `total` bytes of `data` (CHUNK bytes a call) into the new file `path`."""
+    with open(path, "xb", buffering=0) as file:
         for _ in range(total // CHUNK):
-            os.write(descriptor, data)
-    finally:
-        os.close(descriptor)
+            file.write(data)
+
+
+def write_seconds(path: Path, data: np.ndarray, total: int) -> float:
+    """Seconds to write the new file `path` (write_file), which is deleted afterwards."""
+    start = time.perf_counter()
+    write_file(path, data, total)
     seconds = time.perf_counter() - start
     path.unlink()
     return seconds
@@ -52,9 +53,7 @@ def write_seconds(path: Path, data: np.ndarray, total: int) -> float:
 def read_seconds(path: Path, data: np.ndarray, total: int, release: bool) -> float:
     """Seconds to read back the new file `path` of `total` bytes right after writing and fsyncing it (with
     `release`, fsync_path's release of its cached pages); the file is deleted afterwards."""
-    with open(path, "xb") as file:
-        for _ in range(total // CHUNK):
-            file.write(data)
+    write_file(path, data, total)
     fsync_path(path, release=release)
     start = time.perf_counter()
     with open(path, "rb", buffering=0) as file:
