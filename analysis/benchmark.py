@@ -396,14 +396,15 @@ PEAK = ("import atexit, runpy, sys\n"
 # high-water mark (ru_maxrss) includes the memory of the process it was forked from
 
 
-def whole_run(text: str, folder: Path, threads: int | None = None) -> tuple[float, float, float, float]:
-    """`ensemble run` of a run file's text in a process of its own: (wall seconds, member-steps (mass-steps for
-    chains) in the run, the rate the run reports (its work over its own seconds: start-up and loading the
-    kernels excluded), peak RSS in MB)."""
+def whole_run(text: str, folder: Path, threads: int | None = None, env: dict[str, str] | None = None
+              ) -> tuple[float, float, float, float]:
+    """`ensemble run` of a run file's text in a process of its own (its environment updated with `env`): (wall
+    seconds, member-steps (mass-steps for chains) in the run, the rate the run reports (its work over its own
+    seconds: start-up and loading the kernels excluded), peak RSS in MB)."""
     path, out = folder / "run.toml", folder / "run.nc"
     path.write_text(text)
     out.unlink(missing_ok=True)
-    env = {**os.environ, **({"NUMBA_NUM_THREADS": str(threads)} if threads else {})}
+    env = {**os.environ, **(env or {}), **({"NUMBA_NUM_THREADS": str(threads)} if threads else {})}
     start = time.perf_counter()
     done = subprocess.run([sys.executable, "-c", PEAK, "run", str(path), "-o", str(out), "--quiet"],
                           capture_output=True, text=True, env=env)

@@ -12,15 +12,12 @@ ratio of the medians holds where either figure alone does not.
 """
 from __future__ import annotations
 
-import os
 import statistics
 import subprocess
-import sys
 import tempfile
-import time
 from pathlib import Path
 
-from benchmark import WORKLOADS, c_limit, print_limit
+from benchmark import WORKLOADS, c_limit, print_limit, whole_run
 from hostinfo import host
 
 from ensemble.arguments import OneLineParser, positive_int
@@ -28,18 +25,11 @@ from ensemble.arguments import OneLineParser, positive_int
 ROOT = Path(__file__).resolve().parent.parent
 
 
-def one_run(tree: Path, cache: Path, runfile: Path, out: Path) -> float:
-    """Wall seconds of one `ensemble run` process of the code in `tree`."""
-    out.unlink(missing_ok=True)
-    env = {**os.environ, "PYTHONPATH": str(tree), "NUMBA_CACHE_DIR": str(cache)}
-    start = time.perf_counter()
-    done = subprocess.run([sys.executable, "-m", "ensemble", "run", str(runfile), "-o", str(out), "--quiet"],
-                          env=env, capture_output=True, text=True)
-    seconds = time.perf_counter() - start
-    if done.returncode != 0:
-        raise SystemExit(f"compare_revisions: the run failed in {tree}: {done.stderr.strip().splitlines()[-1:]}")
-    out.unlink(missing_ok=True)
-    return seconds
+def revision_env(tree: Path, cache: Path) -> dict[str, str]:
+    """Environment variables under which `ensemble run` runs the code in `tree` with its own Numba cache.
+    PYTHONSAFEPATH: without it Python puts the current folder first on sys.path, so run from a checkout every
+    revision imported that checkout's ensemble."""
+    return {"PYTHONPATH": str(tree), "PYTHONSAFEPATH": "1", "NUMBA_CACHE_DIR": str(cache)}
 
 
 def main(argv=None) -> None:
@@ -64,16 +54,15 @@ def main(argv=None) -> None:
                 parser.error(f"{revision}: not a revision of {ROOT} ({added.stderr.strip().splitlines()[-1]})")
             trees[revision] = tree
         try:
-            runfile = folder / "run.toml"
-            runfile.write_text(WORKLOADS[args.workload])
-            caches = {name: folder / f"cache{k}" for k, name in enumerate(trees)}
-            for name, tree in trees.items():
-                one_run(tree, caches[name], runfile, folder / "out.nc")
+            envs = {name: revision_env(tree, folder / f"cache{k}") for k, (name, tree) in enumerate(trees.items())}
+            text = WORKLOADS[args.workload]
+            for env in envs.values():
+                whole_run(text, folder, env=env)  # untimed: compiles
             print_limit("C limit, before", c_limit())
             walls = {name: [] for name in trees}
             for _ in range(args.repeats):
-                for name, tree in trees.items():
-                    walls[name].append(one_run(tree, caches[name], runfile, folder / "out.nc"))
+                for name, env in envs.items():
+                    walls[name].append(whole_run(text, folder, env=env)[0])
             print_limit("C limit, after", c_limit())
         finally:
             for tree in trees.values():

@@ -1,6 +1,7 @@
 """The analysis scripts users run on results: tables, fits files, charts, --check and bad input."""
 from __future__ import annotations
 
+import os
 import re
 import shutil
 import subprocess
@@ -139,6 +140,20 @@ def test_the_c_dopri5_yardstick_steps_as_ensembles_dopri5(tmp_path, monkeypatch)
     assert steps > 128 * 100  # the tops need more than 100 steps each at this tolerance
     assert c["C dopri5"]() == pytest.approx(steps, rel=0.01)
     assert np.array([5e-324]) > 0.0  # loading the C left subnormal numbers alone (no flush-to-zero modes)
+
+
+def test_compare_revisions_runs_each_revisions_own_code_even_from_the_checkout(tmp_path, monkeypatch):
+    """A process under compare_revisions' environment for a revision imports ensemble from that revision's
+    folder, also when started in the checkout (whose own ensemble Python would otherwise find first)."""
+    monkeypatch.syspath_prepend(str(ROOT / "analysis"))
+    import compare_revisions
+    tree = tmp_path / "revision"
+    (tree / "ensemble").mkdir(parents=True)
+    (tree / "ensemble" / "__init__.py").write_text("")
+    env = {**os.environ, **compare_revisions.revision_env(tree, tmp_path / "cache")}
+    found = subprocess.run([sys.executable, "-c", "import ensemble; print(ensemble.__file__)"], cwd=ROOT, env=env,
+                           capture_output=True, text=True, check=True).stdout.strip()
+    assert Path(found) == tree / "ensemble" / "__init__.py"
 
 
 def test_an_unwritable_output_is_one_line_and_keeps_the_verdict(tmp_path):
