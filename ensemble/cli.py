@@ -209,9 +209,9 @@ def _memory_problem(spec) -> str | None:
 def _space_problem(out: Path, spec) -> str | None:
     """The disk's free space against what the run will take: the result, and its parts (a copy of the per-member
     records) until they are deleted (a full disk midway costs the run)."""
-    from .store import RUN_RECORDS, output_bytes
+    from .store import output_bytes, record_names
 
-    need = output_bytes(spec) + 8 * len(RUN_RECORDS) * spec.n_members
+    need = output_bytes(spec) + 8 * len(record_names(spec)) * spec.n_members
     free = shutil.disk_usage(out.parent).free
     if need > free:
         return f"the result needs about {need / 1e6:.4g} MB and {out.parent} has {free / 1e6:.4g} MB free"
