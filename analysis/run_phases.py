@@ -1,6 +1,6 @@
 """Where a whole run's seconds go: one `ensemble run` in this process, its steps timed as they happen.
 
-    python analysis/run_phases.py (RUNFILE | --workload tops|chains) [--members N]
+    python analysis/run_phases.py (RUNFILE | --workload tops|chains) [--members N] [--save-dt S]
 
 Runs RUNFILE, or one of the two whole-run workloads of benchmark.py --whole,
 (into a temporary folder) with the run's own steps wrapped in
@@ -81,6 +81,8 @@ def main(argv=None) -> None:
     parser.add_argument("runfile", type=Path, nargs="?")
     parser.add_argument("--workload", choices=WORKLOADS, help="a whole-run workload of benchmark.py instead")
     parser.add_argument("--members", type=positive_int, help="replace the run file's member count")
+    parser.add_argument("--save-dt", type=float, help="replace the run file's save_dt (s): what saving costs, "
+                                                     "against the same run saving less")
     args = parser.parse_args(argv)
     if (args.runfile is None) == (args.workload is None):
         parser.error("give a run file or --workload")
@@ -88,8 +90,10 @@ def main(argv=None) -> None:
         spec = parse(WORKLOADS[args.workload], args.workload) if args.workload else load(args.runfile)
         if args.members:
             spec = parse(re.sub(r"(?m)^members\s*=.*$", f"members = {args.members}", spec.text))
+        if args.save_dt:
+            spec = parse(re.sub(r"(?m)^save_dt\s*=.*$", f"save_dt = {args.save_dt!r}", spec.text))
     except SpecError as e:
-        parser.error(f"{args.runfile}: {e}")
+        parser.error(f"{args.runfile or args.workload}: {e}")
     cli._skip_numba_blas_probe()  # as `ensemble run` does, so loading the kernels takes what it takes there
     timed(SCENES[spec.scene], "observe", "  observing")
     timed(SCENES[spec.scene], "amplitudes", "  amplitudes")
@@ -106,8 +110,9 @@ def main(argv=None) -> None:
         summary = runner.run(spec, Path(folder) / "out.nc", progress=False)
         seconds = time.perf_counter() - start
     print_limit("C limit, after", c_limit())
-    print(f"{spec.n_members} members, {summary.member_steps:.3g} member-steps: start-up {imports:.2f} s "
-          f"(this script's imports), the run {seconds:.2f} s (of which {summary.preparing:.2f} s loading kernels)")
+    print(f"{spec.n_members} members, {summary.member_steps:.3g} member-steps, {spec.n_save} samples: start-up "
+          f"{imports:.2f} s (this script's imports), the run {seconds:.2f} s (of which {summary.preparing:.2f} s "
+          "loading kernels)")
     for label in ("kernel", "finishing", "  laying out", "  observing", "  amplitudes", "  growth fit", "  writing",
                   "fsync"):
         print(f"  {label:14s} {totals[label]:7.3f} s")
