@@ -8,7 +8,8 @@
 2. The same for the tops in hand-written C (analysis/c/top_dopri5.c, compiled
    here with gcc; skipped without it), alternated with ensemble's kernels:
    rk4 as ../shared/limit/ens.c writes it, and dopri5 with ensemble's step
-   control written the same way: the ratio C can reach on this host.
+   control written the same way: the ratio C can reach on this host, and how
+   much of it is members waiting for the rest of their block at saved times.
 3. Right-hand-side evaluations each needs for a largest error of 1e-10 over
    2 s on a top spinning at 200 rad/s: rk4 halves dt until it gets there,
    dopri5 lowers rtol by decades.
@@ -111,10 +112,11 @@ def c_tops(values, n_save, save_dt, dt, folder):
         return members * (n_save - 1) * steps_per_save
 
     def dopri5():
-        w, counts = state0.copy(), np.zeros((2, members))
+        w, counts = state0.copy(), np.zeros((3, members))
         c.top_dopri5(members, n_save, save_dt, 1e-8, 1e-12, dt, control.alpha, control.beta, control.safety,
                      control.min_factor, control.max_factor, _address(w), _address(rate), _address(counts))
-        return counts.sum()
+        dopri5.waited = 1.0 - counts[:2].sum() / counts[2].sum()  # share of the blocks' trial steps members waited
+        return counts[:2].sum()
 
     return {"C rk4": rk4, "C dopri5": dopri5}
 
@@ -155,7 +157,8 @@ def main():
     spec = parse((RUNS / "aerobie.toml").read_text().replace("members = 200", "members = 4096"))
     tops = {name: v[:8192] for name, v in members_table(spec).items()}
     with tempfile.TemporaryDirectory() as folder:
-        seconds = per_step(top, tops, {}, 1e-3, 0.1, 31, args.repeats, c_tops(tops, 31, 0.1, 1e-3, folder))
+        c_runs = c_tops(tops, 31, 0.1, 1e-3, folder)
+        seconds = per_step(top, tops, {}, 1e-3, 0.1, 31, args.repeats, c_runs)
     rk4, dopri5 = seconds["rk4"], seconds["dopri5"]
     print(f"top, 8192 members: rk4 {rk4:.3g} s, dopri5 {dopri5:.3g} s per member-step, ratio {dopri5 / rk4:.1f}")
     if "C rk4" in seconds:
@@ -163,7 +166,8 @@ def main():
         c_dopri5 = seconds["C dopri5"]
         print(f"  hand-written C ({C_SOURCE.name}): rk4 {c_rk4:.3g} s, dopri5 {c_dopri5:.3g} s, ratio "
               f"{c_dopri5 / c_rk4:.1f}; ensemble's rk4 takes {rk4 / c_rk4:.2f} and its dopri5 {dopri5 / c_dopri5:.2f} "
-              "of the C's time")
+              f"of the C's time; the C's members waited for their block in {c_runs['C dopri5'].waited:.1%} of its "
+              "trial steps")
     else:
         print("  hand-written C: skipped (no gcc)")
     chain_spec = parse(CHAIN)

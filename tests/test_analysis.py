@@ -139,6 +139,7 @@ def test_the_c_dopri5_yardstick_steps_as_ensembles_dopri5(tmp_path, monkeypatch)
     steps = outcome.counts[:2].sum()
     assert steps > 128 * 100  # the tops need more than 100 steps each at this tolerance
     assert c["C dopri5"]() == pytest.approx(steps, rel=0.01)
+    assert 0.0 <= c["C dopri5"].waited < 0.5  # a block runs at least its members' trial steps
     assert np.array([5e-324]) > 0.0  # loading the C left subnormal numbers alone (no flush-to-zero modes)
 
 
@@ -210,9 +211,12 @@ def test_z_histograms_say_what_they_clip():
 
 def test_run_phases_times_every_step_of_a_run():
     """analysis/run_phases.py wraps the run's own steps: each wrapped step ran (a renamed one would show 0 s), and
-    the kernel calls and the finishing, each on one thread, took no longer than the run."""
-    done = script("run_phases.py", ROOT / "runs" / "aerobie.toml", "--members", 512)
+    the kernel calls and the finishing, each on one thread, took no longer than the run; --members and --save-dt
+    replace the run file's."""
+    done = script("run_phases.py", ROOT / "runs" / "aerobie.toml", "--members", 512, "--save-dt", 0.5)
     assert done.returncode == 0, done.stderr
+    # 512 members at each of the run file's three drag coefficients; t_end 30 s
+    assert re.search(r"^1536 members, .* 61 samples:", done.stdout, re.M), done.stdout
     seconds = {m[1].strip(): float(m[2]) for m in re.finditer(r"^  (\s*[a-z ]+?)\s+([0-9.]+) s$", done.stdout, re.M)}
     assert set(seconds) == {"kernel", "finishing", "laying out", "observing", "amplitudes", "growth fit", "writing",
                             "fsync"}, done.stdout

@@ -60,8 +60,9 @@ void top_rk4(long M, long n_save, long steps_per_save, double h, double *restric
     }
 }
 
-/* Dormand-Prince 5(4) with FSAL, every member its own step; w (3, M) in and out; counts (2, M) out: accepted
- * and rejected steps; h0: first trial step (s). */
+/* Dormand-Prince 5(4) with FSAL, every member its own step; w (3, M) in and out; counts (3, M) out: accepted
+ * and rejected steps, and the trial steps the member's block ran (its own, and those it waited through while
+ * others reached a saved time); h0: first trial step (s). */
 void top_dopri5(long M, long n_save, double save_dt, double rtol, double atol, double h0,
                 double alpha, double beta, double safety, double min_factor, double max_factor,
                 double *restrict w, const double *restrict rate, double *restrict counts)
@@ -79,6 +80,7 @@ void top_dopri5(long M, long n_save, double save_dt, double rtol, double atol, d
     for (long b = 0; b < M / BS; b++) {
         double y1[BS], y2[BS], y3[BS], k1[BS], k2[BS], k3[BS], p[BS], r1[BS], r3[BS];
         double time[BS], h[BS], previous[BS], rejected_last[BS], accepted[BS], rejected[BS];
+        long block_steps = 0;
         for (int l = 0; l < BS; l++) {
             long j = b * BS + l;
             y1[l] = w[j]; y2[l] = w[M + j]; y3[l] = w[2 * M + j];
@@ -89,7 +91,7 @@ void top_dopri5(long M, long n_save, double save_dt, double rtol, double atol, d
         }
         for (long i = 1; i < n_save; i++) {
             const double target = i * save_dt;
-            for (int left = BS; left > 0;) {
+            for (int left = BS; left > 0; block_steps++) {
                 left = 0;
                 #pragma omp simd reduction(+:left)
                 for (int l = 0; l < BS; l++) {
@@ -146,7 +148,7 @@ void top_dopri5(long M, long n_save, double save_dt, double rtol, double atol, d
         for (int l = 0; l < BS; l++) {
             long j = b * BS + l;
             w[j] = y1[l]; w[M + j] = y2[l]; w[2 * M + j] = y3[l];
-            counts[j] = accepted[l]; counts[M + j] = rejected[l];
+            counts[j] = accepted[l]; counts[M + j] = rejected[l]; counts[2 * M + j] = block_steps;
         }
     }
 }
