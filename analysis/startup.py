@@ -2,15 +2,17 @@
 
     python analysis/startup.py [--repeats 5]
 
-Times (wall, medians of --repeats) three processes, each once per round:
+Times (wall, medians of --repeats) four processes, each once per round:
 a Python that loads one trivial cached @njit function (what any Numba program
-pays before its first kernel runs), `ensemble run` on 10 tops (rk4, 1000 steps),
-and the same run file parsed only. Prints the host first; run it twice on a
-fresh install (the first run compiles).
+pays before its first kernel runs), the same with Numba's BLAS probe skipped
+as `ensemble run` skips it (ensemble.cli._skip_numba_blas_probe), `ensemble
+run` on 10 tops (rk4, 1000 steps), and the same run file parsed only. Prints
+the host first; run it twice on a fresh install (the first run compiles).
 """
 from __future__ import annotations
 
 import argparse
+import os
 import statistics
 import subprocess
 import sys
@@ -55,12 +57,17 @@ def main() -> None:
     parser.add_argument("--repeats", type=positive_int, default=5)
     args = parser.parse_args()
     print(host())
+    if os.environ.get("PYTHONDONTWRITEBYTECODE"):
+        print("PYTHONDONTWRITEBYTECODE is set: modules without a .pyc (an editable install's) are compiled from "
+              "source in every process")
     with tempfile.TemporaryDirectory() as tmp:
-        runfile, floor = Path(tmp) / "ten.toml", Path(tmp) / "floor.py"
+        runfile, floor, skipped = Path(tmp) / "ten.toml", Path(tmp) / "floor.py", Path(tmp) / "skipped.py"
         runfile.write_text(TEN_TOPS)
         floor.write_text(FLOOR)
+        skipped.write_text("from ensemble import cli\ncli._skip_numba_blas_probe()\n" + FLOOR)
         commands = {
             "numba floor (one cached @njit function)": [sys.executable, str(floor)],
+            "the same, BLAS probe skipped": [sys.executable, str(skipped)],
             "ensemble run, 10 tops": [sys.executable, "-m", "ensemble", "run", str(runfile), "-o",
                                       f"{tmp}/ten.nc", "--force", "--quiet"],
             "parse the run file only": [sys.executable, "-c",
