@@ -141,7 +141,7 @@ def main(argv=None) -> int:
     parser.add_argument("--drift-step", type=float, default=0.5,
                         help="dimensionless step of the members in the energy-drift chart (default 0.5)")
     parser.add_argument("--check", action="store_true",
-                        help=f"exit 1 when a measured limit misses theory by more than {LIMIT_RTOL:.0%}")
+                        help=f"exit 1 when a measured limit misses theory by more than {LIMIT_RTOL:.0%}%")
     args = parser.parse_args(argv)
     loaded = report.load_result(args.result, stability.stability_map)
     if loaded is None:
