@@ -1,0 +1,87 @@
+"""The READMEs stay true: their Python examples run and give what they say, and every command they give names a
+script, an option and a run file that exist."""
+from __future__ import annotations
+
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from .test_analysis import run_small
+
+ROOT = Path(__file__).resolve().parent.parent
+DOCS = [ROOT / "README.md", ROOT / "analysis" / "README.md"]
+
+
+def python_examples() -> list[str]:
+    return re.findall(r"^```python\n(.*?)^```", (ROOT / "README.md").read_text(), re.S | re.M)
+
+
+def commands(text: str) -> list[str]:
+    """The commands a document gives: each line of its sh blocks and each inline code span, whitespace made one
+    space, cut at a comment or a `&&`."""
+    blocks = re.findall(r"^```sh\n(.*?)^```", text, re.S | re.M)
+    lines = [line for block in blocks for line in block.splitlines()]
+    spans = [" ".join(span.split()) for span in re.findall(r"(?<!`)`([^`]+)`(?!`)", re.sub(r"```.*?```", "", text,
+                                                                                          flags=re.S))]
+    return [part.split(" #")[0].strip() for line in lines + spans for part in line.split("&&")]
+
+
+def test_every_python_example_in_the_readme_runs_and_gives_what_it_says(tmp_path, monkeypatch):
+    """The examples open results the README's run files make (here with 4 members a sweep point)."""
+    for name in ("aerobie.toml", "aerobie_noisy.toml", "two_mass.toml"):
+        run_small(name, tmp_path / "results", 4)
+    monkeypatch.chdir(tmp_path)
+    examples = python_examples()
+    assert len(examples) >= 6
+    done = []
+    for example in examples:
+        namespace = {}
+        exec(compile(example, "README.md", "exec"), namespace)
+        done.append(namespace)
+    modes = next(n for n in done if "shapes" in n)
+    assert modes["omega"] == pytest.approx([1.0, np.sqrt(3.0)])  # the comment's [1, 1.732...]
+    outcome = next(n for n in done if "outcome" in n)["outcome"]
+    assert outcome.samples.shape == (11, 3, 1)  # (n_save, state, members), as the comment says
+
+
+def help_texts(commands: list[tuple[str, ...]]) -> list[str]:
+    """The --help of each command (python's arguments), the processes run side by side."""
+    processes = [subprocess.Popen([sys.executable, *command, "--help"], stdout=subprocess.PIPE,
+                                  stderr=subprocess.PIPE, text=True, cwd=ROOT) for command in commands]
+    texts = []
+    for command, process in zip(commands, processes):
+        out, err = process.communicate()
+        assert process.returncode == 0, f"{' '.join(command)} --help: {err.strip().splitlines()[-1:]}"
+        texts.append(out)
+    return texts
+
+
+@pytest.mark.parametrize("doc", DOCS, ids=lambda p: str(p.relative_to(ROOT)))
+def test_every_command_in_the_docs_names_what_exists(doc):
+    """`python analysis/X.py --option`: X.py exists and its --help lists --option; `ensemble SUB --option`:
+    `ensemble SUB --help` lists it; runs/X.toml: the run file exists."""
+    given = commands(doc.read_text())
+    options = {}  # the command whose --help must list them (script, or -m ensemble SUB): options
+    for command in given:
+        words = command.split()
+        if words[:2] == ["python", "-m"] or words[0] not in ("python", "ensemble") or len(words) < 2:
+            continue
+        if words[0] == "python":
+            if not words[1].startswith("analysis/"):
+                continue
+            assert (ROOT / words[1]).is_file(), f"{doc.name}: {command}: no {words[1]}"
+            key = (words[1],)
+        else:
+            key = ("-m", "ensemble", words[1])
+        options.setdefault(key, set()).update(w.split("=")[0] for w in words if w.startswith("--") and len(w) > 2)
+        for word in words:
+            if word.startswith("runs/"):
+                assert (ROOT / word).is_file(), f"{doc.name}: {command}: no {word}"
+    assert any(key[0] == "-m" for key in options) or doc.parent.name == "analysis", given
+    for (key, wanted), text in zip(options.items(), help_texts(list(options))):
+        listed = set(re.findall(r"--[a-z][a-z0-9-]*", text))
+        assert wanted <= listed, f"{doc.name}: {' '.join(key)} has no {sorted(wanted - listed)}"
