@@ -90,7 +90,7 @@ def main(argv=None) -> None:
         spec = parse(WORKLOADS[args.workload], args.workload) if args.workload else load(args.runfile)
         if args.members:
             spec = parse(re.sub(r"(?m)^members\s*=.*$", f"members = {args.members}", spec.text))
-        if args.save_dt:
+        if args.save_dt is not None:
             spec = parse(re.sub(r"(?m)^save_dt\s*=.*$", f"save_dt = {args.save_dt!r}", spec.text))
     except SpecError as e:
         parser.error(f"{args.runfile or args.workload}: {e}")
