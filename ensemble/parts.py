@@ -188,9 +188,9 @@ class Parts:
         return PartWriter(self, start, stop)
 
     def assemble(self) -> dict[str, np.ndarray]:
-        """Write the records of the parts an earlier run left into `result` (their samples are in it already);
-        returns the per-member records of every member, in member order. Call settle first: every part must be
-        finished."""
+        """Write every member's records into `result`, each record in one piece (the parts hold them; their
+        samples are in the result already); returns them (member,), in member order. Call settle first: every
+        part must be finished."""
         self._sealing.shutdown()
         assert not self._sealed and not self.missing(), "assemble needs every member, settled"
         names = record_names(self.spec)
@@ -201,16 +201,17 @@ class Parts:
                 with netCDF4.Dataset(part.path) as nc:
                     nc.set_auto_mask(False)
                     data = {name: nc.variables[name][:] for name in names}
-                self.result.write(part.start, data)
             for name in names:
                 records[name].append(data[name])
-        return {name: np.concatenate(values) for name, values in records.items()}
+        records = {name: np.concatenate(values) for name, values in records.items()}
+        self.result.write(0, records)
+        return records
 
 
 class PartWriter:
-    """Members start .. stop - 1 of a run: their samples and records written to the parts' result, their records
-    to a .tmp file too; finish() makes it a part, abandon() deletes it. Same write_samples and write as
-    ensemble.store.Writer, with the run's member indices."""
+    """Members start .. stop - 1 of a run: their samples written to the parts' result, their records to a .tmp
+    file (and to the result by Parts.assemble, once every member is in); finish() makes it a part, abandon()
+    deletes it. Same write_samples and write as ensemble.store.Writer, with the run's member indices."""
 
     def __init__(self, parts: Parts, start: int, stop: int):
         self.parts, self.start, self.stop = parts, start, stop
@@ -235,7 +236,6 @@ class PartWriter:
     def write(self, start: int, data: dict[str, np.ndarray]) -> None:
         """The records of every member of the part (start is the part's)."""
         put_records(self.nc.variables, start - self.start, data)
-        self.parts.result.write(start, data)
         self.records = data
 
     def finish(self) -> None:
