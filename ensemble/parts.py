@@ -20,8 +20,9 @@ fsynced), which its checksum tells. Writing more members changes only their
 own bytes of OUT.nc.tmp (see ensemble.store), so a run killed while writing
 a chunk leaves the finished ones intact. A resume checks that OUT.nc.tmp
 opens and is this run's; if not, every part is dropped and the run starts
-over. Only once every member is in is the result fsynced and renamed into
-place, and the folder deleted.
+over. Only once every member is in are the parts' records written into the
+result (Parts.assemble), the result fsynced and renamed into place, and the
+folder deleted.
 """
 from __future__ import annotations
 
