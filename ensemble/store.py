@@ -2,11 +2,12 @@
 
 The result is written as `OUT.tmp`, fsynced, and renamed to OUT only when
 every member is in, so no run leaves a file that looks complete and is not.
-Its saved variables and records are stored contiguously: HDF5 gives a
-variable all its space at the first write, so once the first chunk is written
-and flushed (sync), writing more members changes only their own bytes, never
-the file's structure. That is what lets a run killed midway keep OUT.tmp and
-resume into it (see ensemble.parts).
+Its saved variables and records are stored contiguously, and HDF5 gives a
+contiguous variable all its space at its first write: the Writer makes that
+write as it creates the file (Writer._allocate). So once the file is created
+and flushed, writing members changes only their own bytes, never the file's
+structure. That is what lets a run killed midway keep OUT.tmp and resume into
+it (see ensemble.parts).
 """
 from __future__ import annotations
 
@@ -163,6 +164,7 @@ class Writer:
             self._settings(table)
             self._records()
             self._observables()
+            self._allocate()
         except BaseException as error:
             self.__exit__(type(error), error, None)
             raise
@@ -235,6 +237,15 @@ class Writer:
                 var.setncattr("observation_noise_stddev", spec.noise[name])
                 var.setncattr("comment", "includes Gaussian observation noise of stddev observation_noise_stddev "
                                          "(same units), drawn per member from the run's seed")
+
+    def _allocate(self) -> None:
+        """Give the records and saved variables their whole space now, by writing each one's last value (NaN, or
+        0 for an integer; the run writes its own later): the records are written only when every member is in
+        (ensemble.parts), and a change of the file's structure then, by a run killed midway, would cost every
+        part."""
+        for name in [*record_names(self.spec), *self.spec.save]:
+            variable = self.nc.variables[name]
+            variable[tuple(size - 1 for size in variable.shape)] = np.nan if variable.dtype.kind == "f" else 0
 
     def _coordinate(self, name, values, long_name, units="1", dims=None):
         var = self.nc.createVariable(name, values.dtype, dims or (name,))

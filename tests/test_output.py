@@ -144,6 +144,27 @@ def test_step_counters_hold_more_than_two_billion(tmp_path):
         np.testing.assert_array_equal(nc["rhs_evals"][:], 4 * counts)
 
 
+def test_the_results_structure_is_fixed_when_it_is_created(tmp_path):
+    """Every record and saved variable has its whole space once the file is made (Writer._allocate), so writing
+    members, the records last of all, changes only their bytes: a run killed while writing leaves a file that
+    opens. HDF5 grows the file when it allocates a variable; here the size must not change."""
+    from ensemble.spec import members_table, parse
+    from ensemble.store import Writer, record_names, temporary_path
+    spec = parse(top_runfile(members=1000, save=["omega", "tilt"], t_end=1.0), "run.toml")
+    path = tmp_path / "out.nc"
+    with Writer(path, spec, members_table(spec)) as writer:
+        writer.sync()
+        size = temporary_path(path).stat().st_size
+        samples = {name: np.ones(writer.nc.variables[name].shape) for name in spec.save}
+        assert size > sum(x.nbytes for x in samples.values())  # the space is there already
+        writer.write_samples(0, 0, samples)
+        writer.write(0, {name: np.ones(1000, writer.nc.variables[name].dtype) for name in record_names(spec)})
+        writer.sync()
+        assert temporary_path(path).stat().st_size == size
+    with netCDF4.Dataset(path) as nc:
+        assert nc["tilt"][-1, -1] == 1.0 and nc["status"][-1] == 1  # the allocating writes were overwritten
+
+
 @pytest.mark.skipif(not hasattr(os, "posix_fadvise"), reason="no posix_fadvise here")
 def test_a_finished_chunk_is_on_the_disk_before_its_pages_are_released(tmp_path, monkeypatch):
     """store.fsync_path(release=True), which seals every chunk: fsync first, then the advice that the system may
