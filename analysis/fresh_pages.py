@@ -16,7 +16,9 @@ Then the price of what a run does after each chunk (store.fsync_path with
 release: fsync, then let the system drop the file's cached pages, so that the
 next chunk writes into pages just freed): reading the file back right after
 it is written and fsynced, from the page cache, and after its pages were
-released (from the disk, or the host's cache of it).
+released (from the disk, or the host's cache of it); and deleting it once it
+is on the disk, as `--force` replaces an earlier result (a filesystem mounted
+with `discard` trims the file's blocks then).
 """
 from __future__ import annotations
 
@@ -50,9 +52,9 @@ def write_seconds(path: Path, data: np.ndarray, total: int) -> float:
     return seconds
 
 
-def read_seconds(path: Path, data: np.ndarray, total: int, release: bool) -> float:
+def read_seconds(path: Path, data: np.ndarray, total: int, release: bool) -> tuple[float, float]:
     """Seconds to read back the new file `path` of `total` bytes right after writing and fsyncing it (with
-    `release`, fsync_path's release of its cached pages); the file is deleted afterwards."""
+    `release`, fsync_path's release of its cached pages), and then to delete it."""
     write_file(path, data, total)
     fsync_path(path, release=release)
     start = time.perf_counter()
@@ -60,9 +62,9 @@ def read_seconds(path: Path, data: np.ndarray, total: int, release: bool) -> flo
         buffer = bytearray(CHUNK)
         while file.readinto(buffer):
             pass
-    seconds = time.perf_counter() - start
+    middle = time.perf_counter()
     path.unlink()
-    return seconds
+    return middle - start, time.perf_counter() - middle
 
 
 def main(argv=None) -> None:
@@ -74,7 +76,7 @@ def main(argv=None) -> None:
     print(host())
     data = np.random.default_rng(0).random(CHUNK // 8)
     total = args.mb * (1 << 20) // CHUNK * CHUNK
-    recycled, paused, cached, released = [], [], [], []
+    recycled, paused, cached, released, deleted = [], [], [], [], []
     with tempfile.TemporaryDirectory() as folder:
         path = Path(folder) / "fresh_pages.bin"
         write_seconds(path, data, total)  # untimed: whatever the memory's state at the start
@@ -82,14 +84,17 @@ def main(argv=None) -> None:
             recycled.append(write_seconds(path, data, total))
             time.sleep(args.pause)
             paused.append(write_seconds(path, data, total))
-            cached.append(read_seconds(path, data, total, release=False))
-            released.append(read_seconds(path, data, total, release=True))
+            for release, reads in ((False, cached), (True, released)):
+                read, delete = read_seconds(path, data, total, release)
+                reads.append(read)
+                deleted.append(delete)
     mb = total / (1 << 20)
     print(f"writing {mb:.0f} MB to a new file: {statistics.median(recycled):.3f} s with recycled pages, "
           f"{statistics.median(paused):.3f} s after {args.pause} s idle (medians of {args.repeats}; "
           f"ratio {statistics.median(paused) / statistics.median(recycled):.1f})")
     print(f"reading it back right after writing and fsyncing it: {statistics.median(cached):.3f} s from the page "
           f"cache, {statistics.median(released):.3f} s once its pages were released (medians of {args.repeats})")
+    print(f"deleting it once on the disk: {statistics.median(deleted):.3f} s (median of {len(deleted)})")
 
 
 if __name__ == "__main__":
