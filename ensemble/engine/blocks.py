@@ -93,7 +93,7 @@ def stack_array(size):
     """An uninitialized float64 array of `size` values (a constant of the kernel's closure) on the stack, for
     values a member keeps only within a step, such as its stage slopes. Where every index is a constant once
     LLVM unrolls the loops, the values stay in registers: stored in work rows, each had to be written to
-    memory (a whole 262,144-top rk4 run took 0.89 of its time without those stores; README, Speed)."""
+    memory (without those stores a whole 262,144-top rk4 run took 0.89 of the time: analysis/README.md)."""
     return carray(_stack_pointer(size), size)
 
 
