@@ -18,7 +18,8 @@ timers and prints each step's total seconds, on whichever thread it ran:
 The run's seconds (loading its kernels from the cache included) and this
 script's imports come first; the C limit (limit.py) is measured just before
 and just after the run. The steps overlap: finishing and fsync run while the next chunk's
-kernel does, on the same two cores. --members replaces the run file's count.
+kernel does, on the same two cores. --members and --save-dt replace the run
+file's values.
 """
 from __future__ import annotations
 
@@ -88,10 +89,9 @@ def main(argv=None) -> None:
         parser.error("give a run file or --workload")
     try:
         spec = parse(WORKLOADS[args.workload], args.workload) if args.workload else load(args.runfile)
-        if args.members:
-            spec = parse(re.sub(r"(?m)^members\s*=.*$", f"members = {args.members}", spec.text))
-        if args.save_dt is not None:
-            spec = parse(re.sub(r"(?m)^save_dt\s*=.*$", f"save_dt = {args.save_dt!r}", spec.text))
+        for key, value in (("members", args.members), ("save_dt", args.save_dt)):
+            if value is not None:
+                spec = parse(re.sub(rf"(?m)^{key}\s*=.*$", f"{key} = {value!r}", spec.text))
     except SpecError as e:
         parser.error(f"{args.runfile or args.workload}: {e}")
     cli._skip_numba_blas_probe()  # as `ensemble run` does, so loading the kernels takes what it takes there
