@@ -4,7 +4,8 @@
 
 Runs RUNFILE, or one of the two whole-run workloads of benchmark.py --whole,
 (into a temporary folder) with the run's own steps wrapped in
-timers and prints each step's total seconds, on whichever thread it ran:
+timers and prints each step's total seconds and calls, on whichever thread
+it ran:
 
     kernel          the kernel calls (main thread; both cores when alone)
     finishing       a chunk finished on the finishing thread: what follows
@@ -43,6 +44,7 @@ from ensemble.scenes import SCENES  # noqa: E402
 from ensemble.spec import SpecError, load, parse  # noqa: E402
 
 totals: dict[str, float] = collections.defaultdict(float)
+calls: collections.Counter = collections.Counter()
 _lock = threading.Lock()
 
 
@@ -58,6 +60,7 @@ def timed(owner, name: str, label: str) -> None:
         finally:
             with _lock:
                 totals[label] += time.perf_counter() - start
+                calls[label] += 1
 
     setattr(owner, name, wrapper)
 
@@ -70,6 +73,7 @@ def time_kernel_calls() -> None:
         start = time.perf_counter()
         for item in segments(self, *args, **kwargs):
             totals["kernel"] += time.perf_counter() - start
+            calls["kernel"] += 1
             yield item
             start = time.perf_counter()
 
@@ -115,7 +119,7 @@ def main(argv=None) -> None:
           "loading kernels)")
     for label in ("kernel", "finishing", "  laying out", "  observing", "  amplitudes", "  growth fit", "  writing",
                   "fsync"):
-        print(f"  {label:14s} {totals[label]:7.3f} s")
+        print(f"  {label:14s} {totals[label]:7.3f} s in {calls[label]} calls")
 
 
 if __name__ == "__main__":
