@@ -14,6 +14,7 @@ from ensemble import cli, runner
 from ensemble.engine import launch
 from ensemble.methods import METHODS
 from ensemble.scenes import applies, chain
+from ensemble.scenes.chain import kernels as chain_kernels
 from ensemble.scenes.chain.kernels import TILE_ROWS
 from ensemble.spec import SpecError, load, parse
 
@@ -190,6 +191,37 @@ def test_long_chains_step_in_tiles_as_one_piece_at_a_time(method, boundary):
     samples = run(method, values, constants, h, 37, 3)
     reference = numpy_splitting(method, values, constants, h, 74)
     np.testing.assert_allclose(samples[-1], reference, rtol=0, atol=1e-12 * np.abs(reference).max())
+
+
+def test_a_members_bits_do_not_depend_on_its_block(monkeypatch):
+    """The same 20 members of a 16-mass chain in blocks of 4 and of 16: the same bits."""
+    constants = {"n": 16, "boundary": "fixed"}
+    values = disordered(16, "fixed", members=20)
+    samples = []
+    for block in (4, 16):
+        monkeypatch.setattr(chain_kernels, "block_size", lambda constants, method, block=block: block)
+        chain_kernels._kernel.cache_clear()
+        samples.append(run("verlet", values, constants, 0.05, 7, 3))
+    chain_kernels._kernel.cache_clear()
+    np.testing.assert_array_equal(samples[0], samples[1])
+
+
+def test_splitting_blocks_are_two_vectors_of_the_host_unless_they_outgrow_its_l1(monkeypatch, tmp_path):
+    for index, (level, kind, size) in enumerate([("1", "Instruction", "32K"), ("1", "Data", "48K"),
+                                                 ("2", "Unified", "1024K")]):
+        folder = tmp_path / f"index{index}"
+        folder.mkdir()
+        for name, text in (("level", level), ("type", kind), ("size", size)):
+            (folder / name).write_text(text + "\n")
+    assert chain_kernels.l1_data_bytes.__wrapped__(tmp_path) == 48 * 1024
+    assert chain_kernels.l1_data_bytes.__wrapped__(tmp_path / "absent") == 32 * 1024
+    verlet = METHODS["verlet"]
+    for doubles, l1, expected in ((8, 48 * 1024, {16: 16, 64: 16, 100: 8, 1024: 8}),
+                                  (4, 32 * 1024, {16: 8, 127: 8, 128: 4})):
+        monkeypatch.setattr(chain_kernels, "vector_doubles", lambda doubles=doubles: doubles)
+        monkeypatch.setattr(chain_kernels, "l1_data_bytes", lambda l1=l1: l1)
+        assert {n: chain_kernels.block_size({"n": n}, verlet) for n in expected} == expected
+    assert chain_kernels.block_size({"n": 2}, verlet) == 64
 
 
 def test_course_chain_in_mode_two_oscillates_at_sqrt_3k_over_m(write_runfile):

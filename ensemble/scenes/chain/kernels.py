@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import math
 from functools import cache
+from pathlib import Path
 
 import numpy as np
 from numba import njit
@@ -54,25 +55,35 @@ def acceleration(x_left, x, x_right, c_left, c_right):
 
 
 def block_size(constants: dict, method: Method) -> int:
-    """Members per kernel block for `method` on a chain of n masses: 64 below 16 masses; from 16 on, one SIMD
-    vector of this host (vector_doubles: 4 with AVX2, 8 with AVX-512) for splittings, 64 for fixed-step
-    Runge-Kutta, and 8 for adaptive pairs.
+    """Members per kernel block for `method` on a chain of n masses: 64 below 16 masses; from 16 on, 64 for
+    fixed-step Runge-Kutta, 8 for adaptive pairs, and for splittings two SIMD vectors of this host
+    (vector_doubles: 8 members with AVX2, 16 with AVX-512), or one where a block's 4n + 2 work rows would
+    outgrow the host's L1 data cache (l1_data_bytes).
 
-    Measured on an AVX2 host (AMD EPYC Zen 3), the block forced to 4, 8, 16 and 64 members:
-    verlet at n = 16 (`python analysis/bench_chain.py`, 200 steps a call) 1.84e9, 8.6e8, 8.4e8 and 1.58e9
-    mass-steps/s; per member-step at n = 16 (`analysis/bench_dopri5.py`'s chains) rk4 8.96e-8, 1.62e-7,
-    1.06e-7 and 6.86e-8 s, dopri5 3.93e-7, 3.11e-7, 3.01e-7 and 4.66e-7 s; dopri5 again once its slopes
-    vectorized (_chain_slopes), in the same run as rk4 at 64: 6.4, 2.3, 2.8 and 6.0 times rk4 (and 5.5 at 32).
-    A splitting's rows are one vector op each; a tableau's stage sums gain from longer rows; an adaptive
-    block's members wait for the block's slowest, and its seven stages' rows outgrow the L1 cache in long
-    blocks. Shorter chains run best in 64-member blocks (verlet at n = 2: 2.5e9 against 7.7e8 in 4). A
-    member's arithmetic does not depend on its block: results are the same bits on every host.
+    A member's arithmetic does not depend on its block: results are the same bits on every host. Measured with
+    the block forced (2^20 masses, 1000 steps a call), beside the C of ../shared/limit in the same minute:
+
+    - verlet on an AVX-512 host (AMD EPYC Zen 5, 48 KiB L1d; 2026-11-25), blocks of 4, 8, 16, 32 and 64:
+      n = 16 5.7e9, 1.05e10, 1.22e10, 1.02e10 and 1.0e10 mass-steps/s (C 8.2e9); n = 64 8.5e9, 1.22e10,
+      1.24e10, 8.2e9 and 6.1e9 (C 1.23e10); n = 128 9.3e9, 1.26e10, 9.7e9, 6.4e9 and 6.1e9 (C 1.24e10);
+      n = 2 1.6e9, 1.8e9, 3.9e9, 8.7e9 and 9.5e9 (C 8.9e9). The same kernels compiled for AVX2
+      (NUMBA_CPU_NAME=znver3) on that host ran best in blocks of 8 at n = 16 to 128.
+    - per member-step at n = 16 on an AVX2 host (AMD EPYC Zen 3; `analysis/bench_dopri5.py`'s chains), blocks
+      of 4, 8, 16 and 64: rk4 8.96e-8, 1.62e-7, 1.06e-7 and 6.86e-8 s; dopri5, in the same run as rk4 at 64,
+      6.4, 2.3, 2.8 and 6.0 times rk4 (and 5.5 at 32).
+
+    A tableau's stage sums gain from longer rows; an adaptive block's members wait for the block's slowest, and
+    its seven stages' rows outgrow the L1 cache in long blocks.
     """
-    if constants["n"] < 16:
+    n = constants["n"]
+    if n < 16:
         return 64
     if method.adaptive:
         return 8
-    return 64 if method.tableau is not None else vector_doubles()
+    if method.tableau is not None:
+        return 64
+    pair = 2 * vector_doubles()
+    return pair if (4 * n + 2) * pair * 8 <= l1_data_bytes() else pair // 2
 
 
 @cache
@@ -83,6 +94,20 @@ def vector_doubles() -> int:
 
     features = binding.get_host_cpu_features()
     return 8 if features.get("avx512f") else 4 if features.get("avx") else 2
+
+
+@cache
+def l1_data_bytes(cpu: Path = Path("/sys/devices/system/cpu/cpu0/cache")) -> int:
+    """Bytes of the first CPU's level 1 data cache (Linux sysfs); 32 KiB where it cannot be read."""
+    for index in sorted(cpu.glob("index*")):
+        try:
+            level, kind, size = ((index / name).read_text().strip() for name in ("level", "type", "size"))
+        except OSError:
+            continue
+        if level == "1" and kind in ("Data", "Unified"):
+            units = {"K": 1024, "M": 1024**2}
+            return int(size[:-1]) * units[size[-1]] if size[-1] in units else int(size)
+    return 32 * 1024
 
 
 def kernel(method: Method, constants: dict):
@@ -205,25 +230,19 @@ def _chain_stage(work, s, S, a, h, step_row, rows, n, B, periodic):
 
 
 @njit(inline="always", **FAST)
-def _kick(work, tau, lo, hi, n, B, T):
-    """Kick masses lo + 1 .. hi (0 <= hi - lo <= T): v += tau (s) times their acceleration."""
-    w = work[lo * B:]  # rows from lo on, indexed from a loop of constant trip count T (see _fixed_kernel)
-    for i in range(T):
-        if i >= hi - lo:
-            break
-        for j in range(B):
-            w[(n + 2 + i) * B + j] += tau * _chain_acceleration(w, 0, i, j, n, B)
+def _kick(work, tau, lo, hi, n, B):
+    """Kick masses lo + 1 .. hi: v += tau (s) times their acceleration."""
+    w = work[lo * B:]  # rows from lo on, indexed from 0 (see _fixed_kernel)
+    for q in range((hi - lo) * B):  # q = i B + j: mass lo + i + 1, member j
+        w[(n + 2) * B + q] += tau * _chain_acceleration(w, 0, 0, q, n, B)
 
 
 @njit(inline="always", **FAST)
-def _drift(work, tau, lo, hi, n, B, T):
-    """Drift masses lo + 1 .. hi (0 <= hi - lo <= T): x += tau (s) times their velocity."""
+def _drift(work, tau, lo, hi, n, B):
+    """Drift masses lo + 1 .. hi: x += tau (s) times their velocity."""
     w = work[lo * B:]
-    for i in range(T):
-        if i >= hi - lo:
-            break
-        for j in range(B):
-            w[(1 + i) * B + j] += tau * w[(n + 2 + i) * B + j]
+    for q in range((hi - lo) * B):
+        w[B + q] += tau * w[(n + 2) * B + q]
 
 
 def _fixed_kernel(method: Method, n: int, periodic: bool):
@@ -241,9 +260,12 @@ def _fixed_kernel(method: Method, n: int, periodic: bool):
     drift alternate (a wavefront): every mass still sees its neighbours as
     the one-piece-at-a-time order has them, so results are bit for bit the
     same. A ring's ghost masses need every piece to finish first, so rings
-    run one piece at a time. Kick and drift index rows from a loop of
-    constant trip count: with a variable start, Numba's negative-index
-    wraparound stays in the loop and LLVM does not vectorize it.
+    run one piece at a time. Kick and drift make one loop over their masses'
+    values (mass i, member j at i B + j), indexed from 0 in a view of the
+    work array: from a variable start, Numba's negative-index wraparound
+    stays in the loop and LLVM does not vectorize it. As two loops (masses,
+    then a block's B members, unrolled), LLVM on AVX-512 vectorized the
+    loop over masses, with gathers: a tenth of the speed at n = 16 and 128.
     """
     B = block_size({"n": n}, method)
     X, V = 0, n + 2
@@ -279,15 +301,15 @@ def _fixed_kernel(method: Method, n: int, periodic: bool):
                                 lo = max(t0 - lags[p], 0)
                                 hi = min(t0 + TILE_ROWS - lags[p], n)
                                 if kinds[p] == KICK:
-                                    _kick(work, taus[p], lo, hi, n, B, TILE_ROWS)
+                                    _kick(work, taus[p], lo, hi, n, B)
                                 else:
-                                    _drift(work, taus[p], lo, hi, n, B, TILE_ROWS)
+                                    _drift(work, taus[p], lo, hi, n, B)
                 else:
                     for p in range(count):
                         if kinds[p] == KICK:
-                            _kick(work, taus[p], 0, n, n, B, n)
+                            _kick(work, taus[p], 0, n, n, B)
                         else:
-                            _drift(work, taus[p], 0, n, n, B, n)
+                            _drift(work, taus[p], 0, n, n, B)
                             _set_ghosts(work, X, n, B, periodic)
                 if _chain_saved(work, samples, save - start, block, limit, status, failure_time, progress,
                                 save * steps_per_save * h, -1, n, B):
