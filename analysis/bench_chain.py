@@ -13,6 +13,12 @@ between rounds, not within one). A kernel call runs --steps steps and saves
 once: its fixed cost per call (blocking the inputs, allocating the samples)
 weighs less the more steps a call makes. For a method other than verlet the
 ratio compares unlike work (yoshida4 evaluates forces three times a step).
+
+When ../shared/limit/limit.py sits beside the checkout, each round also times
+its hand-written C verlet on fixed chains of the same n (at its best block
+size), and the script prints the median of the ratios to the C taken within
+each round: on these shared hosts the C's own rate wandered by 30% within
+minutes, so a ratio to a C measured minutes apart says little.
 """
 from __future__ import annotations
 
@@ -21,7 +27,7 @@ import statistics
 import time
 
 import numpy as np
-from hostinfo import host
+from hostinfo import host, limit_module
 
 from ensemble.arguments import OneLineParser, positive_int
 from ensemble.engine import launch
@@ -93,21 +99,30 @@ def main():
     rng = np.random.default_rng(2026)
     h = 1e-2
     runs = {n: contenders(n, args.masses, rng, h, args.steps, 10, args.method, args.boundary) for n in args.n}
+    limit = limit_module()
     fast_rates = {n: [] for n in args.n}
     slow_rates = {n: [] for n in args.n}
+    c_rates = {n: [] for n in args.n}
     for _ in range(args.repeats):  # rounds: every contender once, so slow spells of the machine hit them all
         for n, (_, fast, slow) in runs.items():
             fast_rates[n].append(fast() / seconds(fast))
             slow_rates[n].append(slow() / seconds(slow))
+            if limit:
+                c_rates[n].append(limit.chain_verlet_rate(N=n, repeats=1)[0])
     print(f"chain, {args.boundary} ends, {args.method}, about {args.masses} masses per ensemble, {args.steps} steps "
           f"per kernel call; medians of {args.repeats} rounds, ratios taken within each round")
     print(f"{'n':>5} {'members':>8} {'numba mass-steps/s':>19} {'numpy mass-steps/s':>19} {'ratio':>6} "
-          f"{'ratio range':>12}")
+          f"{'ratio range':>12}" + (f" {'C verlet':>9} {'/ C':>5} {'range':>10}" if limit else ""))
     for n, (members, _, _) in runs.items():
         ratios = [f / s for f, s in zip(fast_rates[n], slow_rates[n])]
-        print(f"{n:>5} {members:>8} {statistics.median(fast_rates[n]):>19.3g} "
-              f"{statistics.median(slow_rates[n]):>19.3g} {statistics.median(ratios):>6.1f} "
-              f"{min(ratios):>5.1f}..{max(ratios):<5.1f}")
+        line = (f"{n:>5} {members:>8} {statistics.median(fast_rates[n]):>19.3g} "
+                f"{statistics.median(slow_rates[n]):>19.3g} {statistics.median(ratios):>6.1f} "
+                f"{min(ratios):>5.1f}..{max(ratios):<5.1f}")
+        if limit:
+            to_c = [f / c for f, c in zip(fast_rates[n], c_rates[n])]
+            line += (f" {statistics.median(c_rates[n]):>9.3g} {statistics.median(to_c):>5.2f} "
+                     f"{min(to_c):>4.2f}..{max(to_c):<4.2f}")
+        print(line)
     if len(args.n) > 1:
         spread = [max(r) / min(r) for r in zip(*fast_rates.values())]
         print(f"largest / smallest numba mass-steps/s across n, median over rounds: {statistics.median(spread):.2f}")

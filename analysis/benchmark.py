@@ -46,7 +46,7 @@ import numpy as np
 import xarray as xr
 from bench_chain import numpy_verlet
 from bench_top import numpy_rk
-from hostinfo import host
+from hostinfo import LIMIT, host
 
 from ensemble import records
 from ensemble.arguments import OneLineParser, positive_int
@@ -57,7 +57,6 @@ from ensemble.scenes.top.kernels import rhs as top_rhs
 from ensemble.spec import members_table, parse
 
 ROOT = Path(__file__).resolve().parents[1]
-LIMIT = ROOT.parent / "shared" / "limit" / "limit.py"
 PEERS = ("ensemble", "C", "numpy", "numba_naive", "solve_ivp_RK45", "solve_ivp_DOP853", "diffrax_Tsit5",
          "diffrax_Dopri8")
 _CUBE_ROOT_2 = 2.0 ** (1.0 / 3.0)

@@ -5,6 +5,21 @@ import os
 import platform
 from pathlib import Path
 
+#: The hand-written C kernels beside the checkout: the machine's limit (python ../shared/limit/limit.py).
+LIMIT = Path(__file__).resolve().parents[2] / "shared" / "limit" / "limit.py"
+
+
+def limit_module():
+    """limit.py imported as a module (its kernels compiled with gcc on first use), or None without it."""
+    if not LIMIT.exists():
+        return None
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("limit", LIMIT)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
 
 def host() -> str:
     """CPU model, widest vector extension and Numba's thread count."""
