@@ -6,7 +6,9 @@ Both run in this process, side by side; the script prints medians and their
 ratio (these machines are shared: quote ratios, not single times). Then the
 free body's rk4 kernel (three moments, six parameters a member) against the
 top's, in rounds that time each once, with the median of the ratios taken
-within a round. It also times a small run file through the command line
+within a round; with ../shared/limit/limit.py beside the checkout, each round
+also times its hand-written C top rk4 on as many members and steps. It also
+times a small run file through the command line
 three times, so the later runs show the warm-cache start-up cost.
 """
 from __future__ import annotations
@@ -20,7 +22,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from hostinfo import host
+from hostinfo import host, limit_module
 
 from ensemble.arguments import OneLineParser, positive_int
 from ensemble.engine import launch
@@ -66,14 +68,20 @@ def body_against_top(table, h, args):
         launch.prepare(scene, rk4, constants)
         calls[scene.NAME] = launch.Launch(scene, rk4, values, constants, n_save=2, save_dt=h * args.steps, dt=h,
                                           blowup_factor=np.inf).run
-    rates = {name: [] for name in calls}
+    limit = limit_module()
+    rates = {name: [] for name in (*calls, "C")}
     for _ in range(args.repeats):
         for name, call in calls.items():
             rates[name].append(median_rate(call, n, args.steps, 1))
-    ratios = [b / t for b, t in zip(rates["body"], rates["top"])]
-    print(f"rk4, body {statistics.median(rates['body']):.3g} against top {statistics.median(rates['top']):.3g} "
-          f"member-steps/s: ratio {statistics.median(ratios):.2f} (range {min(ratios):.2f}..{max(ratios):.2f}, "
-          f"within rounds)")
+        if limit:
+            rates["C"].append(limit.top_rk4_rate(M=n, steps=args.steps, h=h, repeats=1))  # times its kernel alone
+    for name, against in (("body", "top"), ("top", "C")):
+        if not rates[against]:
+            continue
+        ratios = [b / t for b, t in zip(rates[name], rates[against])]
+        print(f"rk4, {name} {statistics.median(rates[name]):.3g} against {against} "
+              f"{statistics.median(rates[against]):.3g} member-steps/s: ratio {statistics.median(ratios):.2f} "
+              f"(range {min(ratios):.2f}..{max(ratios):.2f}, within rounds)")
 
 
 def main():
