@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import argparse
 import ctypes
-import os
 import shutil
 import statistics
 import subprocess
@@ -27,7 +26,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from hostinfo import host
+from hostinfo import host, quiet_openmp
 
 from ensemble.arguments import OneLineParser, positive_int
 from ensemble.engine import launch
@@ -89,8 +88,7 @@ def c_tops(values, n_save, save_dt, dt, folder):
     for per_step: rk4 with step dt, dopri5 at rtol 1e-8; None without gcc."""
     if shutil.which("gcc") is None:
         return None
-    # OpenMP's threads would otherwise spin after each C call, beside the next kernel timed.
-    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+    quiet_openmp()
     objects, library = Path(folder) / "top_dopri5.o", Path(folder) / "top_dopri5.so"
     subprocess.run(["gcc", *C_FLAGS, "-c", str(C_SOURCE), "-o", str(objects)], check=True)
     # Linked without -ffast-math: with it gcc adds crtfastmath.o, which on loading sets the process's

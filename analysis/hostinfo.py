@@ -9,11 +9,20 @@ from pathlib import Path
 LIMIT = Path(__file__).resolve().parents[2] / "shared" / "limit" / "limit.py"
 
 
+def quiet_openmp() -> None:
+    """Let OpenMP's threads sleep when a C call ends, unless the environment says otherwise: by default they spin
+    for milliseconds, beside the kernel timed next in the same process. Set before the C library loads."""
+    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+
 def limit_module():
-    """limit.py imported as a module (its kernels compiled with gcc on first use), or None without it."""
+    """limit.py imported as a module (its kernels compiled with gcc on first use; OpenMP quiet, see
+    quiet_openmp), or None without it."""
     if not LIMIT.exists():
         return None
     import importlib.util
+
+    quiet_openmp()
 
     spec = importlib.util.spec_from_file_location("limit", LIMIT)
     module = importlib.util.module_from_spec(spec)
