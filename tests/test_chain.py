@@ -342,3 +342,22 @@ def test_extensions_in_linear_time_are_the_incidence_product(boundary):
     for n in (2, 3, 17):
         x = rng.normal(size=(3, 5, n))
         np.testing.assert_array_equal(chain.extensions(x, boundary), x @ chain.incidence(n, boundary).T)
+
+
+def test_kernels_work_on_copies_that_start_on_a_cache_line():
+    """work_copy: the same values, starting on a 64-byte boundary, whatever the source's alignment."""
+    from numba import njit
+
+    from ensemble.engine.blocks import CACHE_LINE, work_copy
+
+    @njit
+    def copy_and_address(row):
+        work = work_copy(row)
+        return work, work.ctypes.data
+
+    source = np.arange(70, dtype=float)
+    for offset in range(8):  # sources starting 8 bytes apart
+        row = source[offset:offset + 60]
+        work, address = copy_and_address(row)
+        assert address % CACHE_LINE == 0
+        np.testing.assert_array_equal(work, row)

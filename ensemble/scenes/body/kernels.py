@@ -32,6 +32,7 @@ from ...engine.blocks import (
     rates_start,
     stack_array,
     trial_steps,
+    work_copy,
 )
 from ...methods import Method
 from .model import PIECES
@@ -107,7 +108,7 @@ def _splitting_kernel(method: Method):
                works, start, first_block, end_block):
         """As _fixed_kernel's."""
         for block in range(first_block, end_block):
-            work = works[block].copy()  # a local copy: LLVM knows it aliases nothing
+            work = work_copy(works[block])
             if start == 0:
                 rates_load(work, state0, rate, block, samples, P, BLOCK)
                 check_members(work, 0, 3, BLOCK, block * BLOCK, limit, status, failure_time, 0.0)  # a non-finite start
@@ -166,7 +167,7 @@ def _fixed_kernel(method: Method):
         """state0 (blocks, 3, BLOCK), rate (blocks, P, BLOCK), limit (M,) -> samples (count, blocks, 3, BLOCK),
         status (M,), failure_time (M,) (s; set only where a member fails); M = blocks x BLOCK."""
         for block in range(first_block, end_block):
-            work = works[block].copy()  # a local copy: LLVM knows it aliases nothing
+            work = work_copy(works[block])
             slopes = stack_array(SLOPES)  # stage s's k[c] at 3 s + c
             if start == 0:
                 rates_load(work, state0, rate, block, samples, P, BLOCK)
@@ -234,7 +235,7 @@ def _adaptive_kernel(method: Method):
         B = BLOCK
         for block in range(first_block, end_block):
             j0 = block * B
-            work = works[block].copy()  # a local copy: LLVM knows it aliases nothing
+            work = work_copy(works[block])
             if start == 0:
                 rates_load(work, state0, rate, block, samples, P, BLOCK)
                 for j in range(B):

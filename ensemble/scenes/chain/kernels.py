@@ -36,6 +36,7 @@ from ...engine.blocks import (
     splitting_schedule,
     start_control,
     trial_steps,
+    work_copy,
 )
 from ...methods import Method
 from ...results import UNDERFLOWED
@@ -156,7 +157,7 @@ def _fixed_start(works, state0, rate, block, samples, limit, status, failure_tim
     """A fixed-step call's local copy of a block's work array (LLVM then knows it aliases nothing), and whether
     the block runs: a call at start 0 loads it from state0, a later one continues it unless every member has
     failed."""
-    work = works[block].copy()
+    work = work_copy(works[block])
     if start == 0:
         _load_chain_block(work, state0, rate, block, samples, n, B, periodic)
         check_members(work, 1, 2 * n + 1, B, block * B, limit, status, failure_time, 0.0)  # a non-finite start
@@ -369,7 +370,7 @@ def _adaptive_kernel(method: Method, n: int, periodic: bool):
         status (M,) and failure_time (M,; s, set only where a member fails)."""
         for block in range(first_block, end_block):
             j0 = block * B
-            work = works[block].copy()  # a local copy: LLVM knows it aliases nothing
+            work = work_copy(works[block])
             if start == 0:
                 _load_chain_block(work, state0, rate, block, samples, n, B, periodic)
                 _chain_slopes(work, X, V, KX, KV, n, B)

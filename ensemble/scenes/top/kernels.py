@@ -31,6 +31,7 @@ from ...engine.blocks import (
     rates_start,
     stack_array,
     trial_steps,
+    work_copy,
 )
 from ...methods import Method
 from .model import PIECES
@@ -95,7 +96,7 @@ def _fixed_kernel(method: Method):
         status (M,), failure_time (M,) (s; set only where a member fails); M = blocks x BLOCK."""
         for block in range(first_block, end_block):
             j0 = block * BLOCK
-            work = works[block].copy()  # a local copy: LLVM knows it aliases nothing
+            work = work_copy(works[block])
             slopes = stack_array(SLOPES)  # stage s's k[c] at 3 s + c (Runge-Kutta)
             if start == 0:
                 rates_load(work, state0, rate, block, samples, 3, BLOCK)
@@ -182,7 +183,7 @@ def _adaptive_kernel(method: Method):
         B = BLOCK
         for block in range(first_block, end_block):
             j0 = block * B
-            work = works[block].copy()  # a local copy: LLVM knows it aliases nothing
+            work = work_copy(works[block])
             if start == 0:
                 rates_load(work, state0, rate, block, samples, 3, BLOCK)
                 for j in range(B):
