@@ -344,20 +344,18 @@ def test_extensions_in_linear_time_are_the_incidence_product(boundary):
         np.testing.assert_array_equal(chain.extensions(x, boundary), x @ chain.incidence(n, boundary).T)
 
 
-def test_kernels_work_on_copies_that_start_on_a_cache_line():
-    """work_copy: the same values, starting on a 64-byte boundary, whatever the source's alignment."""
+def test_kernel_work_arrays_start_on_a_cache_line():
+    """cache_line_array: `size` values starting on a 64-byte boundary, for sizes that leave every remainder."""
     from numba import njit
 
-    from ensemble.engine.blocks import CACHE_LINE, work_copy
+    from ensemble.engine.blocks import CACHE_LINE, cache_line_array
 
     @njit
-    def copy_and_address(row):
-        work = work_copy(row)
-        return work, work.ctypes.data
+    def address_and_size(size):
+        work = cache_line_array(size)
+        work[:] = 1.0  # every value is inside the array's buffer
+        return work.ctypes.data, work.size
 
-    source = np.arange(70, dtype=float)
-    for offset in range(8):  # sources starting 8 bytes apart
-        row = source[offset:offset + 60]
-        work, address = copy_and_address(row)
-        assert address % CACHE_LINE == 0
-        np.testing.assert_array_equal(work, row)
+    for size in range(1, 20):
+        address, got = address_and_size(size)
+        assert address % CACHE_LINE == 0 and got == size

@@ -101,17 +101,16 @@ CACHE_LINE = 64  # bytes
 
 
 @njit(inline="always")
-def work_copy(row):
-    """A copy of a block's work array `row` (1-D float64) that starts on a cache line, so no SIMD vector of up to
-    64 bytes straddles two lines. A kernel works on a local copy: LLVM then knows it aliases nothing. Numba aligns
-    new arrays to 32 bytes only, and the 64-byte vectors of AVX-512 crossed lines in some copies and not in others:
-    the same 1024-mass chain ran at 5.7e9, 7.5e9 or 1.05e10 mass-steps/s from one set of arrays to the next."""
+def cache_line_array(size):
+    """An uninitialized float64 array of `size` values that starts on a 64-byte cache line, so no SIMD vector of up
+    to 64 bytes straddles two lines: a kernel call's work array, into which it copies its blocks one at a time
+    (LLVM then knows it aliases nothing). Numba aligns new arrays to 32 bytes only, and the 64-byte vectors of
+    AVX-512 crossed lines in some arrays and not in others: the same 1024-mass chain ran at 5.7e9, 7.5e9 or
+    1.05e10 mass-steps/s from one set of arrays to the next."""
     doubles = CACHE_LINE // 8
-    buffer = np.empty(row.size + doubles - 1)
+    buffer = np.empty(size + doubles - 1)
     first = (-buffer.ctypes.data % CACHE_LINE) // 8
-    work = buffer[first:first + row.size]
-    work[:] = row
-    return work
+    return buffer[first:first + size]
 
 
 @njit(inline="always", **FAST)

@@ -21,6 +21,7 @@ from ...engine.blocks import (
     Kernel,
     adaptive_constants,
     block_done,
+    cache_line_array,
     check_members,
     control_step,
     counts_out,
@@ -32,7 +33,6 @@ from ...engine.blocks import (
     rates_start,
     stack_array,
     trial_steps,
-    work_copy,
 )
 from ...methods import Method
 from .model import PIECES
@@ -107,8 +107,9 @@ def _splitting_kernel(method: Method):
     def kernel(state0, rate, h, steps_per_save, limit, samples, status, failure_time, progress,
                works, start, first_block, end_block):
         """As _fixed_kernel's."""
+        work = cache_line_array(works.shape[1])
         for block in range(first_block, end_block):
-            work = work_copy(works[block])
+            work[:] = works[block]
             if start == 0:
                 rates_load(work, state0, rate, block, samples, P, BLOCK)
                 check_members(work, 0, 3, BLOCK, block * BLOCK, limit, status, failure_time, 0.0)  # a non-finite start
@@ -166,8 +167,9 @@ def _fixed_kernel(method: Method):
                works, start, first_block, end_block):
         """state0 (blocks, 3, BLOCK), rate (blocks, P, BLOCK), limit (M,) -> samples (count, blocks, 3, BLOCK),
         status (M,), failure_time (M,) (s; set only where a member fails); M = blocks x BLOCK."""
+        work = cache_line_array(works.shape[1])
         for block in range(first_block, end_block):
-            work = work_copy(works[block])
+            work[:] = works[block]
             slopes = stack_array(SLOPES)  # stage s's k[c] at 3 s + c
             if start == 0:
                 rates_load(work, state0, rate, block, samples, P, BLOCK)
@@ -233,9 +235,10 @@ def _adaptive_kernel(method: Method):
         limit (M,) -> samples (count, blocks, 3, BLOCK), counts (3, M): accepted, rejected, right-hand-side
         evaluations; status (M,) and failure_time (M,; s, set only where a member fails)."""
         B = BLOCK
+        work = cache_line_array(works.shape[1])
         for block in range(first_block, end_block):
             j0 = block * B
-            work = work_copy(works[block])
+            work[:] = works[block]
             if start == 0:
                 rates_load(work, state0, rate, block, samples, P, BLOCK)
                 for j in range(B):

@@ -25,6 +25,7 @@ from ...engine.blocks import (
     Kernel,
     adaptive_constants,
     block_done,
+    cache_line_array,
     check_members,
     control_step,
     counts_out,
@@ -36,7 +37,6 @@ from ...engine.blocks import (
     splitting_schedule,
     start_control,
     trial_steps,
-    work_copy,
 )
 from ...methods import Method
 from ...results import UNDERFLOWED
@@ -153,16 +153,16 @@ def _load_chain_block(work, state0, rate, block, samples, n, B, periodic):
 
 
 @njit(inline="always", **FAST)
-def _fixed_start(works, state0, rate, block, samples, limit, status, failure_time, progress, start, n, B, periodic):
-    """A fixed-step call's local copy of a block's work array (LLVM then knows it aliases nothing), and whether
-    the block runs: a call at start 0 loads it from state0, a later one continues it unless every member has
-    failed."""
-    work = work_copy(works[block])
+def _fixed_start(work, works, state0, rate, block, samples, limit, status, failure_time, progress, start, n, B,
+                 periodic):
+    """Copy a block's work array into the call's `work` (cache_line_array), and whether the block runs: a call
+    at start 0 loads it from state0, a later one continues it unless every member has failed."""
+    work[:] = works[block]
     if start == 0:
         _load_chain_block(work, state0, rate, block, samples, n, B, periodic)
         check_members(work, 1, 2 * n + 1, B, block * B, limit, status, failure_time, 0.0)  # a non-finite start
-        return work, True
-    return work, not block_done(samples, status, progress, block, B)
+        return True
+    return not block_done(samples, status, progress, block, B)
 
 
 @njit(inline="always", **FAST)
@@ -288,9 +288,10 @@ def _fixed_kernel(method: Method, n: int, periodic: bool):
         status (M,), failure_time (M,) (s; set only where a member fails); M = blocks x B."""
         kinds, taus, lags = splitting_schedule(pieces, fractions, h, steps_per_save, TILE_PIECES)
         count = len(kinds)
+        work = cache_line_array(works.shape[1])
         for block in range(first_block, end_block):
-            work, running = _fixed_start(works, state0, rate, block, samples, limit, status, failure_time, progress,
-                                         start, n, B, periodic)
+            running = _fixed_start(work, works, state0, rate, block, samples, limit, status, failure_time, progress,
+                                   start, n, B, periodic)
             if not running:
                 continue
             for save in range(max(start, 1), start + samples.shape[0]):
@@ -321,9 +322,10 @@ def _fixed_kernel(method: Method, n: int, periodic: bool):
     def runge_kutta_kernel(state0, rate, h, steps_per_save, limit, samples, status, failure_time, progress,
                            works, start, first_block, end_block):
         """As splitting_kernel."""
+        work = cache_line_array(works.shape[1])
         for block in range(first_block, end_block):
-            work, running = _fixed_start(works, state0, rate, block, samples, limit, status, failure_time, progress,
-                                         start, n, B, periodic)
+            running = _fixed_start(work, works, state0, rate, block, samples, limit, status, failure_time, progress,
+                                   start, n, B, periodic)
             if not running:
                 continue
             for save in range(max(start, 1), start + samples.shape[0]):
@@ -368,9 +370,10 @@ def _adaptive_kernel(method: Method, n: int, periodic: bool):
         """state0, rate (blocks, 2n, B); control (3, M): first step (s; <= 0: estimate it), rtol, atol;
         limit (M,) -> samples (count, blocks, 2n, B), counts (3, M): accepted, rejected, right-hand-side evaluations;
         status (M,) and failure_time (M,; s, set only where a member fails)."""
+        work = cache_line_array(works.shape[1])
         for block in range(first_block, end_block):
             j0 = block * B
-            work = work_copy(works[block])
+            work[:] = works[block]
             if start == 0:
                 _load_chain_block(work, state0, rate, block, samples, n, B, periodic)
                 _chain_slopes(work, X, V, KX, KV, n, B)

@@ -20,6 +20,7 @@ from ...engine.blocks import (
     Kernel,
     adaptive_constants,
     block_done,
+    cache_line_array,
     check_members,
     control_step,
     counts_out,
@@ -31,7 +32,6 @@ from ...engine.blocks import (
     rates_start,
     stack_array,
     trial_steps,
-    work_copy,
 )
 from ...methods import Method
 from .model import PIECES
@@ -94,9 +94,10 @@ def _fixed_kernel(method: Method):
                works, start, first_block, end_block):
         """state0 (blocks, 3, BLOCK), rate (blocks, 3, BLOCK), limit (M,) -> samples (count, blocks, 3, BLOCK),
         status (M,), failure_time (M,) (s; set only where a member fails); M = blocks x BLOCK."""
+        work = cache_line_array(works.shape[1])
         for block in range(first_block, end_block):
             j0 = block * BLOCK
-            work = work_copy(works[block])
+            work[:] = works[block]
             slopes = stack_array(SLOPES)  # stage s's k[c] at 3 s + c (Runge-Kutta)
             if start == 0:
                 rates_load(work, state0, rate, block, samples, 3, BLOCK)
@@ -181,9 +182,10 @@ def _adaptive_kernel(method: Method):
         limit (M,) -> samples (count, blocks, 3, BLOCK), counts (3, M): accepted, rejected, right-hand-side
         evaluations; status (M,) and failure_time (M,; s, set only where a member fails)."""
         B = BLOCK
+        work = cache_line_array(works.shape[1])
         for block in range(first_block, end_block):
             j0 = block * B
-            work = work_copy(works[block])
+            work[:] = works[block]
             if start == 0:
                 rates_load(work, state0, rate, block, samples, 3, BLOCK)
                 for j in range(B):
