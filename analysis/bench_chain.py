@@ -108,7 +108,7 @@ def main():
             fast_rates[n].append(fast() / seconds(fast))
             slow_rates[n].append(slow() / seconds(slow))
             if limit:
-                c_rates[n].append(limit.chain_verlet_rate(N=n, repeats=1)[0])
+                c_rates[n].append(limit.chain_verlet_rate(N=n)[0])  # as limit.py: best block, medians of 5
     print(f"chain, {args.boundary} ends, {args.method}, about {args.masses} masses per ensemble, {args.steps} steps "
           f"per kernel call; medians of {args.repeats} rounds, ratios taken within each round")
     print(f"{'n':>5} {'members':>8} {'numba mass-steps/s':>19} {'numpy mass-steps/s':>19} {'ratio':>6} "
