@@ -17,7 +17,8 @@ def quiet_openmp() -> None:
 
 def limit_module():
     """limit.py imported as a module (its kernels compiled with gcc on first use; OpenMP quiet, see
-    quiet_openmp), or None without it."""
+    quiet_openmp), or None without it. limit.py links its library with -ffast-math, which sets flush-to-zero
+    for the whole process when it loads: a process that loads it times kernels, and must not check results."""
     if not LIMIT.exists():
         return None
     import importlib.util
