@@ -198,11 +198,13 @@ def test_a_members_bits_do_not_depend_on_its_block(monkeypatch):
     constants = {"n": 16, "boundary": "fixed"}
     values = disordered(16, "fixed", members=20)
     samples = []
-    for block in (4, 16):
-        monkeypatch.setattr(chain_kernels, "block_size", lambda constants, method, block=block: block)
-        chain_kernels._kernel.cache_clear()
-        samples.append(run("verlet", values, constants, 0.05, 7, 3))
-    chain_kernels._kernel.cache_clear()
+    try:
+        for block in (4, 16):
+            monkeypatch.setattr(chain_kernels, "block_size", lambda constants, method, block=block: block)
+            chain_kernels._kernel.cache_clear()
+            samples.append(run("verlet", values, constants, 0.05, 7, 3))
+    finally:
+        chain_kernels._kernel.cache_clear()  # later tests must not get a kernel built for a forced block
     np.testing.assert_array_equal(samples[0], samples[1])
 
 
@@ -215,6 +217,8 @@ def test_splitting_blocks_are_two_vectors_of_the_host_unless_they_outgrow_its_l1
             (folder / name).write_text(text + "\n")
     assert chain_kernels.l1_data_bytes.__wrapped__(tmp_path) == 48 * 1024
     assert chain_kernels.l1_data_bytes.__wrapped__(tmp_path / "absent") == 32 * 1024
+    (tmp_path / "index1" / "size").write_text("48 KB\n")  # not sysfs's form: the default, not a crash
+    assert chain_kernels.l1_data_bytes.__wrapped__(tmp_path) == 32 * 1024
     verlet = METHODS["verlet"]
     for doubles, l1, expected in ((8, 48 * 1024, {16: 16, 64: 16, 100: 8, 1024: 8}),
                                   (4, 32 * 1024, {16: 8, 127: 8, 128: 4})):

@@ -99,15 +99,15 @@ def vector_doubles() -> int:
 
 @cache
 def l1_data_bytes(cpu: Path = Path("/sys/devices/system/cpu/cpu0/cache")) -> int:
-    """Bytes of the first CPU's level 1 data cache (Linux sysfs); 32 KiB where it cannot be read."""
+    """Bytes of the first CPU's level 1 data cache (Linux sysfs: "48K"); 32 KiB where it cannot be read."""
+    units = {"K": 1024, "M": 1024**2}
     for index in sorted(cpu.glob("index*")):
         try:
             level, kind, size = ((index / name).read_text().strip() for name in ("level", "type", "size"))
-        except OSError:
+            if level == "1" and kind in ("Data", "Unified"):
+                return int(size[:-1]) * units[size[-1]] if size[-1:] in units else int(size)
+        except (OSError, ValueError):  # unreadable, or not in sysfs's form
             continue
-        if level == "1" and kind in ("Data", "Unified"):
-            units = {"K": 1024, "M": 1024**2}
-            return int(size[:-1]) * units[size[-1]] if size[-1] in units else int(size)
     return 32 * 1024
 
 
