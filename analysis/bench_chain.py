@@ -1,7 +1,7 @@
 """Benchmark: chain kernels against NumPy vectorized over members, at several chain lengths.
 
     python analysis/bench_chain.py [--masses 1048576] [--repeats 7] [--n 2 16 1024] [--steps 200]
-                                   [--method verlet] [--boundary fixed]
+                                   [--method verlet] [--boundary fixed] [--block B]
 
 For each chain length n the ensemble holds about `masses` masses in all
 (members = masses / n). The Numba kernel of --method and a NumPy velocity
@@ -19,6 +19,10 @@ its hand-written C verlet on fixed chains of the same n (at its best block
 size), and the script prints the median of the ratios to the C taken within
 each round: on these shared hosts the C's own rate wandered by 30% within
 minutes, so a ratio to a C measured minutes apart says little.
+
+--block B runs every kernel in blocks of B members instead of the block that
+ensemble.scenes.chain.kernels.block_size picks for this host: how its rule
+was measured. A member's bits do not depend on its block.
 """
 from __future__ import annotations
 
@@ -33,6 +37,7 @@ from ensemble.arguments import OneLineParser, positive_int
 from ensemble.engine import launch
 from ensemble.methods import METHODS
 from ensemble.scenes import chain
+from ensemble.scenes.chain import kernels as chain_kernels
 
 
 def numpy_verlet(x, v, c_left, c_right, h, steps):
@@ -94,8 +99,11 @@ def main():
                         help="Numba steps per kernel call (one saved sample)")
     parser.add_argument("--method", default="verlet", choices=["verlet", "yoshida4", "symplectic_euler"])
     parser.add_argument("--boundary", default="fixed", choices=["fixed", "free", "periodic"])
+    parser.add_argument("--block", type=positive_int, help="members per kernel block (default: block_size's choice)")
     args = parser.parse_args()
-    print(host())
+    if args.block:  # before any kernel is built: Numba caches each block size's kernel apart (a closure constant)
+        chain_kernels.block_size = lambda constants, method, block=args.block: block
+    print(host() + (f", blocks of {args.block} members" if args.block else ""))
     rng = np.random.default_rng(2026)
     h = 1e-2
     runs = {n: contenders(n, args.masses, rng, h, args.steps, 10, args.method, args.boundary) for n in args.n}

@@ -62,13 +62,14 @@ def block_size(constants: dict, method: Method) -> int:
     outgrow the host's L1 data cache (l1_data_bytes).
 
     A member's arithmetic does not depend on its block: results are the same bits on every host. Measured with
-    the block forced (2^20 masses, 1000 steps a call):
+    `python analysis/bench_chain.py --n 16 64 128 --repeats 5 --steps 1000 --block B` (2^20 masses):
 
-    - verlet on an AVX-512 host (AMD EPYC Zen 5, 48 KiB L1d; 2026-11-25, work arrays on cache lines), blocks
-      of 8, 16 and 32, twice: n = 16 1.44e10, 1.54e10 and 1.3e10 mass-steps/s; n = 64 1.56e10, 1.6e10 and
-      1.08e10; n = 128 1.6e10, 1.23e10 and 7.2e9. At n = 2, blocks of 4, 8, 16, 32 and 64 gave 1.6e9, 1.8e9,
-      3.9e9, 8.7e9 and 9.5e9 (the C of ../shared/limit 8.9e9 in the same minute). The same kernels compiled
-      for AVX2 (NUMBA_CPU_NAME=znver3) on that host ran best in blocks of 8 at n = 16 to 128.
+    - verlet on an AVX-512 host (AMD EPYC Zen 5, 48 KiB L1d; 2026-11-25, commit 0d9a3d3), blocks of 8, 16 and
+      32: n = 16 1.37e10, 1.57e10 and 1.17e10 mass-steps/s; n = 64 1.52e10, 1.59e10 and 1.11e10; n = 128
+      1.56e10, 1.19e10 and 6.9e9 (the C of ../shared/limit 9e9 to 1.1e10 in the same rounds). At n = 2 (`--n 2`),
+      blocks of 16, 32 and 64 gave 4.0e9, 9.9e9 and 1.09e10. Compiled for AVX2 on that host
+      (NUMBA_CPU_NAME=znver3), blocks of 4, 8 and 16 gave 8.3e9, 1.50e10 and 1.52e10 at n = 16, and 1.15e10,
+      1.66e10 and 1.21e10 at n = 128.
     - per member-step at n = 16 on an AVX2 host (AMD EPYC Zen 3; `analysis/bench_dopri5.py`'s chains), blocks
       of 4, 8, 16 and 64: rk4 8.96e-8, 1.62e-7, 1.06e-7 and 6.86e-8 s; dopri5, in the same run as rk4 at 64,
       6.4, 2.3, 2.8 and 6.0 times rk4 (and 5.5 at 32).
