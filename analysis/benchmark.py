@@ -214,15 +214,17 @@ def diffrax_seconds(solver: str, vector_field, y0: np.ndarray, args: np.ndarray,
 
 # --- the cases -------------------------------------------------------------------------------------------------
 
-def top_case(method: str, members: int, steps: int, repeats: int, peers: bool, naive) -> dict[str, float]:
-    """Rates (member-steps/s) of the top with `method` over `steps` steps of 1e-4 s, and its peers'."""
+def top_case(method: str, members: int, steps: int, repeats: int, peers: bool, naive, timed: int | None = None
+             ) -> dict[str, float]:
+    """Rates (member-steps/s) of the top with `method` over `steps` steps of 1e-4 s, and its peers'; ensemble's
+    from `timed` calls (default `repeats`)."""
     h, values, constants = 1e-4, top_values(members), {}
     launch.prepare(top, METHODS[method], constants)
     adaptive = METHODS[method].adaptive
     settings = dict(rtol=1e-8, atol=1e-12) if adaptive else dict(dt=h)
     call = launch.Launch(top, METHODS[method], values, constants, n_save=2, save_dt=h * steps,
                          blowup_factor=np.inf, **settings)
-    seconds = median_seconds(call.run, repeats)
+    seconds = median_seconds(call.run, timed or repeats)
     taken = call.outcome().counts[:2].sum() if adaptive else members * steps
     rates = {"ensemble": taken / seconds}
     if not peers:
@@ -276,8 +278,10 @@ def _stack(*rows):
     return jnp.stack(rows)
 
 
-def chain_case(method: str, n: int, masses: int, steps: int, repeats: int, peers: bool, naive) -> dict[str, float]:
-    """Rates (mass-steps/s) of fixed chains of n masses with `method`, h = 0.01, and its peers' (verlet's job)."""
+def chain_case(method: str, n: int, masses: int, steps: int, repeats: int, peers: bool, naive,
+               timed: int | None = None) -> dict[str, float]:
+    """Rates (mass-steps/s) of fixed chains of n masses with `method`, h = 0.01, and its peers' (verlet's job);
+    ensemble's from `timed` calls (default `repeats`)."""
     h, constants, rng = 0.01, {"n": n, "boundary": "fixed"}, np.random.default_rng(1)
     block = launch.block_size(chain, constants, METHODS[method])
     members = max(masses // n // block, 1) * block
@@ -285,7 +289,7 @@ def chain_case(method: str, n: int, masses: int, steps: int, repeats: int, peers
     launch.prepare(chain, METHODS[method], constants)
     call = launch.Launch(chain, METHODS[method], values, constants, n_save=2, save_dt=h * steps, dt=h,
                          blowup_factor=np.inf)
-    rates = {"ensemble": members * n * steps / median_seconds(call.run, repeats)}
+    rates = {"ensemble": members * n * steps / median_seconds(call.run, timed or repeats)}
     if not peers:
         return rates
     state, rate = chain.inputs(values, constants)
@@ -444,17 +448,19 @@ def main() -> None:
     lengths = (2, 16, 128, 1024) if args.full else (2, 16)
     limit = c_limit()
     print_limit("C limit", limit)
-    runs = {f"top {m}": lambda peers, m=m: top_case(m, 65536, 1000, args.repeats, peers and m == "rk4", naive)
-            for m in ("rk4", "exact", "split2", "dopri5")}  # the peers do rk4's job
-    runs.update({f"chain {m} N={n}": lambda peers, m=m, n=n: chain_case(m, n, 2**20, 1000, args.repeats, peers, naive)
-                 for m in ("verlet", "yoshida4") for n in lengths})
-    # ensemble's kernels first, alone: once JAX has loaded (diffrax), they ran 20% slower in the same process
-    # (a 16-mass chain's verlet 1.12e10 mass-steps/s before, 8.95e9 after; AMD EPYC Zen 5, 2026-11-25)
+    runs = {f"top {m}": lambda peers, timed=None, m=m: top_case(m, 65536, 1000, args.repeats, peers, naive, timed)
+            for m in ("rk4", "exact", "split2", "dopri5")}
+    runs.update({f"chain {m} N={n}": lambda peers, timed=None, m=m, n=n: chain_case(
+        m, n, 2**20, 1000, args.repeats, peers, naive, timed) for m in ("verlet", "yoshida4") for n in lengths})
+    with_peers = [name for name in runs if peers and (name == "top rk4" or name.startswith("chain"))]  # on tops,
+    # the peers do rk4's job
+    # ensemble's kernels first, before any peer has loaded its libraries (JAX starts threads of its own) into this
+    # process; a case with peers then calls its kernel once more, for the error the peers must match
     cases = {name: case(False) for name, case in runs.items()}
     threads, by_threads = kernel_threads(65536, 1000, args.repeats)
     for name, case in runs.items():
-        if peers:
-            cases[name] = {**case(True), "ensemble": cases[name]["ensemble"]}
+        if name in with_peers:
+            cases[name] = {**case(True, timed=1), "ensemble": cases[name]["ensemble"]}
         print(name, _row(cases[name]), flush=True)
     print("top rk4 kernel on", ", ".join(f"{t} thread(s) {r:.3g}" for t, r in zip(threads, by_threads)), flush=True)
     for name, rate in limit.items():
