@@ -1,10 +1,12 @@
 """Benchmark: adaptive dopri5 against fixed-step rk4, per step and at equal accuracy.
 
-    python analysis/bench_dopri5.py [--repeats 3]
+    python analysis/bench_dopri5.py [--repeats 3] [--chain-block B]
 
 1. Kernel seconds per member-step of rk4 and dopri5, side by side in this
    process (medians of --repeats): 8192 aerobie tops (runs/aerobie.toml), and
-   4096 disordered 16-mass chains.
+   4096 disordered 16-mass chains (--chain-block B: their dopri5 in blocks
+   of B members instead of block_size's choice; a member's bits do not
+   depend on its block).
 2. The same for the tops in hand-written C (analysis/c/top_dopri5.c, compiled
    here with gcc; skipped without it), alternated with ensemble's kernels:
    rk4 as ../shared/limit/ens.c writes it, and dopri5 with ensemble's step
@@ -33,6 +35,7 @@ from ensemble.engine import launch
 from ensemble.methods import METHODS
 from ensemble.records import measured_error
 from ensemble.scenes import chain, top
+from ensemble.scenes.chain import kernels as chain_kernels
 from ensemble.spec import members_table, parse
 
 RUNS = Path(__file__).resolve().parent.parent / "runs"
@@ -150,7 +153,13 @@ def evaluations_for(target: float):
 def main():
     parser = OneLineParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--repeats", type=positive_int, default=3)
+    parser.add_argument("--chain-block", type=positive_int, help="members per block of the chains' dopri5 kernel "
+                                                                 "(default: block_size's choice for this host)")
     args = parser.parse_args()
+    if args.chain_block:  # before any kernel is built: each block size's kernel is cached apart (a closure constant)
+        choose = chain_kernels.block_size
+        chain_kernels.block_size = lambda constants, method, block=args.chain_block: (
+            block if method.adaptive else choose(constants, method))
     print(host())
     spec = parse((RUNS / "aerobie.toml").read_text().replace("members = 200", "members = 4096"))
     tops = {name: v[:8192] for name, v in members_table(spec).items()}
@@ -171,8 +180,9 @@ def main():
     chain_spec = parse(CHAIN)
     seconds = per_step(chain, members_table(chain_spec), chain_spec.constants, 1e-2, 1.0, 11, args.repeats)
     rk4, dopri5 = seconds["rk4"], seconds["dopri5"]
-    print(f"chain n = 16, 4096 members: rk4 {rk4:.3g} s, dopri5 {dopri5:.3g} s per member-step, "
-          f"ratio {dopri5 / rk4:.1f}")
+    block = launch.block_size(chain, chain_spec.constants, METHODS["dopri5"])
+    print(f"chain n = 16, 4096 members: rk4 {rk4:.3g} s, dopri5 {dopri5:.3g} s (blocks of {block}) per member-step, "
+          f"ratio {dopri5 / rk4:.2f}")
     (rk4_evals, dt), (dopri5_evals, rtol) = evaluations_for(1e-10)
     print(f"top at 200 rad/s, error <= 1e-10 over 2 s: rk4 {rk4_evals} rhs evaluations (dt = {dt:.3g} s), "
           f"dopri5 {dopri5_evals} (rtol = {rtol:.0e}): {rk4_evals / dopri5_evals:.1f}x fewer")
