@@ -208,6 +208,33 @@ def test_a_members_bits_do_not_depend_on_its_block(monkeypatch):
     np.testing.assert_array_equal(samples[0], samples[1])
 
 
+def test_a_chain_dopri5_member_does_not_depend_on_its_block_and_an_underflow_stops_it_alone(monkeypatch):
+    """20 members of a 16-mass chain in dopri5 blocks of 8 and of 16: the same steps and the same values to a few
+    units in the last place (unlike a splitting's, a pair's rounding depends on its block: LLVM's fast-math code
+    differs), within rtol of the exact solution; the member given rtol = atol = 1e-300 underflows (status 2, NaN
+    from then on), the others run."""
+    constants = {"n": 16, "boundary": "fixed"}
+    values = disordered(16, "fixed", members=20)
+    rtol = np.where(np.arange(20) == 5, 1e-300, 1e-9)
+    atol = np.where(np.arange(20) == 5, 1e-300, 1e-12)
+    outcomes = []
+    try:
+        for block in (8, 16):
+            monkeypatch.setattr(chain_kernels, "block_size", lambda constants, method, block=block: block)
+            chain_kernels._kernel.cache_clear()
+            outcomes.append(launch.integrate(chain, METHODS["dopri5"], values, constants, n_save=4, save_dt=0.5,
+                                             rtol=rtol, atol=atol))
+    finally:
+        chain_kernels._kernel.cache_clear()
+    np.testing.assert_allclose(outcomes[0].samples, outcomes[1].samples, rtol=0, atol=1e-14)
+    np.testing.assert_array_equal(outcomes[0].counts, outcomes[1].counts)
+    out, running = outcomes[0], np.arange(20) != 5
+    np.testing.assert_array_equal(out.status, np.where(running, 0, 2))
+    assert np.all(np.isnan(out.samples[1:, :, 5]))
+    exact = chain.exact(values, constants, np.arange(4) * 0.5)
+    assert relative_error(out.samples[:, :, running], exact[:, :, running]).max() < 1e-7
+
+
 def test_splitting_blocks_are_two_vectors_of_the_host_unless_they_outgrow_its_l1(monkeypatch, tmp_path):
     for index, (level, kind, size) in enumerate([("1", "Instruction", "32K"), ("1", "Data", "48K"),
                                                  ("2", "Unified", "1024K")]):
@@ -226,6 +253,12 @@ def test_splitting_blocks_are_two_vectors_of_the_host_unless_they_outgrow_its_l1
         monkeypatch.setattr(chain_kernels, "l1_data_bytes", lambda l1=l1: l1)
         assert {n: chain_kernels.block_size({"n": n}, verlet) for n in expected} == expected
     assert chain_kernels.block_size({"n": 2}, verlet) == 64
+    # an adaptive pair's 20n + 15 rows: 16 members fit 48 KiB at n = 16, not at n = 24; never fewer than 8
+    dopri5 = METHODS["dopri5"]
+    for doubles, l1, expected in ((8, 48 * 1024, {2: 64, 16: 16, 24: 8, 128: 8}), (4, 32 * 1024, {16: 8, 128: 8})):
+        monkeypatch.setattr(chain_kernels, "vector_doubles", lambda doubles=doubles: doubles)
+        monkeypatch.setattr(chain_kernels, "l1_data_bytes", lambda l1=l1: l1)
+        assert {n: chain_kernels.block_size({"n": n}, dopri5) for n in expected} == expected
 
 
 def test_course_chain_in_mode_two_oscillates_at_sqrt_3k_over_m(write_runfile):

@@ -34,6 +34,7 @@ from ...engine.blocks import (
     method_constants,
     rows_in,
     rows_out,
+    select,
     splitting_schedule,
     start_control,
     trial_steps,
@@ -57,11 +58,14 @@ def acceleration(x_left, x, x_right, c_left, c_right):
 
 def block_size(constants: dict, method: Method) -> int:
     """Members per kernel block for `method` on a chain of n masses: 64 below 16 masses; from 16 on, 64 for
-    fixed-step Runge-Kutta, 8 for adaptive pairs, and for splittings two SIMD vectors of this host
-    (vector_doubles: 8 members with AVX2, 16 with AVX-512), or one where a block's 4n + 2 work rows would
-    outgrow the host's L1 data cache (l1_data_bytes).
+    fixed-step Runge-Kutta, and for splittings and adaptive pairs two SIMD vectors of this host (vector_doubles:
+    8 members with AVX2, 16 with AVX-512), or one where a block's work rows (4n + 2 for a splitting,
+    _adaptive_rows for a pair) would outgrow the host's L1 data cache (l1_data_bytes), but never fewer than 8
+    for a pair.
 
-    A member's arithmetic does not depend on its block: results are the same bits on every host. Measured with
+    A splitting member's arithmetic does not depend on its block: results are the same bits on every host. An
+    adaptive pair's takes the same steps in every block, but its values can differ in the last places between
+    blocks, so between AVX2 and AVX-512 hosts from 16 masses on (LLVM's fast-math code differs). Measured with
     `python analysis/bench_chain.py --n 16 64 128 --repeats 5 --steps 1000 --block B` (2^20 masses):
 
     - verlet on an AVX-512 host (AMD EPYC Zen 5, 48 KiB L1d; 2026-11-25, commit 0d9a3d3), blocks of 8, 16 and
@@ -72,7 +76,8 @@ def block_size(constants: dict, method: Method) -> int:
       1.66e10 and 1.21e10 at n = 128.
     - per member-step at n = 16 on an AVX2 host (AMD EPYC Zen 3; `analysis/bench_dopri5.py`'s chains), blocks
       of 4, 8, 16 and 64: rk4 8.96e-8, 1.62e-7, 1.06e-7 and 6.86e-8 s; dopri5, in the same run as rk4 at 64,
-      6.4, 2.3, 2.8 and 6.0 times rk4 (and 5.5 at 32).
+      6.4, 2.3, 2.8 and 6.0 times rk4 (and 5.5 at 32). That was before a pair's accepted steps moved in selects.
+    - dopri5 over rk4 on the AVX-512 host, after that: see analysis/README.md (bench_dopri5.py --chain-block B).
 
     A tableau's stage sums gain from longer rows; an adaptive block's members wait for the block's slowest, and
     its seven stages' rows outgrow the L1 cache in long blocks.
@@ -80,11 +85,12 @@ def block_size(constants: dict, method: Method) -> int:
     n = constants["n"]
     if n < 16:
         return 64
+    pair = 2 * vector_doubles()
     if method.adaptive:
-        return 8
+        fits = _adaptive_rows(n, method.tableau.stages)[-1] * pair * 8 <= l1_data_bytes()
+        return pair if fits else max(pair // 2, 8)
     if method.tableau is not None:
         return 64
-    pair = 2 * vector_doubles()
     return pair if (4 * n + 2) * pair * 8 <= l1_data_bytes() else pair // 2
 
 
@@ -346,6 +352,46 @@ def _fixed_kernel(method: Method, n: int, periodic: bool):
     return Kernel(runge_kutta_kernel if runge_kutta else splitting_kernel, rows)
 
 
+def _adaptive_rows(n: int, stages: int) -> tuple[int, ...]:
+    """The first rows of an adaptive kernel's X, V, ZX, ZV, KX, KV and control rows, and its number of rows: as
+    _fixed_kernel's Runge-Kutta rows (spring constants CL, CR after V), then the control rows."""
+    X, V = 0, n + 2
+    ZX = V + 3 * n  # after V, CL and CR
+    ZV = ZX + n + 2
+    KX = ZV + n
+    KV = KX + stages * n
+    C0 = KV + stages * n
+    return X, V, ZX, ZV, KX, KV, C0, C0 + CONTROL_ROWS
+
+
+@njit(inline="always", **FAST)
+def _chain_accept(work, X, V, ZX, ZV, KX, KV, C0, S, n, B):
+    """After control_step: members whose step was accepted move to the stage state ZX, ZV (its last slopes are the
+    next step's first); members whose step underflowed become NaN. In selects for blocks of 16 or more, in
+    branches for fewer: each form is the faster at its block, as AVX-512 and as AVX2 code (analysis/README.md,
+    `python analysis/bench_dopri5.py --chain-block B`)."""
+    last = S - 1
+    for i in range(n):
+        for j in range(B):
+            err = work[(C0 + ERR) * B + j]
+            accepted = (work[(C0 + REJECTED_LAST) * B + j] == 0.0) & (err >= 0.0)
+            underflowed = err == UNDERFLOWED
+            if B >= 16:
+                x, v = work[(X + 1 + i) * B + j], work[(V + i) * B + j]
+                work[(X + 1 + i) * B + j] = select(accepted, work[(ZX + 1 + i) * B + j], select(underflowed, np.nan, x))
+                work[(V + i) * B + j] = select(accepted, work[(ZV + i) * B + j], select(underflowed, np.nan, v))
+                work[(KX + i) * B + j] = select(accepted, work[(KX + last * n + i) * B + j], work[(KX + i) * B + j])
+                work[(KV + i) * B + j] = select(accepted, work[(KV + last * n + i) * B + j], work[(KV + i) * B + j])
+            elif accepted:
+                work[(X + 1 + i) * B + j] = work[(ZX + 1 + i) * B + j]
+                work[(V + i) * B + j] = work[(ZV + i) * B + j]
+                work[(KX + i) * B + j] = work[(KX + last * n + i) * B + j]
+                work[(KV + i) * B + j] = work[(KV + last * n + i) * B + j]
+            elif underflowed:
+                work[(X + 1 + i) * B + j] = np.nan
+                work[(V + i) * B + j] = np.nan
+
+
 def _adaptive_kernel(method: Method, n: int, periodic: bool):
     """Chain kernel for an adaptive embedded pair; rows as in _fixed_kernel's Runge-Kutta kernel, then control rows.
 
@@ -353,17 +399,9 @@ def _adaptive_kernel(method: Method, n: int, periodic: bool):
     clipped to land on the next saved time.
     """
     B = block_size({"n": n}, method)
-    X, V = 0, n + 2
-    CL = V + n
-    CR = CL + n
-    ZX = CR + n
-    ZV = ZX + n + 2
     S, a, e, alpha, beta, safety, min_factor, max_factor = adaptive_constants(method)
     a_array = np.array(a)  # indexed by a loop variable: a constant array, not a tuple
-    KX = ZV + n
-    KV = KX + S * n
-    C0 = KV + S * n
-    rows = C0 + CONTROL_ROWS
+    X, V, ZX, ZV, KX, KV, C0, rows = _adaptive_rows(n, S)
     stage_rows = (X, V, ZX, ZV, KX, KV)
     @njit(nogil=True, cache=True, **FAST)
     def kernel(state0, rate, control, save_dt, limit, samples, counts, status, failure_time, progress,
@@ -414,16 +452,7 @@ def _adaptive_kernel(method: Method, n: int, periodic: bool):
                         work[(C0 + ERR) * B + j] = math.sqrt(work[(C0 + ERR) * B + j] / (2 * n))
                     control_step(work, C0, B, target, j0, status, failure_time, S - 1, alpha, beta, safety,
                                   min_factor, max_factor)
-                    for i in range(n):
-                        for j in range(B):
-                            if work[(C0 + REJECTED_LAST) * B + j] == 0.0 and work[(C0 + ERR) * B + j] >= 0.0:
-                                work[(X + 1 + i) * B + j] = work[(ZX + 1 + i) * B + j]
-                                work[(V + i) * B + j] = work[(ZV + i) * B + j]
-                                work[(KX + i) * B + j] = work[(KX + (S - 1) * n + i) * B + j]
-                                work[(KV + i) * B + j] = work[(KV + (S - 1) * n + i) * B + j]
-                            elif work[(C0 + ERR) * B + j] == UNDERFLOWED:
-                                work[(X + 1 + i) * B + j] = np.nan
-                                work[(V + i) * B + j] = np.nan
+                    _chain_accept(work, X, V, ZX, ZV, KX, KV, C0, S, n, B)
                     _set_ghosts(work, X, n, B, periodic)
                 if _chain_saved(work, samples, save - start, block, limit, status, failure_time, progress,
                                 target, C0 + H, n, B):
