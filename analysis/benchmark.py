@@ -17,7 +17,8 @@ is that job's steps over its time. Cases and peers:
   Dopri8 with the same rule) when installed (pip install 'ensemble[bench]');
 - the hand-written C of ../shared/limit/limit.py, when it sits beside the
   checkout (its lines are parsed), for the ratios the targets ask for;
-- the top's rk4 kernel alone on 1, 2, ... threads, in rounds.
+- the top's rk4 kernel alone on 1, 2, ... threads, in rounds;
+- dopri5 against rk4 per member-step on 4096 16-mass chains (bench_dopri5.py's).
 
 --full adds whole `ensemble run` processes: the two whole-run workloads of
 issue 15, throughput and peak RSS against members (10^2 .. 10^6 tops),
@@ -42,6 +43,7 @@ import tempfile
 import time
 from pathlib import Path
 
+import bench_dopri5
 import numpy as np
 import xarray as xr
 from bench_chain import numpy_verlet
@@ -458,6 +460,11 @@ def main() -> None:
     # process; a case with peers then calls its kernel once more, for the error the peers must match
     cases = {name: case(False) for name, case in runs.items()}
     threads, by_threads = kernel_threads(65536, 1000, args.repeats)
+    chain_spec = parse(bench_dopri5.CHAIN)
+    per_step = bench_dopri5.per_step(chain, members_table(chain_spec), chain_spec.constants, 1e-2, 1.0, 11,
+                                     args.repeats)
+    chain_adaptive = per_step["dopri5"] / per_step["rk4"]
+    print(f"chain dopri5 per member-step (4096 16-mass chains): {chain_adaptive:.2f}x rk4", flush=True)
     for name, case in runs.items():
         if name in with_peers:
             cases[name] = {**case(True, timed=1), "ensemble": cases[name]["ensemble"]}
@@ -476,6 +483,8 @@ def main() -> None:
     ds["kernel_thread_rate"] = ("kernel_threads", by_threads, {
         "units": "member-steps/s", "long_name": "top rk4 kernel alone (65,536 members, 1000 steps)"})
     ds = ds.assign_coords(kernel_threads=threads)
+    ds["chain_dopri5_cost"] = ((), chain_adaptive, {"units": "1", "long_name": "chain dopri5 over rk4 seconds per "
+                                                    "member-step (4096 16-mass chains)"})
     targets = []
     if len(threads) > 1:
         gain = by_threads[1] / by_threads[0]
@@ -483,6 +492,8 @@ def main() -> None:
     if "top rk4" in cases and "top dopri5" in cases:
         ratio = cases["top rk4"]["ensemble"] / cases["top dopri5"]["ensemble"]
         targets.append(("dopri5 per member-step on tops <= 3x rk4", f"{ratio:.1f}x", ratio <= 3))
+    targets.append(("dopri5 per member-step on 16-mass chains <= 2.5x rk4", f"{chain_adaptive:.2f}x",
+                    chain_adaptive <= 2.5))
     for name in names:
         if name.startswith("chain") and "C" in cases.get(f"chain verlet N={name.split('N=')[1]}", {}):
             c = cases[f"chain verlet N={name.split('N=')[1]}"]["C"]
