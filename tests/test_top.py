@@ -146,6 +146,27 @@ def test_split_methods_are_exact_without_drag():
         assert relative_error(run(method, table, 1e-2, 200, 2), exact).max() < 1e-12
 
 
+def test_the_splittings_sin_and_cos_match_numpy_to_an_ulp_of_one():
+    from numba import njit
+
+    from ensemble.engine.blocks import FAST, SIN_COS_LIMIT, sin_cos
+
+    @njit(**FAST)  # as the kernels that inline it are compiled
+    def both(x):
+        sin, cos = np.empty_like(x), np.empty_like(x)
+        for i in range(x.size):
+            sin[i], cos[i] = sin_cos(x[i])
+        return sin, cos
+
+    rng = np.random.default_rng(7)
+    x = np.concatenate([rng.uniform(-1, 1, 20_000) * 10.0 ** rng.integers(-9, 10, 20_000),
+                        np.pi / 4 * np.arange(-40, 41), [0.0, -0.0, 1e-300, SIN_COS_LIMIT, -SIN_COS_LIMIT]])
+    sin, cos = both(x)
+    np.testing.assert_allclose(sin, np.sin(x), rtol=0, atol=2.3e-16)
+    np.testing.assert_allclose(cos, np.cos(x), rtol=0, atol=2.3e-16)
+    assert np.all(np.isnan(both(np.array([2 * SIN_COS_LIMIT, np.inf, np.nan]))))  # beyond the reduction: NaN
+
+
 def test_observed_tilt_and_amplitudes_are_numpys_arctan2_and_hypot():
     """The run's compiled tilt and amplitudes (kernels.observed_tilt and observed_amplitudes: Cephes' atan in
     selects) against numpy's arctan2(hypot(w1, w2), w3) and hypot, over rates from 1e-13 to 1e13 rad/s of both

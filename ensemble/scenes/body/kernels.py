@@ -31,6 +31,7 @@ from ...engine.blocks import (
     rates_load,
     rates_saved,
     rates_start,
+    sin_cos,
     stack_array,
     trial_steps,
 )
@@ -78,8 +79,7 @@ def _kernel(method: Method):
 @njit(inline="always", fastmath=True, error_model="numpy")
 def turn(x, y, angle):
     """(x, y) turned by -angle: the pair of L across a body axis under that axis' piece L_i^2 / (2 lambda_i)."""
-    cos = math.cos(angle)
-    sin = math.sin(angle)
+    sin, cos = sin_cos(angle)
     return cos * x + sin * y, cos * y - sin * x
 
 

@@ -30,6 +30,7 @@ from ...engine.blocks import (
     rates_load,
     rates_saved,
     rates_start,
+    sin_cos,
     stack_array,
     trial_steps,
 )
@@ -49,9 +50,7 @@ def rhs(w1, w2, w3, p, r1, r3):
 @njit(inline="always", fastmath=True, error_model="numpy")
 def rotate(w1, w2, w3, p, tau):
     """Free symmetric-top rotation for time tau (s): (w1, w2) turns about e3 by p w3 tau."""
-    angle = p * w3 * tau
-    cos = math.cos(angle)
-    sin = math.sin(angle)
+    sin, cos = sin_cos(p * w3 * tau)
     return cos * w1 - sin * w2, sin * w1 + cos * w2, w3
 
 
