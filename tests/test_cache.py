@@ -63,3 +63,20 @@ def test_every_kernel_family_gives_the_same_bits_compiled_and_cached(tmp_path):
             a, b = variable.values, cached[scene][name].values
             same = np.array_equal(a, b, equal_nan=a.dtype.kind == "f")
             assert a.dtype == b.dtype and same, f"{scene} {name}: {np.sum(a != b)} values differ"
+
+
+def test_every_kernel_holds_the_helpers_stamp_that_keys_its_cache():
+    """Numba keys a cached kernel on its own file and its closure: each kernel's closure holds blocks.HELPERS, a
+    hash of the helpers it inlines, so a kernel compiled before a helper changed is not loaded after."""
+    from ensemble.engine.blocks import HELPERS
+    from ensemble.methods import METHODS
+    from ensemble.scenes import SCENES, applies
+
+    constants = {"top": {}, "body": {"spin_axis": 2}, "chain": {"n": 16, "boundary": "fixed"}}
+    for name, scene in SCENES.items():
+        kernels = __import__(f"ensemble.scenes.{name}.kernels", fromlist=["kernel"])
+        for method in METHODS.values():
+            if applies(method, scene) and not method.closed_form:
+                closure = kernels.kernel(method, constants[name]).function.py_func.__closure__
+                assert any(isinstance(cell.cell_contents, str) and cell.cell_contents == HELPERS
+                           for cell in closure), (name, method.name)

@@ -18,11 +18,15 @@ Each scene's kernels (ensemble/scenes/<scene>/kernels.py) are generated per
 method by factories whose closures capture the method's data as constants;
 Numba caches each on disk. They call the helpers here directly: compiled
 functions passed as arguments, or held by a closure, defeat the disk cache.
+Numba keys a cached kernel on its own file and closure alone, so every kernel's
+closure also holds HELPERS, a hash of the helpers' source.
 How the runner calls a kernel is in `ensemble.engine.launch`.
 """
 from __future__ import annotations
 
+import hashlib
 import math
+from pathlib import Path
 from typing import NamedTuple
 
 import numpy as np
@@ -34,6 +38,11 @@ from numba.np.numpy_support import carray
 
 from ..methods import Method
 from ..results import ACCEPTED, NO_STEP, REJECTED, RHS_EVALS, UNDERFLOWED, Status
+
+#: A hash of this file and of results.py (the status codes), held by every kernel's closure: Numba's disk cache
+#: keys a kernel on its own file and closure, and would otherwise load a kernel compiled before a helper changed.
+HELPERS = hashlib.sha256(b"".join((Path(__file__).parent / name).read_bytes()
+                                  for name in ("blocks.py", "../results.py"))).hexdigest()
 
 FAST = dict(fastmath=True, error_model="numpy", boundscheck=False)
 # Code that tests for NaN and infinity is compiled without fastmath, on its own (not inlined at Numba level),

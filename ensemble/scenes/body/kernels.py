@@ -16,6 +16,7 @@ from numba import njit
 from ...engine.blocks import (
     CONTROL_ROWS,
     FAST,
+    HELPERS,
     STEP,
     H,
     Kernel,
@@ -103,10 +104,13 @@ def _splitting_kernel(method: Method):
     K = 3 + P
     rows = K + 3 * E
 
+    helpers = HELPERS  # in the kernel's cache key (blocks.HELPERS)
+
     @njit(nogil=True, cache=True, **FAST)
     def kernel(state0, rate, h, steps_per_save, limit, samples, status, failure_time, progress,
                works, start, first_block, end_block):
         """As _fixed_kernel's."""
+        helpers  # a closure variable, so in the cache key
         work = cache_line_array(works.shape[1])
         for block in range(first_block, end_block):
             work[:] = works[block]
@@ -151,22 +155,21 @@ def _splitting_kernel(method: Method):
 
 
 def _fixed_kernel(method: Method):
-    """Kernel for an explicit Runge-Kutta tableau.
-
-    Work rows: w1, w2, w3, the P parameters. The stage slopes are a member's
-    own, within a step (stack_array). Stage loops have constant trip counts,
-    so LLVM unrolls them, folds the tableau's coefficients and keeps the
-    slopes in registers.
-    """
+    """Kernel for an explicit Runge-Kutta tableau. Work rows: w1, w2, w3, the P parameters. The stage slopes are a
+    member's own, within a step (stack_array). Stage loops have constant trip counts, so LLVM unrolls them, folds
+    the tableau's coefficients and keeps the slopes in registers."""
     _, S, a, b, _, _, _ = method_constants(method)
     rows = 3 + P
     SLOPES = 3 * S
+
+    helpers = HELPERS  # in the kernel's cache key (blocks.HELPERS)
 
     @njit(nogil=True, cache=True, **FAST)
     def kernel(state0, rate, h, steps_per_save, limit, samples, status, failure_time, progress,
                works, start, first_block, end_block):
         """state0 (blocks, 3, BLOCK), rate (blocks, P, BLOCK), limit (M,) -> samples (count, blocks, 3, BLOCK),
         status (M,), failure_time (M,) (s; set only where a member fails); M = blocks x BLOCK."""
+        helpers  # a closure variable, so in the cache key
         work = cache_line_array(works.shape[1])
         for block in range(first_block, end_block):
             work[:] = works[block]
@@ -227,6 +230,8 @@ def _adaptive_kernel(method: Method):
     C0 = NEW + 3
     rows = C0 + CONTROL_ROWS
 
+    helpers = HELPERS  # in the kernel's cache key (blocks.HELPERS)
+
     @njit(nogil=True, cache=True, **FAST)
     def kernel(state0, rate, control, save_dt, limit, samples, counts, status, failure_time, progress,
                works, start, first_block, end_block):
@@ -234,6 +239,7 @@ def _adaptive_kernel(method: Method):
         it), rtol, atol;
         limit (M,) -> samples (count, blocks, 3, BLOCK), counts (3, M): accepted, rejected, right-hand-side
         evaluations; status (M,) and failure_time (M,; s, set only where a member fails)."""
+        helpers  # a closure variable, so in the cache key
         B = BLOCK
         work = cache_line_array(works.shape[1])
         for block in range(first_block, end_block):

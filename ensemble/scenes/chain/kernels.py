@@ -18,6 +18,7 @@ from ...engine.blocks import (
     CONTROL_ROWS,
     ERR,
     FAST,
+    HELPERS,
     REJECTED_LAST,
     RTOL,
     STEP,
@@ -288,11 +289,14 @@ def _fixed_kernel(method: Method, n: int, periodic: bool):
     rows = KV + S * n if runge_kutta else CR + n
     stage_rows = (X, V, ZX, ZV, KX, KV)
 
+    helpers = HELPERS  # in the kernel's cache key (blocks.HELPERS)
+
     @njit(nogil=True, cache=True, **FAST)
     def splitting_kernel(state0, rate, h, steps_per_save, limit, samples, status, failure_time, progress,
                          works, start, first_block, end_block):
         """state0 (blocks, 2n, B), rate (blocks, 2n, B), limit (M,) -> samples (count, blocks, 2n, B),
         status (M,), failure_time (M,) (s; set only where a member fails); M = blocks x B."""
+        helpers  # a closure variable, so in the cache key
         kinds, taus, lags = splitting_schedule(pieces, fractions, h, steps_per_save, TILE_PIECES)
         count = len(kinds)
         work = cache_line_array(works.shape[1])
@@ -329,6 +333,7 @@ def _fixed_kernel(method: Method, n: int, periodic: bool):
     def runge_kutta_kernel(state0, rate, h, steps_per_save, limit, samples, status, failure_time, progress,
                            works, start, first_block, end_block):
         """As splitting_kernel."""
+        helpers  # a closure variable, so in the cache key
         work = cache_line_array(works.shape[1])
         for block in range(first_block, end_block):
             running = _fixed_start(work, works, state0, rate, block, samples, limit, status, failure_time, progress,
@@ -403,12 +408,15 @@ def _adaptive_kernel(method: Method, n: int, periodic: bool):
     a_array = np.array(a)  # indexed by a loop variable: a constant array, not a tuple
     X, V, ZX, ZV, KX, KV, C0, rows = _adaptive_rows(n, S)
     stage_rows = (X, V, ZX, ZV, KX, KV)
+    helpers = HELPERS  # in the kernel's cache key (blocks.HELPERS)
+
     @njit(nogil=True, cache=True, **FAST)
     def kernel(state0, rate, control, save_dt, limit, samples, counts, status, failure_time, progress,
                works, start, first_block, end_block):
         """state0, rate (blocks, 2n, B); control (3, M): first step (s; <= 0: estimate it), rtol, atol;
         limit (M,) -> samples (count, blocks, 2n, B), counts (3, M): accepted, rejected, right-hand-side evaluations;
         status (M,) and failure_time (M,; s, set only where a member fails)."""
+        helpers  # a closure variable, so in the cache key
         work = cache_line_array(works.shape[1])
         for block in range(first_block, end_block):
             j0 = block * B

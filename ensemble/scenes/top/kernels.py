@@ -15,6 +15,7 @@ from numba import njit
 from ...engine.blocks import (
     CONTROL_ROWS,
     FAST,
+    HELPERS,
     STEP,
     H,
     Kernel,
@@ -88,11 +89,14 @@ def _fixed_kernel(method: Method):
     rows = 6 + (0 if runge_kutta else 2 * E)
     SLOPES = 3 * S
 
+    helpers = HELPERS  # in the kernel's cache key (blocks.HELPERS)
+
     @njit(nogil=True, cache=True, **FAST)
     def kernel(state0, rate, h, steps_per_save, limit, samples, status, failure_time, progress,
                works, start, first_block, end_block):
         """state0 (blocks, 3, BLOCK), rate (blocks, 3, BLOCK), limit (M,) -> samples (count, blocks, 3, BLOCK),
         status (M,), failure_time (M,) (s; set only where a member fails); M = blocks x BLOCK."""
+        helpers  # a closure variable, so in the cache key
         work = cache_line_array(works.shape[1])
         for block in range(first_block, end_block):
             j0 = block * BLOCK
@@ -174,12 +178,15 @@ def _adaptive_kernel(method: Method):
     C0 = NEW + 3
     rows = C0 + CONTROL_ROWS
 
+    helpers = HELPERS  # in the kernel's cache key (blocks.HELPERS)
+
     @njit(nogil=True, cache=True, **FAST)
     def kernel(state0, rate, control, save_dt, limit, samples, counts, status, failure_time, progress,
                works, start, first_block, end_block):
         """state0, rate (blocks, 3, BLOCK); control (3, M): first step (s; <= 0: estimate it), rtol, atol;
         limit (M,) -> samples (count, blocks, 3, BLOCK), counts (3, M): accepted, rejected, right-hand-side
         evaluations; status (M,) and failure_time (M,; s, set only where a member fails)."""
+        helpers  # a closure variable, so in the cache key
         B = BLOCK
         work = cache_line_array(works.shape[1])
         for block in range(first_block, end_block):
