@@ -5,8 +5,8 @@
 1. Kernel seconds per member-step of rk4 and dopri5, side by side in this
    process (medians of --repeats): 8192 aerobie tops (runs/aerobie.toml), and
    4096 disordered 16-mass chains (--chain-block B: their dopri5 in blocks
-   of B members instead of block_size's choice; a member's bits do not
-   depend on its block).
+   of B members instead of block_size's choice; a member takes the same
+   steps in every block, its values agree to the last few bits).
 2. The same for the tops in hand-written C (analysis/c/top_dopri5.c, compiled
    here with gcc; skipped without it), alternated with ensemble's kernels:
    rk4 as ../shared/limit/ens.c writes it, and dopri5 with ensemble's step

@@ -285,7 +285,8 @@ SIN_COS_LIMIT = 1.073741824e9  # 2**30 rad: Cephes' bound for its reduction
 def sin_cos(x):
     """(sin x, cos x) of x (rad), each within 2.3e-16 of NumPy's (tests/test_top.py), in operations that vectorize:
     libm's sin and cos are scalar calls, which kept a top's splittings at a tenth of its rk4's speed. NaN for
-    |x| > SIN_COS_LIMIT. The fused multiply-adds are instructions on hosts with FMA (x86-64 since 2013)."""
+    |x| > SIN_COS_LIMIT. The fused multiply-adds are single instructions on hosts with FMA3; elsewhere LLVM calls
+    libm's fma, slower but as exact."""
     quadrants = np.floor(x * (2.0 / math.pi) + 0.5)  # the nearest multiple of pi/2, counted
     # Cody and Waite's reduction in fused operations: the first is exact, and LLVM does not reassociate them (as
     # fast-math lets it do with the differences of Cephes' three-part form, losing its digits)
