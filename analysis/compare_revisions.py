@@ -1,17 +1,20 @@
 """Whole runs of two revisions of ensemble, alternated in the same minutes: a change's effect on a noisy host.
 
-    python analysis/compare_revisions.py OLD [NEW] [--workload tops|chains] [--repeats 5]
+    python analysis/compare_revisions.py OLD [NEW] [--workload tops|chains] [--members N] [--repeats 5]
 
 Checks out OLD and NEW (default: the working tree) into temporary git
 worktrees, each with a Numba cache of its own, runs the workload of
 benchmark.py --whole once per revision untimed (compiling), then --repeats
 rounds of one warm `ensemble run` process per revision, and prints each
-revision's wall seconds and their medians, between two runs of the C limit
-(limit.py). A host whose speed wanders moves both revisions alike, so the
+revision's wall seconds and their medians, and the run's own seconds (what
+`ensemble run` reports: start-up and loading the kernels left out), between
+two runs of the C limit (limit.py). --members N replaces the workload's member
+count. A host whose speed wanders moves both revisions alike, so the
 ratio of the medians holds where either figure alone does not.
 """
 from __future__ import annotations
 
+import re
 import statistics
 import subprocess
 import tempfile
@@ -37,6 +40,7 @@ def main(argv=None) -> None:
     parser.add_argument("old", help="a git revision")
     parser.add_argument("new", nargs="?", help="a git revision (default: the working tree)")
     parser.add_argument("--workload", choices=WORKLOADS, default="tops")
+    parser.add_argument("--members", type=positive_int, help="replace the workload's member count")
     parser.add_argument("--repeats", type=positive_int, default=5)
     args = parser.parse_args(argv)
     print(host(), flush=True)
@@ -56,25 +60,31 @@ def main(argv=None) -> None:
         try:
             envs = {name: revision_env(tree, folder / f"cache{k}") for k, (name, tree) in enumerate(trees.items())}
             text = WORKLOADS[args.workload]
+            if args.members:
+                text = re.sub(r"(?m)^members = .*$", f"members = {args.members}", text)
             for env in envs.values():
                 whole_run(text, folder, env=env)  # untimed: compiles
             print_limit("C limit, before", c_limit())
-            walls = {name: [] for name in trees}
+            walls, owns = {name: [] for name in trees}, {name: [] for name in trees}
             for _ in range(args.repeats):
                 for name, env in envs.items():
-                    walls[name].append(whole_run(text, folder, env=env)[0])
+                    wall, work, rate, _ = whole_run(text, folder, env=env)
+                    walls[name].append(wall)
+                    owns[name].append(work / rate)
             print_limit("C limit, after", c_limit())
         finally:
             for tree in trees.values():
                 if tree != ROOT:
                     subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(tree)],
                                    capture_output=True)
-    medians = {name: statistics.median(w) for name, w in walls.items()}
-    for name, w in walls.items():
-        print(f"{args.workload}, {name}: {medians[name]:.2f} s (median of {args.repeats}: "
-              f"{', '.join(f'{x:.2f}' for x in w)})")
-    old, new = medians.values()
-    print(f"new / old: {new / old:.2f}")
+    workload = args.workload + (f" ({args.members} members)" if args.members else "")
+    for label, seconds in (("wall", walls), ("the run's own", owns)):
+        medians = {name: statistics.median(w) for name, w in seconds.items()}
+        for name, w in seconds.items():
+            print(f"{workload}, {name}, {label}: {medians[name]:.3g} s (median of {args.repeats}: "
+                  f"{', '.join(f'{x:.3g}' for x in w)})")
+        old, new = medians.values()
+        print(f"{label} seconds, new / old: {new / old:.2f}")
 
 
 if __name__ == "__main__":
