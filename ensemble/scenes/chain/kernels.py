@@ -61,7 +61,7 @@ def block_size(constants: dict, method: Method) -> int:
     """Members per kernel block for `method` on a chain of n masses: 64 below 16 masses; from 16 on, 64 for
     fixed-step Runge-Kutta, and for splittings and adaptive pairs two SIMD vectors of this host (vector_doubles:
     8 members with AVX2, 16 with AVX-512), or one where a block's work rows (4n + 2 for a splitting,
-    _adaptive_rows for a pair) would outgrow the host's L1 data cache (l1_data_bytes), but never fewer than 8
+    20n + 15 for dopri5) would outgrow the host's L1 data cache (l1_data_bytes), but never fewer than 8
     for a pair.
 
     A splitting member's arithmetic does not depend on its block: results are the same bits on every host. An
@@ -88,7 +88,7 @@ def block_size(constants: dict, method: Method) -> int:
         return 64
     pair = 2 * vector_doubles()
     if method.adaptive:
-        fits = _adaptive_rows(n, method.tableau.stages)[-1] * pair * 8 <= l1_data_bytes()
+        fits = (_stage_rows(n, method.tableau.stages)[-1] + CONTROL_ROWS) * pair * 8 <= l1_data_bytes()
         return pair if fits else max(pair // 2, 8)
     if method.tableau is not None:
         return 64
@@ -254,6 +254,17 @@ def _drift(work, tau, lo, hi, n, B):
         w[B + q] += tau * w[(n + 2) * B + q]
 
 
+def _stage_rows(n: int, stages: int) -> tuple[int, ...]:
+    """The first rows of X, V, ZX, ZV, KX and KV in a Runge-Kutta kernel of `stages` stages (see _fixed_kernel; CL
+    and CR lie between V and ZX), and the row after KV: where an adaptive kernel's control rows begin."""
+    X, V = 0, n + 2
+    ZX = V + 3 * n  # after V, CL and CR
+    ZV = ZX + n + 2
+    KX = ZV + n
+    KV = KX + stages * n
+    return X, V, ZX, ZV, KX, KV, KV + stages * n
+
+
 def _fixed_kernel(method: Method, n: int, periodic: bool):
     """Chain kernel for n masses: a kick/drift splitting or an explicit Runge-Kutta tableau.
 
@@ -277,16 +288,10 @@ def _fixed_kernel(method: Method, n: int, periodic: bool):
     loop over masses, with gathers: a tenth of the speed at n = 16 and 128.
     """
     B = block_size({"n": n}, method)
-    X, V = 0, n + 2
-    CL = V + n
-    CR = CL + n
     runge_kutta, S, a, b, E, pieces, fractions = method_constants(method)
     tiled = not periodic and n > 2 * TILE_ROWS
-    ZX = CR + n
-    ZV = ZX + n + 2
-    KX = ZV + n
-    KV = KX + S * n
-    rows = KV + S * n if runge_kutta else CR + n
+    X, V, ZX, ZV, KX, KV, end = _stage_rows(n, S)
+    rows = end if runge_kutta else ZX  # a splitting's rows end with CR
     stage_rows = (X, V, ZX, ZV, KX, KV)
 
     helpers = HELPERS  # in the kernel's cache key (blocks.HELPERS)
@@ -357,18 +362,6 @@ def _fixed_kernel(method: Method, n: int, periodic: bool):
     return Kernel(runge_kutta_kernel if runge_kutta else splitting_kernel, rows)
 
 
-def _adaptive_rows(n: int, stages: int) -> tuple[int, ...]:
-    """The first rows of an adaptive kernel's X, V, ZX, ZV, KX, KV and control rows, and its number of rows: as
-    _fixed_kernel's Runge-Kutta rows (spring constants CL, CR after V), then the control rows."""
-    X, V = 0, n + 2
-    ZX = V + 3 * n  # after V, CL and CR
-    ZV = ZX + n + 2
-    KX = ZV + n
-    KV = KX + stages * n
-    C0 = KV + stages * n
-    return X, V, ZX, ZV, KX, KV, C0, C0 + CONTROL_ROWS
-
-
 @njit(inline="always", **FAST)
 def _chain_accept(work, X, V, ZX, ZV, KX, KV, C0, S, n, B):
     """After control_step: members whose step was accepted move to the stage state ZX, ZV (its last slopes are the
@@ -406,7 +399,8 @@ def _adaptive_kernel(method: Method, n: int, periodic: bool):
     B = block_size({"n": n}, method)
     S, a, e, alpha, beta, safety, min_factor, max_factor = adaptive_constants(method)
     a_array = np.array(a)  # indexed by a loop variable: a constant array, not a tuple
-    X, V, ZX, ZV, KX, KV, C0, rows = _adaptive_rows(n, S)
+    X, V, ZX, ZV, KX, KV, C0 = _stage_rows(n, S)
+    rows = C0 + CONTROL_ROWS
     stage_rows = (X, V, ZX, ZV, KX, KV)
     helpers = HELPERS  # in the kernel's cache key (blocks.HELPERS)
 
