@@ -31,13 +31,12 @@ import statistics
 import time
 
 import numpy as np
-from hostinfo import host, limit_module
+from hostinfo import force_chain_block, host, limit_module
 
 from ensemble.arguments import OneLineParser, positive_int
 from ensemble.engine import launch
 from ensemble.methods import METHODS
 from ensemble.scenes import chain
-from ensemble.scenes.chain import kernels as chain_kernels
 
 
 def numpy_verlet(x, v, c_left, c_right, h, steps):
@@ -101,8 +100,8 @@ def main():
     parser.add_argument("--boundary", default="fixed", choices=["fixed", "free", "periodic"])
     parser.add_argument("--block", type=positive_int, help="members per kernel block (default: block_size's choice)")
     args = parser.parse_args()
-    if args.block:  # before any kernel is built: Numba caches each block size's kernel apart (a closure constant)
-        chain_kernels.block_size = lambda constants, method, block=args.block: block
+    if args.block:
+        force_chain_block(args.block)
     print(host() + (f", blocks of {args.block} members" if args.block else ""))
     rng = np.random.default_rng(2026)
     h = 1e-2

@@ -28,14 +28,13 @@ import time
 from pathlib import Path
 
 import numpy as np
-from hostinfo import host, quiet_openmp
+from hostinfo import force_chain_block, host, quiet_openmp
 
 from ensemble.arguments import OneLineParser, positive_int
 from ensemble.engine import launch
 from ensemble.methods import METHODS
 from ensemble.records import measured_error
 from ensemble.scenes import chain, top
-from ensemble.scenes.chain import kernels as chain_kernels
 from ensemble.spec import members_table, parse
 
 RUNS = Path(__file__).resolve().parent.parent / "runs"
@@ -156,10 +155,8 @@ def main():
     parser.add_argument("--chain-block", type=positive_int, help="members per block of the chains' dopri5 kernel "
                                                                  "(default: block_size's choice for this host)")
     args = parser.parse_args()
-    if args.chain_block:  # before any kernel is built: each block size's kernel is cached apart (a closure constant)
-        choose = chain_kernels.block_size
-        chain_kernels.block_size = lambda constants, method, block=args.chain_block: (
-            block if method.adaptive else choose(constants, method))
+    if args.chain_block:
+        force_chain_block(args.chain_block, adaptive_only=True)
     print(host())
     spec = parse((RUNS / "aerobie.toml").read_text().replace("members = 200", "members = 4096"))
     tops = {name: v[:8192] for name, v in members_table(spec).items()}

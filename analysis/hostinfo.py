@@ -45,3 +45,14 @@ def host() -> str:
     widest = next((f for f in ("avx512f", "avx2", "avx", "sse4_2", "neon") if f in flags), "unknown")
     threads = os.environ.get("NUMBA_NUM_THREADS") or str(os.cpu_count())
     return f"host: {model}, widest vectors {widest}, {threads} threads"
+
+
+def force_chain_block(block: int, adaptive_only: bool = False) -> None:
+    """Run the chains' kernels (with adaptive_only, their adaptive ones alone) in blocks of `block` members instead
+    of the block ensemble.scenes.chain.kernels.block_size picks for this host. Call it before any chain kernel is
+    built: Numba caches each block size's kernel apart (a closure constant)."""
+    from ensemble.scenes.chain import kernels
+
+    choose = kernels.block_size
+    kernels.block_size = lambda constants, method: (block if method.adaptive or not adaptive_only
+                                                    else choose(constants, method))
