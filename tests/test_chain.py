@@ -15,10 +15,11 @@ from ensemble.engine import launch
 from ensemble.methods import METHODS
 from ensemble.scenes import applies, chain
 from ensemble.scenes.chain import kernels as chain_kernels
-from ensemble.scenes.chain.kernels import TILE_ROWS
+from ensemble.scenes.chain.kernels import TILE_ROWS, block_size, tiles
 from ensemble.spec import SpecError, load, parse
 
 CHAIN_METHODS = [name for name, m in METHODS.items() if applies(m, chain) and not (m.closed_form or m.adaptive)]
+LONG = 16 * TILE_ROWS + 5  # masses of a chain whose splitting runs in tiles (test_long_chains_are_tiled)
 
 
 def chain_runfile(parameters=None, **top_level) -> str:
@@ -166,7 +167,7 @@ def test_verlet_is_reversible():
 
 def numpy_splitting(method, values, constants, h, steps):
     """State (2n, members) after `steps` steps of a splitting method applied one piece at a time, with NumPy
-    (fixed or free ends)."""
+    (fixed or free ends, or a ring)."""
     n = constants["n"]
     state, rate = chain.inputs(values, constants)
     x, v = state[:n].copy(), state[n:].copy()
@@ -175,22 +176,44 @@ def numpy_splitting(method, values, constants, h, steps):
         for piece, fraction in METHODS[method].splitting.sequence:
             if METHODS[method].splitting.pieces[piece] == "kick":
                 with_walls[1:-1] = x
+                if constants["boundary"] == "periodic":
+                    with_walls[0], with_walls[-1] = x[-1], x[0]
                 v += h * fraction * (rate[:n] * (with_walls[:-2] - x) + rate[n:] * (with_walls[2:] - x))
             else:
                 x += h * fraction * v
     return np.concatenate((x, v))
 
 
-@pytest.mark.parametrize("method, boundary", [("verlet", "fixed"), ("verlet", "free"), ("yoshida4", "fixed")])
+@pytest.mark.parametrize("method, boundary", [("verlet", "fixed"), ("verlet", "free"), ("yoshida4", "fixed"),
+                                              ("yoshida4", "periodic")])
 def test_long_chains_step_in_tiles_as_one_piece_at_a_time(method, boundary):
-    """Past 2 TILE_ROWS masses the splitting kernel runs many pieces at once over tiles of masses; 37 steps a
-    save interval make chunks of pieces that do not divide it."""
-    n, h = 2 * TILE_ROWS + 5, 0.05
+    """A long chain's splitting kernel runs many pieces at once over tiles of masses (a ring with copies of its
+    other end beyond each end); 37 steps a save interval make chunks of pieces that do not divide it."""
+    n, h = LONG, 0.05
     constants = {"n": n, "boundary": boundary}
     values = disordered(n, boundary, members=5)
     samples = run(method, values, constants, h, 37, 3)
     reference = numpy_splitting(method, values, constants, h, 74)
     np.testing.assert_allclose(samples[-1], reference, rtol=0, atol=1e-12 * np.abs(reference).max())
+
+
+def test_a_long_rings_masses_take_the_same_bits_wherever_its_ends_are():
+    """A tiled ring turned by 40 masses (its masses, springs and state rolled): the same bits, turned, so the
+    masses beside its ends (in the halos' reach) step as those in the middle do."""
+    n, turn = LONG, 40
+    constants = {"n": n, "boundary": "periodic"}
+    values = disordered(n, "periodic", members=5)
+    turned = {name: np.roll(v, turn, axis=1) for name, v in values.items()}
+    samples = run("verlet", values, constants, 0.05, 37, 3)
+    samples_turned = run("verlet", turned, constants, 0.05, 37, 3)
+    x, v = samples[:, :n], samples[:, n:]
+    np.testing.assert_array_equal(samples_turned, np.concatenate((np.roll(x, turn, 1), np.roll(v, turn, 1)), 1))
+
+
+def test_long_chains_are_tiled():
+    """The tiling tests' chains run in tiles on this host (and short ones do not)."""
+    assert tiles(LONG, block_size({"n": LONG}, METHODS["verlet"]))
+    assert not tiles(2 * TILE_ROWS, block_size({"n": 2 * TILE_ROWS}, METHODS["verlet"]))
 
 
 def test_a_members_bits_do_not_depend_on_its_block(monkeypatch):
@@ -306,7 +329,7 @@ def test_observed_energy_is_the_models_spring_sum(boundary):
         np.testing.assert_allclose(observed, expected, rtol=1e-14)
 
 
-@pytest.mark.parametrize("n", [4, 133])  # blocks of 64 and 8 members (133: the tiled kernel of the tiling test)
+@pytest.mark.parametrize("n", [4, LONG])  # blocks of 64 members, and the tiled kernel of the tiling tests
 def test_chain_results_do_not_depend_on_chunk_size(n, write_runfile):
     text = chain_runfile({"n": n, "m": "{ uniform = [0.5, 2.0] }", "x0": "{ normal = [0.0, 0.1] }"},
                          members=70, t_end=0.2)

@@ -9,12 +9,13 @@ from ensemble.scenes import SCENES
 from ensemble.spec import members_table, parse
 from tests.conftest import top_runfile
 from tests.test_cache import RUNS, SWEEPS
+from tests.test_chain import LONG
 
 TEXTS = {
     "top": top_runfile(members=130, t_end=1.0, save_dt=0.1, method=None) + SWEEPS.format("rk4", "split2"),
     "body": RUNS["body"],
     "chain": RUNS["chain"],
-    "long chain": RUNS["chain"].split("[[sweep]]")[0].replace("n = 1\n", "n = 133\n")
+    "long chain": RUNS["chain"].split("[[sweep]]")[0].replace("n = 1\n", f"n = {LONG}\n")
     + '[[sweep]]\nmethod = ["verlet"]\n',  # the tiled splitting kernel
 }
 

@@ -45,6 +45,7 @@ from ...results import UNDERFLOWED
 from .model import PIECES
 
 TILE_ROWS, TILE_PIECES = 64, 32  # a long chain's splitting kernel: masses per tile, pieces per sweep
+TILE_FROM_L1 = 1.5  # a splitting runs in tiles when a block's rows outgrow this many times the L1 data cache
 KICK = PIECES.index("kick")
 
 
@@ -144,41 +145,71 @@ def _set_ghosts(work, x, n, B, periodic):
 
 
 @njit(inline="always", **FAST)
-def _store_chain_sample(work, samples, save, block, n, B):
-    rows_out(work, 1, samples[save, block], 0, n, B)
-    rows_out(work, n + 2, samples[save, block], n, n, B)
+def _fill_halos(work, row, n, halo, B):
+    """A tiled ring's rows from `row` on (one of X + 1, V, CL, CR) hold halo masses, its n masses, halo masses:
+    the halos copy the masses at the ring's other end (mass n - halo + e before mass 1, mass e after mass n)."""
+    for q in range(halo * B):
+        work[row * B + q] = work[(row + n) * B + q]
+        work[(row + halo + n) * B + q] = work[(row + halo) * B + q]
 
 
 @njit(inline="always", **FAST)
-def _load_chain_block(work, state0, rate, block, samples, n, B, periodic):
-    """Start a block's (zeroed) work array with its state and parameters (CL and CR follow each other); also its
-    first sample."""
-    rows_in(work, 1, state0[block], 0, n, B)
-    rows_in(work, n + 2, state0[block], n, n, B)
-    rows_in(work, 2 * n + 2, rate[block], 0, 2 * n, B)
-    _store_chain_sample(work, samples, 0, block, n, B)
-    _set_ghosts(work, 0, n, B, periodic)
+def _refresh_halos(work, n, halo, B):
+    """A tiled ring: its positions' and velocities' halos from its masses (nothing when halo is 0)."""
+    m = n + 2 * halo
+    if halo > 0:
+        _fill_halos(work, 1, n, halo, B)
+        _fill_halos(work, m + 2, n, halo, B)
 
 
 @njit(inline="always", **FAST)
-def _fixed_start(work, works, state0, rate, block, samples, limit, status, failure_time, progress, start, n, B,
-                 periodic):
+def _store_chain_sample(work, samples, save, block, n, halo, B):
+    m = n + 2 * halo
+    rows_out(work, 1 + halo, samples[save, block], 0, n, B)
+    rows_out(work, m + 2 + halo, samples[save, block], n, n, B)
+
+
+@njit(inline="always", **FAST)
+def _load_chain_block(work, state0, rate, block, samples, n, halo, B, periodic):
+    """Start a block's (zeroed) work array with its state and parameters; also its first sample. A tiled ring's
+    rows hold n + 2 halo masses each (see _fixed_kernel)."""
+    m = n + 2 * halo
+    rows_in(work, 1 + halo, state0[block], 0, n, B)
+    rows_in(work, m + 2 + halo, state0[block], n, n, B)
+    rows_in(work, 2 * m + 2 + halo, rate[block], 0, n, B)
+    rows_in(work, 3 * m + 2 + halo, rate[block], n, n, B)
+    _store_chain_sample(work, samples, 0, block, n, halo, B)
+    if halo > 0:
+        _refresh_halos(work, n, halo, B)
+        _fill_halos(work, 2 * m + 2, n, halo, B)
+        _fill_halos(work, 3 * m + 2, n, halo, B)
+    else:
+        _set_ghosts(work, 0, n, B, periodic)
+
+
+@njit(inline="always", **FAST)
+def _fixed_start(work, works, state0, rate, block, samples, limit, status, failure_time, progress, start, n, halo,
+                 B, periodic):
     """Copy a block's work array into the call's `work` (cache_line_array), and whether the block runs: a call
     at start 0 loads it from state0, a later one continues it unless every member has failed."""
     work[:] = works[block]
     if start == 0:
-        _load_chain_block(work, state0, rate, block, samples, n, B, periodic)
-        check_members(work, 1, 2 * n + 1, B, block * B, limit, status, failure_time, 0.0)  # a non-finite start
+        _load_chain_block(work, state0, rate, block, samples, n, halo, B, periodic)
+        m = n + 2 * halo
+        check_members(work, 1, 2 * m + 1, B, block * B, limit, status, failure_time, 0.0)  # a non-finite start
         return True
     return not block_done(samples, status, progress, block, B)
 
 
 @njit(inline="always", **FAST)
-def _chain_saved(work, samples, save, block, limit, status, failure_time, progress, t, step_row, n, B):
+def _chain_saved(work, samples, save, block, limit, status, failure_time, progress, t, step_row, n, halo, B):
     """End of a save interval at time t (s): fail the members that blew up, store sample `save`; when no member
-    of the block runs any more, fill its later samples with NaN and return True (the block is done)."""
-    running = check_members(work, 1, 2 * n + 1, B, block * B, limit, status, failure_time, t, step_row)
-    _store_chain_sample(work, samples, save, block, n, B)
+    of the block runs any more, fill its later samples with NaN and return True (the block is done). A tiled
+    ring's halos are refreshed first, so the check sees its masses' values only."""
+    _refresh_halos(work, n, halo, B)
+    m = n + 2 * halo
+    running = check_members(work, 1, 2 * m + 1, B, block * B, limit, status, failure_time, t, step_row)
+    _store_chain_sample(work, samples, save, block, n, halo, B)
     if running == 0:
         fill_failed(samples, save + 1, block)
     progress[block] = samples.shape[0] - 1 if running == 0 else save
@@ -254,6 +285,23 @@ def _drift(work, tau, lo, hi, n, B):
         w[B + q] += tau * w[(n + 2) * B + q]
 
 
+def tiles(n: int, B: int) -> bool:
+    """Whether a splitting kernel runs a chain of n masses in blocks of B members in tiles (see _fixed_kernel):
+    when a block's 4n + 2 rows outgrow TILE_FROM_L1 times the L1 data cache. On the AVX-512 host (48 KiB L1d,
+    blocks of 8) one piece at a time was faster at n = 200 and 256, tiles from n = 288 on: 1.70, 1.43 and 1.12
+    times the C verlet against 1.22, 1.21 and 1.33 in tiles (analysis/README.md)."""
+    return (4 * n + 2) * B * 8 > TILE_FROM_L1 * l1_data_bytes()
+
+
+def ring_halo(method: Method) -> int:
+    """Masses a long ring's rows hold beyond each end for a splitting `method`: the most kicks in one run of
+    TILE_PIECES pieces (one mass each: how far a row end's wrong value travels before the halos are copied
+    again)."""
+    _, _, _, _, _, pieces, fractions = method_constants(method)
+    kinds = splitting_schedule.py_func(pieces, fractions, 1.0, 2 * TILE_PIECES + 1, TILE_PIECES)[0]  # no compile
+    return max(int(np.sum(kinds[c:c + TILE_PIECES] == KICK)) for c in range(0, len(kinds), TILE_PIECES))
+
+
 def _stage_rows(n: int, stages: int) -> tuple[int, ...]:
     """The first rows of X, V, ZX, ZV, KX and KV in a Runge-Kutta kernel of `stages` stages (see _fixed_kernel; CL
     and CR lie between V and ZX), and the row after KV: where an adaptive kernel's control rows begin."""
@@ -274,13 +322,17 @@ def _fixed_kernel(method: Method, n: int, periodic: bool):
     the stage state ZX (n + 2), ZV (n) and slopes KX, KV (stages x n each).
     Forces come from neighbours only: O(n) per step.
 
-    A long chain's rows outgrow the L1 cache, so its splitting kernel runs
+    A long chain's rows outgrow the L1 cache (tiles), so its splitting kernel runs
     TILE_PIECES pieces (kicks and drifts) at once over tiles of TILE_ROWS
     masses, each piece one mass behind the piece before it where kick and
     drift alternate (a wavefront): every mass still sees its neighbours as
     the one-piece-at-a-time order has them, so results are bit for bit the
-    same. A ring's ghost masses need every piece to finish first, so rings
-    run one piece at a time. Kick and drift make one loop over their masses'
+    same. A ring's ends need each other's last piece, so a long ring's rows
+    hold `halo` more masses on each side (ring_halo), copies of the masses
+    at its other end made before each run of pieces: a wrong value at a
+    row's end travels one mass a kick, so it never reaches the ring's own
+    masses, which take the same bits as one piece at a time. A short ring
+    copies its ghost masses after each drift. Kick and drift make one loop over their masses'
     values (mass i, member j at i B + j), indexed from 0 in a view of the
     work array: from a variable start, Numba's negative-index wraparound
     stays in the loop and LLVM does not vectorize it. As two loops (masses,
@@ -289,8 +341,10 @@ def _fixed_kernel(method: Method, n: int, periodic: bool):
     """
     B = block_size({"n": n}, method)
     runge_kutta, S, a, b, E, pieces, fractions = method_constants(method)
-    tiled = not periodic and n > 2 * TILE_ROWS
-    X, V, ZX, ZV, KX, KV, end = _stage_rows(n, S)
+    tiled = not runge_kutta and tiles(n, B)
+    halo = ring_halo(method) if tiled and periodic else 0
+    m = n + 2 * halo  # masses in a row
+    X, V, ZX, ZV, KX, KV, end = _stage_rows(m, S)
     rows = end if runge_kutta else ZX  # a splitting's rows end with CR
     stage_rows = (X, V, ZX, ZV, KX, KV)
 
@@ -307,21 +361,22 @@ def _fixed_kernel(method: Method, n: int, periodic: bool):
         work = cache_line_array(works.shape[1])
         for block in range(first_block, end_block):
             running = _fixed_start(work, works, state0, rate, block, samples, limit, status, failure_time, progress,
-                                   start, n, B, periodic)
+                                   start, n, halo, B, periodic)
             if not running:
                 continue
             for save in range(max(start, 1), start + samples.shape[0]):
                 if tiled:
                     for c0 in range(0, count, TILE_PIECES):
                         c1 = min(c0 + TILE_PIECES, count)
-                        for t0 in range(0, n + lags[c1 - 1], TILE_ROWS):
+                        _refresh_halos(work, n, halo, B)
+                        for t0 in range(0, m + lags[c1 - 1], TILE_ROWS):
                             for p in range(c0, c1):
                                 lo = max(t0 - lags[p], 0)
-                                hi = min(t0 + TILE_ROWS - lags[p], n)
+                                hi = min(t0 + TILE_ROWS - lags[p], m)
                                 if kinds[p] == KICK:
-                                    _kick(work, taus[p], lo, hi, n, B)
+                                    _kick(work, taus[p], lo, hi, m, B)
                                 else:
-                                    _drift(work, taus[p], lo, hi, n, B)
+                                    _drift(work, taus[p], lo, hi, m, B)
                 else:
                     for p in range(count):
                         if kinds[p] == KICK:
@@ -330,7 +385,7 @@ def _fixed_kernel(method: Method, n: int, periodic: bool):
                             _drift(work, taus[p], 0, n, n, B)
                             _set_ghosts(work, X, n, B, periodic)
                 if _chain_saved(work, samples, save - start, block, limit, status, failure_time, progress,
-                                save * steps_per_save * h, -1, n, B):
+                                save * steps_per_save * h, -1, n, halo, B):
                     break
             works[block] = work
 
@@ -342,7 +397,7 @@ def _fixed_kernel(method: Method, n: int, periodic: bool):
         work = cache_line_array(works.shape[1])
         for block in range(first_block, end_block):
             running = _fixed_start(work, works, state0, rate, block, samples, limit, status, failure_time, progress,
-                                   start, n, B, periodic)
+                                   start, n, 0, B, periodic)
             if not running:
                 continue
             for save in range(max(start, 1), start + samples.shape[0]):
@@ -355,7 +410,7 @@ def _fixed_kernel(method: Method, n: int, periodic: bool):
                             work[(X + 1 + i) * B + j] += h * dx
                             work[(V + i) * B + j] += h * dv
                 if _chain_saved(work, samples, save - start, block, limit, status, failure_time, progress,
-                                save * steps_per_save * h, -1, n, B):
+                                save * steps_per_save * h, -1, n, 0, B):
                     break
             works[block] = work
 
@@ -416,7 +471,7 @@ def _adaptive_kernel(method: Method, n: int, periodic: bool):
             j0 = block * B
             work[:] = works[block]
             if start == 0:
-                _load_chain_block(work, state0, rate, block, samples, n, B, periodic)
+                _load_chain_block(work, state0, rate, block, samples, n, 0, B, periodic)
                 _chain_slopes(work, X, V, KX, KV, n, B)
                 for j in range(B):
                     rtol, atol = control[1, j0 + j], control[2, j0 + j]
@@ -457,7 +512,7 @@ def _adaptive_kernel(method: Method, n: int, periodic: bool):
                     _chain_accept(work, X, V, ZX, ZV, KX, KV, C0, S, n, B)
                     _set_ghosts(work, X, n, B, periodic)
                 if _chain_saved(work, samples, save - start, block, limit, status, failure_time, progress,
-                                target, C0 + H, n, B):
+                                target, C0 + H, n, 0, B):
                     break
             counts_out(work, C0, B, counts, j0)
             works[block] = work
