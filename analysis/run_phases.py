@@ -9,7 +9,6 @@ it ran:
 
     kernel          the kernel calls (main thread; both cores when alone)
     finishing       a chunk finished on the finishing thread: what follows
-      laying out      kernel samples to member-major arrays (compiled)
       observing       the saved variables from the samples (tilt: compiled)
       amplitudes      what the growth fit reads (compiled)
       growth fit      growth_per_step (compiled)
@@ -103,7 +102,6 @@ def main(argv=None) -> None:
     timed(SCENES[spec.scene], "amplitudes", "  amplitudes")
     time_kernel_calls()
     timed(runner, "_keep", "finishing")
-    timed(launch, "member_major", "  laying out")
     timed(runner, "growth_per_step", "  growth fit")
     timed(store, "put_samples", "  writing")
     timed(parts, "fsync_path", "fsync")
@@ -117,7 +115,7 @@ def main(argv=None) -> None:
     print(f"{spec.n_members} members, {summary.member_steps:.3g} member-steps, {spec.n_save} samples: start-up "
           f"{imports:.2f} s (this script's imports), the run {seconds:.2f} s (of which {summary.preparing:.2f} s "
           "loading kernels)")
-    for label in ("kernel", "finishing", "  laying out", "  observing", "  amplitudes", "  growth fit", "  writing",
+    for label in ("kernel", "finishing", "  observing", "  amplitudes", "  growth fit", "  writing",
                   "fsync"):
         print(f"  {label:14s} {totals[label]:7.3f} s in {calls[label]} calls")
 

@@ -464,10 +464,10 @@ def prepare_kernels(spec: Spec, announce: bool = True) -> float:
     try:
         for name in spec.methods:
             launch.prepare(scene, METHODS[name], spec.constants)
-        one = launch.member_major(np.zeros((1, 1, scene.kernel_rows(spec.constants)[0], 1)), 1).transpose(1, 2, 0)
+        one = np.zeros((1, 1, scene.kernel_rows(spec.constants)[0])).transpose(1, 2, 0)  # as a kernel's samples
         scene.observe(one, tuple(scene.OBSERVABLES), members_table(spec, 0, 1), spec.constants)  # what observing
         measured_growth(scene.amplitudes(one, members_table(spec, 0, 1), spec.constants), np.zeros(1), np.ones(1))
-        # compiles, too: the layout, the observables and the growth fit
+        # compiles, too: the observables and the growth fit
     finally:
         timer.cancel()
     seconds = time.perf_counter() - start

@@ -219,7 +219,7 @@ def test_run_phases_times_every_step_of_a_run():
     assert re.search(r"^1536 members, .* 61 samples:", done.stdout, re.M), done.stdout
     steps = re.findall(r"^  (\s*[a-z ]+?)\s+([0-9.]+) s in (\d+) calls$", done.stdout, re.M)
     seconds = {name.strip(): float(value) for name, value, _ in steps}
-    assert set(seconds) == {"kernel", "finishing", "laying out", "observing", "amplitudes", "growth fit", "writing",
+    assert set(seconds) == {"kernel", "finishing", "observing", "amplitudes", "growth fit", "writing",
                             "fsync"}, done.stdout
     assert all(int(count) > 0 for _, _, count in steps), done.stdout
     run = float(re.search(r"the run ([0-9.]+) s", done.stdout)[1])

@@ -46,10 +46,23 @@ def test_segments_give_the_bits_of_one_call(scene):
         assert failed_midway > 0  # the continuation of failed blocks is exercised
 
 
-def test_member_major_is_the_blocked_samples_member_by_member():
-    """launch.member_major against numpy's transpose of the block layout, the padding members cut off."""
+def test_each_member_gets_its_own_samples_whatever_block_it_runs_in():
+    """A kernel writes each member's samples straight into its own rows (members, count, rows): 70 chain members
+    (a full block of 64 and a padded one), the last 6 of them alone (one padded block) and each of three alone
+    give the same bits member by member, and they differ between members."""
     rng = np.random.default_rng(3)
-    for count, blocks, rows, block, members in ((7, 3, 5, 4, 10), (1, 1, 3, 128, 1), (4, 2, 32, 8, 16)):
-        samples = rng.standard_normal((count, blocks, rows, block))
-        by_numpy = samples.transpose(1, 3, 0, 2).reshape(blocks * block, count, rows)[:members]
-        np.testing.assert_array_equal(launch.member_major(samples, members), by_numpy)
+    n, members = 2, 70
+    values = {"m": rng.uniform(0.5, 2, (members, n)), "k": rng.uniform(0.5, 2, (members, n + 1)),
+              "x0": rng.normal(0, 0.1, (members, n)), "v0": rng.normal(0, 0.1, (members, n))}
+    constants = {"n": n, "boundary": "fixed"}
+
+    def samples(chosen):
+        return launch.integrate(SCENES["chain"], METHODS["verlet"], {k: v[chosen] for k, v in values.items()},
+                                constants, n_save=5, save_dt=0.5, dt=0.05).samples
+
+    every = samples(slice(None))
+    assert every.shape == (5, 2 * n, members)
+    np.testing.assert_array_equal(samples(slice(64, 70)), every[:, :, 64:])
+    for member in (0, 63, 69):
+        np.testing.assert_array_equal(samples(slice(member, member + 1))[:, :, 0], every[:, :, member])
+    assert np.all(np.diff(every[-1, 0]) != 0)

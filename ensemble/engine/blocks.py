@@ -167,9 +167,9 @@ def check_members(work, first, count, B, j0, limit, status, failure_time, t, ste
 
 
 @njit(inline="always", **FAST)
-def fill_failed(samples, first_save, block):
+def fill_failed(samples, first_save, block, B):
     """NaN for the samples from first_save on of a block whose members have all failed."""
-    samples[first_save:, block] = np.nan
+    samples[block * B:(block + 1) * B, first_save:] = np.nan
 
 
 @njit(inline="always", **FAST)
@@ -178,29 +178,32 @@ def block_done(samples, status, progress, block, B):
     for j in range(B):
         if status[block * B + j] == OK:
             return False
-    fill_failed(samples, 0, block)
-    progress[block] = samples.shape[0] - 1
+    fill_failed(samples, 0, block, B)
+    progress[block] = samples.shape[1] - 1
     return True
 
 
 @njit(inline="always", **FAST)
 def rows_in(work, row, source, first, count, B):
     """Rows first .. first + count - 1 of a block's (rows, B) array into the work array from `row` on."""
-    for i in range(min(count, source.shape[0] - first)):  # bounds LLVM cannot unroll (see rows_out)
+    for i in range(min(count, source.shape[0] - first)):  # bounds LLVM cannot unroll (see sample_out)
         for j in range(min(B, source.shape[1])):
             work[(row + i) * B + j] = source[first + i, j]
 
 
 @njit(inline="always", **FAST)
-def rows_out(work, row, target, first, count, B):
-    """Work rows row .. row + count - 1 into rows first .. first + count - 1 of a block's (rows, B) array.
+def sample_out(work, row, samples, save, block, first, count, B):
+    """Work rows row .. row + count - 1 into sample `save` of a kernel's member-major samples (members, count,
+    state rows), as its state rows first .. first + count - 1, for the block's members that exist (a run's last
+    block is padded). Each member's rows are contiguous: the samples need no transposing after the kernel.
 
-    The loops' bounds depend on the target's shape, which LLVM does not know: with constant bounds it unrolls
+    The loops' bounds depend on the samples' shape, which LLVM does not know: with constant bounds it unrolled
     a chain's copy (a 64-member block's 2n rows) into one block of thousands of loads and stores, whose
     instruction scheduling took most of the kernel's compile time (10 of 17 s at n = 16)."""
-    for i in range(min(count, target.shape[0] - first)):
-        for j in range(min(B, target.shape[1])):
-            target[first + i, j] = work[(row + i) * B + j]
+    j0 = block * B
+    for j in range(min(B, samples.shape[0] - j0)):
+        for i in range(min(count, samples.shape[2] - first)):
+            samples[j0 + j, save, first + i] = work[(row + i) * B + j]
 
 
 def method_constants(method: Method):
@@ -458,7 +461,7 @@ def rates_load(work, state0, rate, block, samples, parameters, B):
     sample."""
     rows_in(work, 0, state0[block], 0, 3, B)
     rows_in(work, 3, rate[block], 0, parameters, B)
-    rows_out(work, 0, samples[0, block], 0, 3, B)
+    sample_out(work, 0, samples, 0, block, 0, 3, B)
 
 
 @njit(inline="always", **FAST)
@@ -467,10 +470,10 @@ def rates_saved(work, samples, save, block, limit, status, failure_time, progres
     of the block runs any more, fill its later samples with NaN and return True (the block is done). progress[block]
     becomes the last sample the block has stored."""
     running = check_members(work, 0, 3, B, block * B, limit, status, failure_time, t, step_row)
-    rows_out(work, 0, samples[save, block], 0, 3, B)
+    sample_out(work, 0, samples, save, block, 0, 3, B)
     if running == 0:
-        fill_failed(samples, save + 1, block)
-    progress[block] = samples.shape[0] - 1 if running == 0 else save
+        fill_failed(samples, save + 1, block, B)
+    progress[block] = samples.shape[1] - 1 if running == 0 else save
     return running == 0
 
 

@@ -12,8 +12,9 @@ two call conventions, over arrays laid out by block (see engine.blocks):
 
 state0 and rate are (blocks, rows, B) (rows from the scene's kernel_rows),
 limit (members,) the largest |state component| a member may reach, samples
-(count, blocks, state rows, B): samples start .. start + count - 1 of the
-run, counts (3, members) as results.COUNTS, status (members,), failure_time
+(members, count, state rows), member by member (the saved variables' layout,
+so nothing is transposed between the kernel and the file): samples start ..
+start + count - 1 of the run, counts (3, members) as results.COUNTS, status (members,), failure_time
 (members,; s), progress (blocks,; int64) the last of `samples` each block has
 stored, and works (blocks, kernel.rows x B) each block's work array, zeroed
 before the first call. A call with start = 0 starts the blocks from state0;
@@ -106,7 +107,7 @@ class Launch:
         padded = state0.shape[1]
         blocks = padded // block
         self.state0, self.rate, self.limit = blocked(state0, block), blocked(rate, block), limit[0]
-        self.buffer = np.empty((self.segment, blocks, state0.shape[0], block))
+        self.state_rows = state0.shape[0]
         self.works = np.zeros((blocks, self.kernel.rows * block))
         self.status, self.failure_time = np.zeros(padded), np.empty(padded)
         self.progress = np.zeros(blocks, dtype=np.int64)
@@ -115,9 +116,9 @@ class Launch:
     def segments(self, threads: int | None = None, watch=None):
         """Run the kernel (or evaluate the closed form) from the start, on `threads` threads (default
         thread_count()); yields (first, samples) per call, samples() returning samples first .. first + count - 1
-        as (count, state rows, members): a view of an array laid out member by member (see member_major). Call
-        it before the next call is computed, which overwrites the kernel's buffer; until then it may run on
-        another thread. watch(fraction of the run done), if given, is called from this thread while it waits. A
+        as (count, state rows, members): a view of the array the kernel wrote, member by member (a new one each
+        call, so it may be read on another thread while the next call runs). watch(fraction of the run done),
+        if given, is called from this thread while it waits. A
         run in segments gives the bits of one in a single call: each call continues from the work arrays the last
         one left."""
         if self.method.closed_form:
@@ -136,12 +137,12 @@ class Launch:
             head = (self.state0, self.rate, float(self.dt), int(self.steps_per_save), self.limit)
             tail = (self.status, self.failure_time, self.progress, self.works)
         for first in range(0, self.n_save, self.segment):
-            samples = self.buffer[:min(self.segment, self.n_save - first)]
+            samples = np.empty((self.members, min(self.segment, self.n_save - first), self.state_rows))
             self.progress[:] = 0
             done = None if watch is None else (
                 lambda: watch(min(1.0, (first + self.progress.mean()) / max(self.n_save - 1, 1))))
             run_blocks(self.kernel.function, (*head, samples, *tail, first), self.state0.shape[0], threads, done)
-            yield first, lambda samples=samples: member_major(samples, self.members).transpose(1, 2, 0)
+            yield first, lambda samples=samples: samples.transpose(1, 2, 0)
 
     def run(self, threads: int | None = None, watch=None) -> None:
         """Run the whole record (as `segments`), keeping every sample for `outcome`."""
@@ -229,7 +230,7 @@ def prepare(scene, method: Method, constants: dict) -> None:
     kernel = kernels.kernel(method, constants)
     works = np.zeros((1, kernel.rows * block))
     state0, rate = np.zeros((1, state_rows, block)), np.zeros((1, rate_rows, block))
-    samples = np.empty((1, 1, state_rows, block))
+    samples = np.empty((block, 1, state_rows))
     limit, status, failure_time, progress = np.ones(block), np.zeros(block), np.zeros(block), np.zeros(1, np.int64)
     if method.adaptive:
         kernel.function(state0, rate, np.ones((3, block)), 1.0, limit, samples, np.zeros((3, block)), status,
@@ -257,22 +258,3 @@ def blocked(x: np.ndarray, block: int) -> np.ndarray:
     """A (rows, members) array, members a multiple of block, in a kernel's layout (members / block, rows, block)."""
     rows, members = x.shape
     return np.ascontiguousarray(x.reshape(rows, members // block, block).transpose(1, 0, 2))
-
-
-def member_major(samples: np.ndarray, members: int) -> np.ndarray:
-    """A kernel's samples (count, blocks, rows, block) of the first `members` members as a new array (members,
-    count, rows): the saved variables' layout (member, t, ...), so that observing and writing them copies
-    little."""
-    out = np.empty((members, samples.shape[0], samples.shape[2]))
-    _member_major(samples, out)
-    return out
-
-
-@numba.njit(cache=True, nogil=True)
-def _member_major(samples, out):
-    count, blocks, rows, block = samples.shape
-    for b in range(blocks):
-        for j in range(min(block, out.shape[0] - b * block)):
-            for i in range(count):  # out is written in order; a block's samples (count x rows x block) stay in cache
-                for r in range(rows):
-                    out[b * block + j, i, r] = samples[i, b, r, j]

@@ -123,7 +123,7 @@ def _splitting_kernel(method: Method):
                             work[(K + 3 * e + c) * BLOCK + j] = math.exp(-work[(6 + c) * BLOCK + j] * h * fractions[e])
             elif block_done(samples, status, progress, block, BLOCK):
                 continue
-            for i in range(max(start, 1), start + samples.shape[0]):
+            for i in range(max(start, 1), start + samples.shape[1]):
                 _scale_rows(work, LAMBDA, BLOCK)
                 for _ in range(steps_per_save):
                     for j in range(BLOCK):
@@ -167,7 +167,7 @@ def _fixed_kernel(method: Method):
     @njit(nogil=True, cache=True, **FAST)
     def kernel(state0, rate, h, steps_per_save, limit, samples, status, failure_time, progress,
                works, start, first_block, end_block):
-        """state0 (blocks, 3, BLOCK), rate (blocks, P, BLOCK), limit (M,) -> samples (count, blocks, 3, BLOCK),
+        """state0 (blocks, 3, BLOCK), rate (blocks, P, BLOCK), limit (M,) -> samples (members, count, 3),
         status (M,), failure_time (M,) (s; set only where a member fails); M = blocks x BLOCK."""
         helpers  # a closure variable, so in the cache key
         work = cache_line_array(works.shape[1])
@@ -179,7 +179,7 @@ def _fixed_kernel(method: Method):
                 check_members(work, 0, 3, BLOCK, block * BLOCK, limit, status, failure_time, 0.0)  # a non-finite start
             elif block_done(samples, status, progress, block, BLOCK):
                 continue
-            for i in range(max(start, 1), start + samples.shape[0]):
+            for i in range(max(start, 1), start + samples.shape[1]):
                 for _ in range(steps_per_save):
                     for j in range(BLOCK):
                         y1 = work[j]
@@ -237,7 +237,7 @@ def _adaptive_kernel(method: Method):
                works, start, first_block, end_block):
         """state0 (blocks, 3, BLOCK), rate (blocks, P, BLOCK); control (3, M): first step (s; <= 0: estimate
         it), rtol, atol;
-        limit (M,) -> samples (count, blocks, 3, BLOCK), counts (3, M): accepted, rejected, right-hand-side
+        limit (M,) -> samples (members, count, 3), counts (3, M): accepted, rejected, right-hand-side
         evaluations; status (M,) and failure_time (M,; s, set only where a member fails)."""
         helpers  # a closure variable, so in the cache key
         B = BLOCK
@@ -253,7 +253,7 @@ def _adaptive_kernel(method: Method):
                 check_members(work, 0, 3, B, j0, limit, status, failure_time, 0.0, C0 + H)  # a non-finite start
             elif block_done(samples, status, progress, block, BLOCK):
                 continue
-            for i in range(max(start, 1), start + samples.shape[0]):
+            for i in range(max(start, 1), start + samples.shape[1]):
                 target = i * save_dt
                 while trial_steps(work, C0, B, target):
                     for s in range(1, S):  # stages outside, members inside, as in the chain kernels

@@ -34,7 +34,7 @@ from ...engine.blocks import (
     first_step,
     method_constants,
     rows_in,
-    rows_out,
+    sample_out,
     select,
     splitting_schedule,
     start_control,
@@ -165,8 +165,8 @@ def _refresh_halos(work, n, halo, B):
 @njit(inline="always", **FAST)
 def _store_chain_sample(work, samples, save, block, n, halo, B):
     m = n + 2 * halo
-    rows_out(work, 1 + halo, samples[save, block], 0, n, B)
-    rows_out(work, m + 2 + halo, samples[save, block], n, n, B)
+    sample_out(work, 1 + halo, samples, save, block, 0, n, B)
+    sample_out(work, m + 2 + halo, samples, save, block, n, n, B)
 
 
 @njit(inline="always", **FAST)
@@ -211,8 +211,8 @@ def _chain_saved(work, samples, save, block, limit, status, failure_time, progre
     running = check_members(work, 1, 2 * m + 1, B, block * B, limit, status, failure_time, t, step_row)
     _store_chain_sample(work, samples, save, block, n, halo, B)
     if running == 0:
-        fill_failed(samples, save + 1, block)
-    progress[block] = samples.shape[0] - 1 if running == 0 else save
+        fill_failed(samples, save + 1, block, B)
+    progress[block] = samples.shape[1] - 1 if running == 0 else save
     return running == 0
 
 
@@ -353,7 +353,7 @@ def _fixed_kernel(method: Method, n: int, periodic: bool):
     @njit(nogil=True, cache=True, **FAST)
     def splitting_kernel(state0, rate, h, steps_per_save, limit, samples, status, failure_time, progress,
                          works, start, first_block, end_block):
-        """state0 (blocks, 2n, B), rate (blocks, 2n, B), limit (M,) -> samples (count, blocks, 2n, B),
+        """state0 (blocks, 2n, B), rate (blocks, 2n, B), limit (M,) -> samples (members, count, 2n),
         status (M,), failure_time (M,) (s; set only where a member fails); M = blocks x B."""
         helpers  # a closure variable, so in the cache key
         kinds, taus, lags = splitting_schedule(pieces, fractions, h, steps_per_save, TILE_PIECES)
@@ -364,7 +364,7 @@ def _fixed_kernel(method: Method, n: int, periodic: bool):
                                    start, n, halo, B, periodic)
             if not running:
                 continue
-            for save in range(max(start, 1), start + samples.shape[0]):
+            for save in range(max(start, 1), start + samples.shape[1]):
                 if tiled:
                     for c0 in range(0, count, TILE_PIECES):
                         c1 = min(c0 + TILE_PIECES, count)
@@ -400,7 +400,7 @@ def _fixed_kernel(method: Method, n: int, periodic: bool):
                                    start, n, 0, B, periodic)
             if not running:
                 continue
-            for save in range(max(start, 1), start + samples.shape[0]):
+            for save in range(max(start, 1), start + samples.shape[1]):
                 for _ in range(steps_per_save):
                     for s in range(S):
                         _chain_stage(work, s, S, a, h, -1, stage_rows, n, B, periodic)
@@ -463,7 +463,7 @@ def _adaptive_kernel(method: Method, n: int, periodic: bool):
     def kernel(state0, rate, control, save_dt, limit, samples, counts, status, failure_time, progress,
                works, start, first_block, end_block):
         """state0, rate (blocks, 2n, B); control (3, M): first step (s; <= 0: estimate it), rtol, atol;
-        limit (M,) -> samples (count, blocks, 2n, B), counts (3, M): accepted, rejected, right-hand-side evaluations;
+        limit (M,) -> samples (members, count, 2n), counts (3, M): accepted, rejected, right-hand-side evaluations;
         status (M,) and failure_time (M,; s, set only where a member fails)."""
         helpers  # a closure variable, so in the cache key
         work = cache_line_array(works.shape[1])
@@ -490,7 +490,7 @@ def _adaptive_kernel(method: Method, n: int, periodic: bool):
                 check_members(work, X + 1, 2 * n + 1, B, j0, limit, status, failure_time, 0.0, C0 + H)
             elif block_done(samples, status, progress, block, B):
                 continue
-            for save in range(max(start, 1), start + samples.shape[0]):
+            for save in range(max(start, 1), start + samples.shape[1]):
                 target = save * save_dt
                 while trial_steps(work, C0, B, target):
                     for s in range(1, S):  # FSAL: stage 0 is the last step's final stage
