@@ -338,6 +338,21 @@ def test_history_title_and_overwrite_say_what_happened(write_runfile, tmp_path):
     runner.run(parse(top_runfile()), from_string, progress=False, force=True)
 
 
+@pytest.mark.parametrize("members, chunks", [(1_000, 1), (10_000, 4), (300_000, None)])
+def test_a_run_of_few_chunks_is_cut_into_pipeline_chunks(members, chunks):
+    """10^4 tops with 101 samples (49 MB) make PIPELINE_CHUNKS chunks of whole blocks, not two of the memory
+    budget's size; 10^3 (4.9 MB: each of four would hold less than PIPELINE_CHUNK_BYTES) stay one; 3 x 10^5 keep
+    the budget's chunks."""
+    spec = parse(top_runfile(members=members, t_end=2.0, save_dt=0.02))
+    chunk, block = runner.default_chunk(spec), runner.run_block(spec)
+    by_budget = runner.CHUNK_BYTES // runner.member_bytes(spec) // block * block
+    assert chunk % block == 0 or chunk == members
+    expected = chunks or -(-members // by_budget)
+    assert -(-members // chunk) == expected
+    if chunks is None:
+        assert chunk == by_budget
+
+
 def test_default_chunk_bounds_the_work_between_progress_updates():
     """A long record with few saves: the records are small, but a chunk holds at most CHUNK_MEMBER_STEPS of
     work, so the bar moves (and Ctrl-C lands between chunks) every few seconds; never less than one block."""
