@@ -172,7 +172,7 @@ def _store_chain_sample(work, samples, save, block, n, halo, B):
 @njit(inline="always", **FAST)
 def _load_chain_block(work, state0, rate, block, samples, n, halo, B, periodic):
     """Start a block's (zeroed) work array with its state and parameters; also its first sample. A tiled ring's
-    rows hold n + 2 halo masses each (see _fixed_kernel)."""
+    rows hold n + 2 halo masses each, its own n between two halos (see _fixed_kernel)."""
     m = n + 2 * halo
     rows_in(work, 1 + halo, state0[block], 0, n, B)
     rows_in(work, m + 2 + halo, state0[block], n, n, B)
@@ -318,7 +318,8 @@ def _fixed_kernel(method: Method, n: int, periodic: bool):
 
     Work rows (B = block_size({"n": n}, method) members each): X (n + 2: ghost, masses
     1..n, ghost), V (n), then CL and CR (n each: the springs' constants left
-    and right of each mass over its mass, see model.inputs); Runge-Kutta adds
+    and right of each mass over its mass, see model.inputs); a tiled ring's
+    hold n + 2 halo masses where these hold n (below). Runge-Kutta adds
     the stage state ZX (n + 2), ZV (n) and slopes KX, KV (stages x n each).
     Forces come from neighbours only: O(n) per step.
 
