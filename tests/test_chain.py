@@ -210,10 +210,12 @@ def test_a_long_rings_masses_take_the_same_bits_wherever_its_ends_are():
     np.testing.assert_array_equal(samples_turned, np.concatenate((np.roll(x, turn, 1), np.roll(v, turn, 1)), 1))
 
 
-def test_long_chains_are_tiled():
-    """The tiling tests' chains run in tiles on this host (and short ones do not)."""
+def test_long_chains_are_tiled(monkeypatch):
+    """The tiling tests' chains run in tiles on this host; short ones do not, even where the L1 cache is small."""
     assert tiles(LONG, block_size({"n": LONG}, METHODS["verlet"]))
     assert not tiles(2 * TILE_ROWS, block_size({"n": 2 * TILE_ROWS}, METHODS["verlet"]))
+    monkeypatch.setattr(chain_kernels, "l1_data_bytes", lambda: 1024)
+    assert tiles(2 * TILE_ROWS + 1, 8) and not tiles(2 * TILE_ROWS, 8)
 
 
 def test_a_members_bits_do_not_depend_on_its_block(monkeypatch):

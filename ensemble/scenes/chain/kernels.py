@@ -287,10 +287,11 @@ def _drift(work, tau, lo, hi, n, B):
 
 def tiles(n: int, B: int) -> bool:
     """Whether a splitting kernel runs a chain of n masses in blocks of B members in tiles (see _fixed_kernel):
-    when a block's 4n + 2 rows outgrow TILE_FROM_L1 times the L1 data cache. On the AVX-512 host (48 KiB L1d,
-    blocks of 8) one piece at a time was faster at n = 200 and 256, tiles from n = 288 on: 1.70, 1.43 and 1.12
-    times the C verlet against 1.22, 1.21 and 1.33 in tiles (analysis/README.md)."""
-    return (4 * n + 2) * B * 8 > TILE_FROM_L1 * l1_data_bytes()
+    when a block's 4n + 2 rows outgrow TILE_FROM_L1 times the L1 data cache, and the chain is longer than two
+    tiles (so a ring is longer than its halos). On the AVX-512 host (48 KiB L1d, blocks of 8) one piece at a
+    time was faster at n = 200 and 256, tiles from n = 288 on: 1.70, 1.43 and 1.12 times the C verlet against
+    1.22, 1.21 and 1.33 in tiles (analysis/README.md)."""
+    return n > 2 * TILE_ROWS and (4 * n + 2) * B * 8 > TILE_FROM_L1 * l1_data_bytes()
 
 
 def ring_halo(method: Method) -> int:
