@@ -1,12 +1,13 @@
 """Benchmark: adaptive dopri5 against fixed-step rk4, per step and at equal accuracy.
 
-    python analysis/bench_dopri5.py [--repeats 3] [--chain-block B]
+    python analysis/bench_dopri5.py [--repeats 3] [--chain-block B] [--chain-n 16 ...]
 
 1. Kernel seconds per member-step of rk4 and dopri5, side by side in this
    process (medians of --repeats): 8192 aerobie tops (runs/aerobie.toml), and
-   4096 disordered 16-mass chains (--chain-block B: their dopri5 in blocks
-   of B members instead of block_size's choice; a member takes the same
-   steps in every block, its values agree to the last few bits).
+   disordered chains of each --chain-n masses (default 16), 65,536 masses in
+   all (--chain-block B: their dopri5 in blocks of B members instead of
+   block_size's choice; a member takes the same steps in every block, its
+   values agree to the last few bits).
 2. The same for the tops in hand-written C (analysis/c/top_dopri5.c, compiled
    here with gcc; skipped without it), alternated with ensemble's kernels:
    rk4 as ../shared/limit/ens.c writes it, and dopri5 with ensemble's step
@@ -48,14 +49,14 @@ method = "rk4"
 dt = 1e-2
 t_end = 10.0
 save_dt = 1.0
-members = 4096
+members = {members}
 seed = 1
 [parameters]
-n = 16
+n = {n}
 boundary = "fixed"
-m = { uniform = [0.5, 2.0] }
+m = {{ uniform = [0.5, 2.0] }}
 k = 1.0
-x0 = { uniform = [-0.1, 0.1] }
+x0 = {{ uniform = [-0.1, 0.1] }}
 """
 
 
@@ -154,6 +155,7 @@ def main():
     parser.add_argument("--repeats", type=positive_int, default=3)
     parser.add_argument("--chain-block", type=positive_int, help="members per block of the chains' dopri5 kernel "
                                                                  "(default: block_size's choice for this host)")
+    parser.add_argument("--chain-n", type=positive_int, nargs="+", default=[16], help="masses per chain")
     args = parser.parse_args()
     if args.chain_block:
         force_chain_block(args.chain_block, adaptive_only=True)
@@ -174,12 +176,14 @@ def main():
               "trial steps")
     else:
         print("  hand-written C: skipped (no gcc)")
-    chain_spec = parse(CHAIN)
-    seconds = per_step(chain, members_table(chain_spec), chain_spec.constants, 1e-2, 1.0, 11, args.repeats)
-    rk4, dopri5 = seconds["rk4"], seconds["dopri5"]
-    block = launch.block_size(chain, chain_spec.constants, METHODS["dopri5"])
-    print(f"chain n = 16, 4096 members: rk4 {rk4:.3g} s, dopri5 {dopri5:.3g} s (blocks of {block}) per member-step, "
-          f"ratio {dopri5 / rk4:.2f}")
+    for n in args.chain_n:
+        members = max(64, 2**16 // n)
+        chain_spec = parse(CHAIN.format(members=members, n=n))
+        seconds = per_step(chain, members_table(chain_spec), chain_spec.constants, 1e-2, 1.0, 11, args.repeats)
+        rk4, dopri5 = seconds["rk4"], seconds["dopri5"]
+        block = launch.block_size(chain, chain_spec.constants, METHODS["dopri5"])
+        print(f"chain n = {n}, {members} members: rk4 {rk4:.3g} s, dopri5 {dopri5:.3g} s (blocks of {block}) per "
+              f"member-step, ratio {dopri5 / rk4:.2f}")
     (rk4_evals, dt), (dopri5_evals, rtol) = evaluations_for(1e-10)
     print(f"top at 200 rad/s, error <= 1e-10 over 2 s: rk4 {rk4_evals} rhs evaluations (dt = {dt:.3g} s), "
           f"dopri5 {dopri5_evals} (rtol = {rtol:.0e}): {rk4_evals / dopri5_evals:.1f}x fewer")

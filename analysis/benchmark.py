@@ -460,7 +460,7 @@ def main() -> None:
     # process; a case with peers then calls its kernel once more, for the error the peers must match
     cases = {name: case(False) for name, case in runs.items()}
     threads, by_threads = kernel_threads(65536, 1000, args.repeats)
-    chain_spec = parse(bench_dopri5.CHAIN)
+    chain_spec = parse(bench_dopri5.CHAIN.format(members=4096, n=16))
     per_step = bench_dopri5.per_step(chain, members_table(chain_spec), chain_spec.constants, 1e-2, 1.0, 11,
                                      args.repeats)
     chain_adaptive = per_step["dopri5"] / per_step["rk4"]

@@ -278,9 +278,11 @@ def test_splitting_blocks_are_two_vectors_of_the_host_unless_they_outgrow_its_l1
         monkeypatch.setattr(chain_kernels, "l1_data_bytes", lambda l1=l1: l1)
         assert {n: chain_kernels.block_size({"n": n}, verlet) for n in expected} == expected
     assert chain_kernels.block_size({"n": 2}, verlet) == 64
-    # an adaptive pair's 20n + 15 rows: 16 members fit 48 KiB at n = 16, not at n = 24; never fewer than 8
+    # an adaptive pair's 20n + 15 rows: 64 members fit 48 KiB up to n = 4 and 32 KiB up to n = 2, then 16
+    # members below 16 masses; 16 members fit 48 KiB at n = 16, not at n = 24; never fewer than 8
     dopri5 = METHODS["dopri5"]
-    for doubles, l1, expected in ((8, 48 * 1024, {2: 64, 16: 16, 24: 8, 128: 8}), (4, 32 * 1024, {16: 8, 128: 8})):
+    for doubles, l1, expected in ((8, 48 * 1024, {2: 64, 4: 64, 5: 16, 15: 16, 16: 16, 24: 8, 128: 8}),
+                                  (4, 32 * 1024, {2: 64, 3: 16, 15: 16, 16: 8, 128: 8})):
         monkeypatch.setattr(chain_kernels, "vector_doubles", lambda doubles=doubles: doubles)
         monkeypatch.setattr(chain_kernels, "l1_data_bytes", lambda l1=l1: l1)
         assert {n: chain_kernels.block_size({"n": n}, dopri5) for n in expected} == expected

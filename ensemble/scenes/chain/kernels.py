@@ -59,15 +59,17 @@ def acceleration(x_left, x, x_right, c_left, c_right):
 
 
 def block_size(constants: dict, method: Method) -> int:
-    """Members per kernel block for `method` on a chain of n masses: 64 below 16 masses; from 16 on, 64 for
-    fixed-step Runge-Kutta, and for splittings and adaptive pairs two SIMD vectors of this host (vector_doubles:
-    8 members with AVX2, 16 with AVX-512), or one where a block's work rows (4n + 2 for a splitting,
-    20n + 15 for dopri5) would outgrow the host's L1 data cache (l1_data_bytes), but never fewer than 8
-    for a pair.
+    """Members per kernel block for `method` on a chain of n masses: 64 below 16 masses, except for an adaptive
+    pair whose 64 members' work rows (20n + 15 for dopri5, control rows included) would outgrow the host's L1
+    data cache (l1_data_bytes): then two SIMD vectors of this host, but never fewer than 16. From 16 masses on,
+    64 for fixed-step Runge-Kutta, and for splittings and adaptive pairs two SIMD vectors (vector_doubles: 8
+    members with AVX2, 16 with AVX-512), or one where a block's work rows (4n + 2 for a splitting) would
+    outgrow the L1 data cache, but never fewer than 8 for a pair.
 
     A splitting member's arithmetic does not depend on its block: results are the same bits on every host. An
     adaptive pair's takes the same steps in every block, but its values can differ in the last places between
-    blocks, so between AVX2 and AVX-512 hosts from 16 masses on (LLVM's fast-math code differs). Measured with
+    blocks, so between hosts whose L1 caches or vectors differ from 3 masses on (LLVM's fast-math code
+    differs). Measured with
     `python analysis/bench_chain.py --n 16 64 128 --repeats 5 --steps 1000 --block B` (2^20 masses):
 
     - verlet on an AVX-512 host (AMD EPYC Zen 5, 48 KiB L1d; 2026-11-25, commit 0d9a3d3), blocks of 8, 16 and
@@ -80,17 +82,21 @@ def block_size(constants: dict, method: Method) -> int:
       of 4, 8, 16 and 64: rk4 8.96e-8, 1.62e-7, 1.06e-7 and 6.86e-8 s; dopri5, in the same run as rk4 at 64,
       6.4, 2.3, 2.8 and 6.0 times rk4 (and 5.5 at 32). That was before a pair's accepted steps moved in selects.
     - dopri5 over rk4 on the AVX-512 host, after that: see analysis/README.md (bench_dopri5.py --chain-block B).
+      Below 16 masses there, dopri5 in blocks of 64 and 16 took 8.3e-9 and 1.05e-8 s per member-step at n = 3,
+      1.02e-8 and 1.17e-8 at n = 4, 1.35e-8 and 1.30e-8 at n = 5, 2.3e-8 and 1.75e-8 at n = 6, and 6.6e-8 and
+      2.4e-8 at n = 12; 64 members' rows fill 0.8, 1.0, 1.2, 1.4 and 2.7 times its 48 KiB L1 cache. Compiled
+      for AVX2, blocks of 16 beat blocks of 8 from n = 6 to 12.
 
     A tableau's stage sums gain from longer rows; an adaptive block's members wait for the block's slowest, and
     its seven stages' rows outgrow the L1 cache in long blocks.
     """
     n = constants["n"]
-    if n < 16:
-        return 64
     pair = 2 * vector_doubles()
+    member_bytes = (_stage_rows(n, method.tableau.stages)[-1] + CONTROL_ROWS) * 8 if method.adaptive else 0
+    if n < 16:
+        return 64 if member_bytes * 64 <= l1_data_bytes() else max(pair, 16)
     if method.adaptive:
-        fits = (_stage_rows(n, method.tableau.stages)[-1] + CONTROL_ROWS) * pair * 8 <= l1_data_bytes()
-        return pair if fits else max(pair // 2, 8)
+        return pair if member_bytes * pair <= l1_data_bytes() else max(pair // 2, 8)
     if method.tableau is not None:
         return 64
     return pair if (4 * n + 2) * pair * 8 <= l1_data_bytes() else pair // 2
