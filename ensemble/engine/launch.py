@@ -14,9 +14,9 @@ state0 and rate are (blocks, rows, B) (rows from the scene's kernel_rows),
 limit (members,) the largest |state component| a member may reach, samples
 (members, count, state rows), member by member (the saved variables' layout,
 so nothing is transposed between the kernel and the file): samples start ..
-start + count - 1 of the run, counts (3, members) as results.COUNTS, status (members,), failure_time
-(members,; s), progress (blocks,; int64) the last of `samples` each block has
-stored, and works (blocks, kernel.rows x B) each block's work array, zeroed
+start + count - 1 of the run, counts (3, members) as results.COUNTS, status
+(members,), failure_time (members,; s), progress (blocks,; int64) the last of
+`samples` each block has stored, and works (blocks, kernel.rows x B) each block's work array, zeroed
 before the first call. A call with start = 0 starts the blocks from state0;
 a later one continues from where `works` stands, so a run in several calls
 (segments of its samples) gives the bits of one call. A call integrates blocks first_block
@@ -117,10 +117,9 @@ class Launch:
         """Run the kernel (or evaluate the closed form) from the start, on `threads` threads (default
         thread_count()); yields (first, samples) per call, samples() returning samples first .. first + count - 1
         as (count, state rows, members): a view of the array the kernel wrote, member by member (a new one each
-        call, so it may be read on another thread while the next call runs). watch(fraction of the run done),
-        if given, is called from this thread while it waits. A
-        run in segments gives the bits of one in a single call: each call continues from the work arrays the last
-        one left."""
+        call, so it may be read on another thread while the next call runs). watch(fraction of the run done), if
+        given, is called from this thread while it waits. A run in segments gives the bits of one in a single
+        call: each call continues from the work arrays the last one left."""
         if self.method.closed_form:
             for first in range(0, self.n_save, self.segment):
                 exact = self.exact(first, min(self.segment, self.n_save - first))
