@@ -17,6 +17,8 @@ TEXTS = {
     "chain": RUNS["chain"],
     "long chain": RUNS["chain"].split("[[sweep]]")[0].replace("n = 1\n", f"n = {LONG}\n")
     + '[[sweep]]\nmethod = ["verlet"]\n',  # the tiled splitting kernel
+    "long ring": RUNS["chain"].split("[[sweep]]")[0].replace("n = 1\n", f"n = {LONG}\nboundary = \"periodic\"\n")
+    + '[[sweep]]\nmethod = ["verlet"]\n',  # its halos live in the work arrays a later call continues from
 }
 
 
