@@ -9,7 +9,8 @@ over the same span to ensemble rk4's (or verlet's) accuracy there, and its rate
 is that job's steps over its time. Cases and peers:
 
 - top rk4, exact, split2, dopri5; chain verlet and yoshida4 at N = 2 and 16
-  (--full: 128 and 1024 too);
+  (--full: 128 and 1024 too), and verlet on rings of those lengths (ensemble
+  and the C's fixed-chain verlet only);
 - NumPy vectorized over members; a naive Numba version (one member per
   thread, prange, the right-hand side and the stepper passed as functions);
   scipy.integrate.solve_ivp per member, RK45 and DOP853, its rtol lowered by
@@ -84,8 +85,9 @@ def top_values(members: int) -> dict[str, np.ndarray]:
     return {name: np.asarray(v) for name, v in table.items()}
 
 
-def chain_values(n: int, members: int, rng) -> dict[str, np.ndarray]:
-    return {"m": rng.uniform(0.5, 2, (members, n)), "k": rng.uniform(0.5, 2, (members, n + 1)),
+def chain_values(n: int, members: int, rng, springs: int | None = None) -> dict[str, np.ndarray]:
+    """Disordered chains of n masses: n + 1 springs (fixed ends) unless told `springs`."""
+    return {"m": rng.uniform(0.5, 2, (members, n)), "k": rng.uniform(0.5, 2, (members, springs or n + 1)),
             "x0": rng.normal(0, 0.1, (members, n)), "v0": np.zeros((members, n))}
 
 
@@ -281,18 +283,18 @@ def _stack(*rows):
 
 
 def chain_case(method: str, n: int, masses: int, steps: int, repeats: int, peers: bool, naive,
-               timed: int | None = None) -> dict[str, float]:
-    """Rates (mass-steps/s) of fixed chains of n masses with `method`, h = 0.01, and its peers' (verlet's job);
-    ensemble's from `timed` calls (default `repeats`)."""
-    h, constants, rng = 0.01, {"n": n, "boundary": "fixed"}, np.random.default_rng(1)
+               timed: int | None = None, boundary: str = "fixed") -> dict[str, float]:
+    """Rates (mass-steps/s) of chains of n masses with `method`, h = 0.01, and (fixed ends) its peers' (verlet's
+    job); ensemble's from `timed` calls (default `repeats`)."""
+    h, constants, rng = 0.01, {"n": n, "boundary": boundary}, np.random.default_rng(1)
     block = launch.block_size(chain, constants, METHODS[method])
     members = max(masses // n // block, 1) * block
-    values = chain_values(n, members, rng)
+    values = chain_values(n, members, rng, chain.spring_count(n, boundary))
     launch.prepare(chain, METHODS[method], constants)
     call = launch.Launch(chain, METHODS[method], values, constants, n_save=2, save_dt=h * steps, dt=h,
                          blowup_factor=np.inf)
     rates = {"ensemble": members * n * steps / median_seconds(call.run, timed or repeats)}
-    if not peers:
+    if not peers or boundary != "fixed":
         return rates
     state, rate = chain.inputs(values, constants)
     few_values = {name: v[:IVP_MEMBERS] for name, v in values.items()}  # the exact solution of all would take
@@ -454,6 +456,8 @@ def main() -> None:
             for m in ("rk4", "exact", "split2", "dopri5")}
     runs.update({f"chain {m} N={n}": lambda peers, timed=None, m=m, n=n: chain_case(
         m, n, 2**20, 1000, args.repeats, peers, naive, timed) for m in ("verlet", "yoshida4") for n in lengths})
+    runs.update({f"ring verlet N={n}": lambda peers, timed=None, n=n: chain_case(
+        "verlet", n, 2**20, 1000, args.repeats, False, naive, timed, "periodic") for n in lengths})
     with_peers = [name for name in runs if peers and (name == "top rk4" or name.startswith("chain"))]  # on tops,
     # the peers do rk4's job
     # ensemble's kernels first, before any peer has loaded its libraries (JAX starts threads of its own) into this
@@ -495,7 +499,7 @@ def main() -> None:
     targets.append(("dopri5 per member-step on 16-mass chains <= 2.5x rk4", f"{chain_adaptive:.2f}x",
                     chain_adaptive <= 2.5))
     for name in names:
-        if name.startswith("chain") and "C" in cases.get(f"chain verlet N={name.split('N=')[1]}", {}):
+        if name.startswith(("chain", "ring")) and "C" in cases.get(f"chain verlet N={name.split('N=')[1]}", {}):
             c = cases[f"chain verlet N={name.split('N=')[1]}"]["C"]
             share = cases[name]["ensemble"] / c
             sweeps = len(YOSHIDA4) if "yoshida4" in name else 1  # force sweeps a step; C verlet makes one
