@@ -325,27 +325,28 @@ def _fixed_kernel(method: Method, n: int, periodic: bool):
 
     Work rows (B = block_size({"n": n}, method) members each): X (n + 2: ghost, masses
     1..n, ghost), V (n), then CL and CR (n each: the springs' constants left
-    and right of each mass over its mass, see model.inputs); a tiled ring's
-    hold n + 2 halo masses where these hold n (below). Runge-Kutta adds
-    the stage state ZX (n + 2), ZV (n) and slopes KX, KV (stages x n each).
-    Forces come from neighbours only: O(n) per step.
+    and right of each mass over its mass, see model.inputs); in a tiled
+    ring's rows, n + 2 halo masses stand where these have n (below).
+    Runge-Kutta adds the stage state ZX (n + 2), ZV (n) and slopes KX, KV
+    (stages x n each). Forces come from neighbours only: O(n) per step.
 
-    A long chain's rows outgrow the L1 cache (tiles), so its splitting kernel runs
-    TILE_PIECES pieces (kicks and drifts) at once over tiles of TILE_ROWS
-    masses, each piece one mass behind the piece before it where kick and
-    drift alternate (a wavefront): every mass still sees its neighbours as
-    the one-piece-at-a-time order has them, so results are bit for bit the
-    same. A ring's ends need each other's last piece, so a long ring's rows
-    hold `halo` more masses on each side (ring_halo), copies of the masses
-    at its other end made before each run of pieces: a wrong value at a
-    row's end travels one mass a kick, so it never reaches the ring's own
-    masses, which take the same bits as one piece at a time. A short ring
-    copies its ghost masses after each drift. Kick and drift make one loop over their masses'
-    values (mass i, member j at i B + j), indexed from 0 in a view of the
-    work array: from a variable start, Numba's negative-index wraparound
-    stays in the loop and LLVM does not vectorize it. As two loops (masses,
-    then a block's B members, unrolled), LLVM on AVX-512 vectorized the
-    loop over masses, with gathers: a tenth of the speed at n = 16 and 128.
+    A long chain's rows outgrow the L1 cache (tiles), so its splitting
+    kernel runs TILE_PIECES pieces (kicks and drifts) at once over tiles of
+    TILE_ROWS masses, each piece one mass behind the piece before it where
+    kick and drift alternate (a wavefront): every mass still sees its
+    neighbours as the one-piece-at-a-time order has them, so results are bit
+    for bit the same. A ring's ends need each other's last piece, so a long
+    ring's rows hold `halo` more masses on each side (ring_halo), copies of
+    the masses at its other end made before each run of pieces: a wrong
+    value at a row's end travels one mass a kick, so it never reaches the
+    ring's own masses, which take the same bits as one piece at a time. A
+    short ring copies its ghost masses after each drift. Kick and drift make
+    one loop over their masses' values (mass i, member j at i B + j),
+    indexed from 0 in a view of the work array: from a variable start,
+    Numba's negative-index wraparound stays in the loop and LLVM does not
+    vectorize it. As two loops (masses, then a block's B members, unrolled),
+    LLVM on AVX-512 vectorized the loop over masses, with gathers: a tenth
+    of the speed at n = 16 and 128.
     """
     B = block_size({"n": n}, method)
     runge_kutta, S, a, b, E, pieces, fractions = method_constants(method)
