@@ -88,11 +88,11 @@ def global_attributes(spec: Spec, table: dict[str, np.ndarray], command: str | N
     """The run's provenance; a setting (method, dt, rtol, atol) is an attribute when every member shares it.
     `command` is the command line that made the run (default: `ensemble run <run file>`)."""
     now = datetime.datetime.now(datetime.timezone.utc).replace(microsecond=0).isoformat()
-    methods = " ".join(dict.fromkeys(table["method"]))
+    methods = " ".join(spec.methods)
     shared = {}
     for key in SETTING_UNITS:
-        values = np.unique(table[key][np.isfinite(table[key])])
-        if len(values) == 1 and key not in spec.sweep:
+        values = table[key][np.isfinite(table[key])]
+        if len(values) and np.all(values == values[0]) and key not in spec.sweep:
             shared[key] = float(values[0])
     return {
         **spec.constants,
@@ -202,11 +202,14 @@ class Writer:
         """method, dt, rtol and atol per member, where the run sweeps them."""
         spec = self.spec
         if "method" in spec.sweep:
-            methods = list(dict.fromkeys(table["method"]))
+            methods = spec.methods  # in order of first use, as in the table
             var = self.nc.createVariable("method", "i1", ("member",))
             var.setncatts({"long_name": "integration method", "flag_values": np.arange(len(methods), dtype=np.int8),
                            "flag_meanings": " ".join(methods)})
-            var[:] = np.array([methods.index(m) for m in table["method"]], dtype=np.int8)
+            codes = np.empty(len(table["method"]), dtype=np.int8)
+            for code, name in enumerate(methods):
+                codes[table["method"] == name] = code
+            var[:] = codes
         for key, (units, long_name, comment) in SETTING_UNITS.items():
             if key in spec.sweep:
                 var = self.nc.createVariable(key, "f8", ("member",), fill_value=np.nan)
