@@ -16,10 +16,12 @@ it ran:
     fsync           OUT.nc.tmp to the disk after each chunk (the parts' thread)
 
 The run's seconds (loading its kernels from the cache included) and this
-script's imports come first; the C limit (limit.py) is measured just before
-and just after the run. The steps overlap: finishing and fsync run while the next chunk's
-kernel does, on the same two cores. --members and --save-dt replace the run
-file's values.
+script's imports come first, then the stretches before the first kernel call
+(loading the kernels, creating the file) and after the last one (the last
+chunk's finishing, the records, closing the file), which nothing overlaps.
+The C limit (limit.py) is measured just before and just after the run. The
+steps overlap: finishing and fsync run while the next chunk's kernel does, on
+the same two cores. --members and --save-dt replace the run file's values.
 """
 from __future__ import annotations
 
@@ -44,6 +46,7 @@ from ensemble.spec import SpecError, load, parse  # noqa: E402
 
 totals: dict[str, float] = collections.defaultdict(float)
 calls: collections.Counter = collections.Counter()
+moments: dict[str, float] = {}  # perf_counter() when the first kernel call began and the last one ended
 _lock = threading.Lock()
 
 
@@ -70,8 +73,10 @@ def time_kernel_calls() -> None:
 
     def wrapper(self, *args, **kwargs):
         start = time.perf_counter()
+        moments.setdefault("first kernel", start)
         for item in segments(self, *args, **kwargs):
-            totals["kernel"] += time.perf_counter() - start
+            moments["last kernel"] = time.perf_counter()
+            totals["kernel"] += moments["last kernel"] - start
             calls["kernel"] += 1
             yield item
             start = time.perf_counter()
@@ -115,6 +120,8 @@ def main(argv=None) -> None:
     print(f"{spec.n_members} members, {summary.member_steps:.3g} member-steps, {spec.n_save} samples: start-up "
           f"{imports:.2f} s (this script's imports), the run {seconds:.2f} s (of which {summary.preparing:.2f} s "
           "loading kernels)")
+    print(f"  before the first kernel call {moments['first kernel'] - start:.3f} s, after the last "
+          f"{start + seconds - moments['last kernel']:.3f} s (loading kernels included before; nothing else overlaps)")
     for label in ("kernel", "finishing", "  observing", "  amplitudes", "  growth fit", "  writing",
                   "fsync"):
         print(f"  {label:14s} {totals[label]:7.3f} s in {calls[label]} calls")
