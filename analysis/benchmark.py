@@ -12,7 +12,8 @@ is that job's steps over its time. Cases and peers:
   (--full: 128 and 1024 too), and verlet on rings of those lengths (ensemble
   and the C's fixed-chain verlet only);
 - NumPy vectorized over members; a naive Numba version (one member per
-  thread, prange, the right-hand side and the stepper passed as functions);
+  thread, prange, the right-hand side and the stepper passed as functions),
+  timed on a share of the members (10^7 steps a call);
   scipy.integrate.solve_ivp per member, RK45 and DOP853, its rtol lowered by
   decades until its error is no larger; diffrax (jit of vmap, Tsit5 and
   Dopri8 with the same rule) when installed (pip install 'ensemble[bench]');
@@ -27,10 +28,10 @@ NUMBA_NUM_THREADS 1 against 2 for a whole run (whose
 finishing thread uses a second core even with one kernel thread), and the warm start-up of a 10-member run.
 --whole runs the two workloads alone, --repeats times each (medians), between
 two measurements of the C.
-Quick takes about four minutes here (--no-peers: under one), --full 10 to
-16 minutes (2026-11-24). The figures go to --out (NetCDF) and the charts (rate against members,
-against N and against threads) to --charts; the last lines print each target
-and whether it is met. The first line names the host.
+Quick took 33 s here (2026-11-25). The figures go to --out (NetCDF) and the
+charts (rate against members, against N and against threads) to --charts;
+the last lines print each target and whether it is met. The first line names
+the host.
 """
 from __future__ import annotations
 
@@ -65,6 +66,15 @@ PEERS = ("ensemble", "C", "numpy", "numba_naive", "solve_ivp_RK45", "solve_ivp_D
 _CUBE_ROOT_2 = 2.0 ** (1.0 / 3.0)
 YOSHIDA4 = (1 / (2 - _CUBE_ROOT_2), -_CUBE_ROOT_2 / (2 - _CUBE_ROOT_2), 1 / (2 - _CUBE_ROOT_2))  # Yoshida's triple
 IVP_MEMBERS = 4  # members solve_ivp and diffrax integrate one by one: their rate is per member anyway
+NAIVE_WORK = 10**7  # steps (member- or mass-steps) of one timed call of the naive Numba peer: its members are
+# independent, one per thread at a time, so a share of the case's members gives its rate (all of a 2**20-mass
+# yoshida4 case took 46 s a call, most of the quick benchmark's time)
+
+
+def naive_members(members: int, n: int, steps: int) -> int:
+    """How many of a case's members the naive Numba peer integrates: NAIVE_WORK steps, at least 256 members
+    (1024-mass chains: 4 MB of state, beyond the L2 cache like the whole case's)."""
+    return min(members, max(256, NAIVE_WORK // (n * steps)))
 
 
 def median_seconds(fn, repeats: int) -> float:
@@ -197,21 +207,18 @@ def diffrax_seconds(solver: str, vector_field, y0: np.ndarray, args: np.ndarray,
         return np.nan, np.nan, np.nan
     jax.config.update("jax_enable_x64", True)
 
-    def make(rtol):
-        def one(y, a):
-            solution = diffrax.diffeqsolve(diffrax.ODETerm(vector_field), getattr(diffrax, solver)(), 0.0, t_end,
-                                           None, y, args=a, stepsize_controller=diffrax.PIDController(
-                                               rtol=rtol, atol=rtol * 1e-3), max_steps=10**7)
-            return solution.ys[-1]
-        return jax.jit(jax.vmap(one))
+    def one(y, a, rtol):
+        solution = diffrax.diffeqsolve(diffrax.ODETerm(vector_field), getattr(diffrax, solver)(), 0.0, t_end,
+                                       None, y, args=a, stepsize_controller=diffrax.PIDController(
+                                           rtol=rtol, atol=rtol * 1e-3), max_steps=10**7)
+        return solution.ys[-1]
 
-    compiled = {}
+    # the tolerance is an argument, not a constant: one compile serves every tolerance matched_ivp tries (it
+    # compiles at the first, untimed, call)
+    compiled = jax.jit(jax.vmap(one, in_axes=(0, 0, None)))
 
     def solve(rtol):
-        if rtol not in compiled:
-            compiled[rtol] = make(rtol)
-            compiled[rtol](jnp.asarray(y0.T), jnp.asarray(args)).block_until_ready()  # compile outside the timing
-        return np.asarray(compiled[rtol](jnp.asarray(y0.T), jnp.asarray(args)).block_until_ready()).T
+        return np.asarray(compiled(jnp.asarray(y0.T), jnp.asarray(args), rtol).block_until_ready()).T
 
     return matched_ivp(solve, lambda y: relative_error(y, exact), target)
 
@@ -236,15 +243,15 @@ def top_case(method: str, members: int, steps: int, repeats: int, peers: bool, n
     state, rate = top.inputs(values, constants)
     exact = top.exact(values, constants, np.array([h * steps]))[-1]
     target = max(relative_error(call.outcome().samples[-1][:, :IVP_MEMBERS], exact[:, :IVP_MEMBERS]), 1e-13)
-    work = members * steps  # the job: rk4's member-steps over the span
     few = min(members, 256)
     rates["numpy"] = few * steps / median_seconds(
         lambda: numpy_rk(METHODS["rk4"].tableau, state[:, :few].copy(), rate[:, :few], h, steps), 1)
     integrate, top_f, _, rk4_step, _, _ = naive
-    rows, params = np.ascontiguousarray(state.T), np.ascontiguousarray(rate.T)
+    share = naive_members(members, 1, steps)
+    rows, params = np.ascontiguousarray(state.T[:share]), np.ascontiguousarray(rate.T[:share])
     integrate(top_f, rk4_step, rows[:8].copy(), params[:8], h, 1, False)  # compile
-    rates["numba_naive"] = work / median_seconds(lambda: integrate(top_f, rk4_step, rows.copy(), params, h, steps,
-                                                                   False), repeats)
+    rates["numba_naive"] = share * steps / median_seconds(lambda: integrate(top_f, rk4_step, rows.copy(), params, h,
+                                                                            steps, False), repeats)
     y0, ex = state[:, :IVP_MEMBERS], exact[:, :IVP_MEMBERS]
     for name in ("RK45", "DOP853"):
         seconds, _, _ = solve_ivp_seconds(name, lambda j: lambda t, y: np.array(top_rhs.py_func(
@@ -312,9 +319,10 @@ def chain_case(method: str, n: int, masses: int, steps: int, repeats: int, peers
     rates["numpy"] = few * n * steps / median_seconds(numpy_steps, 1)
     integrate, _, chain_f, _, verlet_step, yoshida_step = naive
     step = verlet_step if method == "verlet" else yoshida_step
-    rows, params = np.ascontiguousarray(state.T), np.ascontiguousarray(rate.T)
+    share = naive_members(members, n, steps)
+    rows, params = np.ascontiguousarray(state.T[:share]), np.ascontiguousarray(rate.T[:share])
     integrate(chain_f, step, rows[:2].copy(), params[:2], h, 1, True)  # compile
-    rates["numba_naive"] = members * n * steps / median_seconds(
+    rates["numba_naive"] = share * n * steps / median_seconds(
         lambda: integrate(chain_f, step, rows.copy(), params, h, steps, True), repeats)
     y0, ex = state[:, :IVP_MEMBERS], exact
 
