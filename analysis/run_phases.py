@@ -1,6 +1,6 @@
 """Where a whole run's seconds go: one `ensemble run` in this process, its steps timed as they happen.
 
-    python analysis/run_phases.py (RUNFILE | --workload tops|chains) [--members N] [--save-dt S]
+    python analysis/run_phases.py (RUNFILE | --workload tops|chains) [--members N] [--save-dt S] [--growth]
 
 Runs RUNFILE, or one of the two whole-run workloads of benchmark.py --whole,
 (into a temporary folder) with the run's own steps wrapped in
@@ -10,8 +10,8 @@ it ran:
     kernel          the kernel calls (main thread; both cores when alone)
     finishing       a chunk finished on the finishing thread: what follows
       observing       the saved variables from the samples (tilt: compiled)
-      amplitudes      what the growth fit reads (compiled)
-      growth fit      growth_per_step (compiled)
+      amplitudes      what the growth fit reads (compiled; `[measure] growth` only)
+      growth fit      growth_per_step (compiled; `[measure] growth` only)
       writing         saved variables into OUT.nc.tmp (HDF5, the system's copy)
     fsync           OUT.nc.tmp to the disk after each chunk (the parts' thread)
 
@@ -21,7 +21,8 @@ script's imports come first, then the stretches before the first kernel call
 chunk's finishing, the records, closing the file), which nothing overlaps.
 The C limit (limit.py) is measured just before and just after the run. The
 steps overlap: finishing and fsync run while the next chunk's kernel does, on
-the same two cores. --members and --save-dt replace the run file's values.
+the same two cores. --members and --save-dt replace the run file's values;
+--growth adds `[measure] growth = true`.
 """
 from __future__ import annotations
 
@@ -92,6 +93,7 @@ def main(argv=None) -> None:
     parser.add_argument("--members", type=positive_int, help="replace the run file's member count")
     parser.add_argument("--save-dt", type=float, help="replace the run file's save_dt (s): what saving costs, "
                                                      "against the same run saving less")
+    parser.add_argument("--growth", action="store_true", help="measure growth_per_step ([measure] growth = true)")
     args = parser.parse_args(argv)
     if (args.runfile is None) == (args.workload is None):
         parser.error("give a run file or --workload")
@@ -100,6 +102,9 @@ def main(argv=None) -> None:
         for key, value in (("members", args.members), ("save_dt", args.save_dt)):
             if value is not None:
                 spec = parse(re.sub(rf"(?m)^{key}\s*=.*$", f"{key} = {value!r}", spec.text))
+        if args.growth and not spec.measure["growth"]:
+            spec = parse(re.sub(r"(?m)^\[measure\]$", "[measure]\ngrowth = true", spec.text) if "[measure]" in
+                         spec.text else spec.text + "\n[measure]\ngrowth = true\n")
     except SpecError as e:
         parser.error(f"{args.runfile or args.workload}: {e}")
     cli._skip_numba_blas_probe()  # as `ensemble run` does, so loading the kernels takes what it takes there
@@ -122,8 +127,8 @@ def main(argv=None) -> None:
           "loading kernels)")
     print(f"  before the first kernel call {moments['first kernel'] - start:.3f} s, after the last "
           f"{start + seconds - moments['last kernel']:.3f} s (loading kernels included before; nothing else overlaps)")
-    for label in ("kernel", "finishing", "  observing", "  amplitudes", "  growth fit", "  writing",
-                  "fsync"):
+    growth = ("  amplitudes", "  growth fit") if spec.measure["growth"] else ()
+    for label in ("kernel", "finishing", "  observing", *growth, "  writing", "fsync"):
         print(f"  {label:14s} {totals[label]:7.3f} s in {calls[label]} calls")
 
 

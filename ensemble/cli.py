@@ -201,8 +201,10 @@ def _memory_problem(spec) -> str | None:
     members = smallest_chunk(spec)
     need = members * member_bytes(spec)
     if need > available:
+        growth = ", or measure no growth" if spec.measure["growth"] else ""  # its fit holds the whole record
         return (f"{members} members holding {spec.n_save} saved times each need {need / 1e9:.3g} GB "
-                f"of memory and {available / 1e9:.3g} GB is available; save less often (save_dt) or fewer variables")
+                f"of memory and {available / 1e9:.3g} GB is available; save less often (save_dt) or fewer "
+                f"variables{growth}")
     return None
 
 

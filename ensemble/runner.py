@@ -61,8 +61,8 @@ class Summary:
 
 
 def _record_bytes(spec: Spec) -> tuple[int, int]:
-    """Bytes one member needs per saved sample while its chunk runs (kernel samples, saved variables and the
-    amplitudes growth_per_step is fitted to), and once (its kernel work array, the largest of the run's methods)."""
+    """Bytes one member needs per saved sample while its chunk runs (kernel samples and saved variables), and once
+    (its kernel work array, the largest of the run's methods)."""
     scene = SCENES[spec.scene]
     sizes = scene.sizes(spec.constants)
     state_rows, _ = scene.kernel_rows(spec.constants)
@@ -88,9 +88,10 @@ def segment_samples(spec: Spec) -> int:
 
 def member_bytes(spec: Spec) -> int:
     """Memory (bytes) one member takes while its chunk runs: a segment of its record, its kernel work array, and
-    the two amplitudes per saved sample that growth_per_step is fitted to (a whole record's)."""
+    (`[measure] growth`) the two amplitudes per saved sample that growth_per_step is fitted to (a whole
+    record's)."""
     per_sample, once = _record_bytes(spec)
-    return per_sample * segment_samples(spec) + once + 16 * spec.n_save
+    return per_sample * segment_samples(spec) + once + (16 * spec.n_save if spec.measure["growth"] else 0)
 
 
 def smallest_chunk(spec: Spec) -> int:
@@ -203,7 +204,8 @@ def noise_streams(spec: Spec, name: str, first: int, members: int) -> list[np.ra
 
 class _Record:
     """What a launch's samples become: saved variables (with observation noise) handed to write_samples(first
-    sample, variables) as they come, and the amplitudes and errors kept for the per-member records."""
+    sample, variables) as they come, and the amplitudes and errors that [measure] asks for, kept for the
+    per-member records."""
 
     def __init__(self, spec: Spec, method: Method, values: dict[str, np.ndarray], first: int, members: int,
                  write_samples):
@@ -220,7 +222,7 @@ class _Record:
             data[name] = data[name] + spec.noise[name] * np.stack([g.standard_normal(data[name].shape[1:])
                                                                    for g in streams])
         self.write_samples(start, data)
-        if not self.method.closed_form:
+        if spec.measure["growth"] and not self.method.closed_form:
             self.amplitudes.append(scene.amplitudes(samples, self.values, spec.constants))
         if spec.measure["error"]:
             exact = scene.exact(self.values, spec.constants, self.times[start:start + len(samples)])
@@ -231,8 +233,9 @@ class _Record:
         the run measures timing."""
         spec, method, members = self.spec, self.method, len(outcome.status)
         records = dict(zip(COUNTS, outcome.counts), status=outcome.status, failure_time=outcome.failure_time)
-        records["growth_per_step"] = (np.full(members, np.nan) if method.closed_form else growth_per_step(
-            self.scene, method, self.values, _joined(self.amplitudes, axis=2), outcome, self.times, spec.t_end))
+        if spec.measure["growth"]:
+            records["growth_per_step"] = (np.full(members, np.nan) if method.closed_form else growth_per_step(
+                self.scene, method, self.values, _joined(self.amplitudes, axis=2), outcome, self.times, spec.t_end))
         if spec.measure["error"]:
             records["error_max"], records["error_final"] = error_records(_joined(self.errors, axis=0))
         if spec.measure["timing"]:
@@ -463,7 +466,8 @@ ANNOUNCE_AFTER = 1.0  # s: kernels taking longer than this to get ready are bein
 
 
 def prepare_kernels(spec: Spec, announce: bool = True) -> float:
-    """Compile (or load from Numba's disk cache) the run's kernels and the growth fit; returns the seconds it took.
+    """Compile (or load from Numba's disk cache) the run's kernels, observables and (`[measure] growth`) growth
+    fit; returns the seconds it took.
 
     Loading from the cache takes well under a second. When it takes longer
     (compiling, once per machine) and `announce`, one line on stderr says so
@@ -487,8 +491,9 @@ def prepare_kernels(spec: Spec, announce: bool = True) -> float:
             launch.prepare(scene, METHODS[name], spec.constants)
         one = np.zeros((1, 1, scene.kernel_rows(spec.constants)[0])).transpose(1, 2, 0)  # as a kernel's samples
         scene.observe(one, tuple(scene.OBSERVABLES), members_table(spec, 0, 1), spec.constants)  # what observing
-        measured_growth(scene.amplitudes(one, members_table(spec, 0, 1), spec.constants), np.zeros(1), np.ones(1))
-        # compiles, too: the observables and the growth fit
+        if spec.measure["growth"]:  # and the growth fit compile, too
+            measured_growth(scene.amplitudes(one, members_table(spec, 0, 1), spec.constants), np.zeros(1),
+                            np.ones(1))
     finally:
         timer.cancel()
     seconds = time.perf_counter() - start

@@ -49,7 +49,7 @@ TOP_LEVEL = {
     "measure": dict, "blowup_factor": float,
 }
 OBSERVE_KEYS = ("noise",)
-MEASURE_KEYS = {"error": bool, "timing": bool, "repeats": int}
+MEASURE_KEYS = {"error": bool, "timing": bool, "repeats": int, "growth": bool}
 REQUIRED = ("scene", "t_end", "save_dt", "members", "seed")
 # How each member integrates; each may be a top-level value or a sweep axis.
 SETTINGS = ("method", "dt", "rtol", "atol")
@@ -480,8 +480,9 @@ def _settings(top: dict, axes: dict, label: str, scene: str, save_dt: float) -> 
 
 
 def _measure(measure: dict, module) -> dict[str, object]:
-    """The [measure] table: error = true, timing = true, repeats = N (best of N timed kernel calls)."""
-    out = {"error": False, "timing": False, "repeats": 3}
+    """The [measure] table: error = true, timing = true, repeats = N (best of N timed kernel calls), growth =
+    true (growth_per_step, for stability studies)."""
+    out = {"error": False, "timing": False, "repeats": 3, "growth": False}
     for key, value in measure.items():
         if key not in MEASURE_KEYS:
             raise _unknown(f"measure.{key}", key, MEASURE_KEYS)

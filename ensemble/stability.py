@@ -94,8 +94,8 @@ def stability_map(ds: xr.Dataset) -> xr.Dataset:
     if scene is None:
         raise fit.FitError("stability_map needs a result of `ensemble run`")
     if "growth_per_step" not in ds:
-        raise fit.FitError("stability_map: the result has no growth_per_step (it predates failure detection; "
-                           "run it again)")
+        raise fit.FitError("stability_map: the result has no growth_per_step; add `[measure] growth = true` to "
+                           "its run file and run it again")
     methods, _ = fit.member_settings(ds)
     h = member_steps(ds)
     keep = np.isfinite(h)

@@ -132,7 +132,8 @@ def put_records(variables, offset: int, data: dict[str, np.ndarray]) -> None:
 def record_names(spec: Spec) -> list[str]:
     """The per-member records (RUN_RECORDS) a run of `spec` stores: how each member ran, and what [measure]
     asks for."""
-    records = ["steps_accepted", "steps_rejected", "rhs_evals", "status", "failure_time", "growth_per_step"]
+    records = ["steps_accepted", "steps_rejected", "rhs_evals", "status", "failure_time"]
+    records += ["growth_per_step"] if spec.measure["growth"] else []
     records += ["error_max", "error_final"] if spec.measure["error"] else []
     return records + (["seconds_per_step"] if spec.measure["timing"] else [])
 

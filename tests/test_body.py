@@ -398,6 +398,8 @@ save_dt = 1.0
 members = 1
 seed = 1
 save = ["omega"]
+[measure]
+growth = true
 [parameters]
 lambda1 = 1.0
 lambda2 = 2.0

@@ -60,7 +60,7 @@ def test_dataset_follows_the_contract(cli_run):
     assert sorted(set(ds.c.values)) == [1e-4, 2e-4]
     # long_names are labels (xarray's plots use them): short, with any explanation in `comment`
     assert max(len(ds[name].attrs.get("long_name", "")) for name in ds.variables) <= 80
-    assert "second half of its samples" in ds.growth_per_step.attrs["comment"]
+    assert "growth_per_step" not in ds  # only where [measure] asks for it (tests/test_stability.py)
 
 
 def test_file_round_trips_the_kernel_output(cli_run, tmp_path):
@@ -206,7 +206,7 @@ def test_bad_command_line_input_is_one_line_and_exit_2(args, key, write_runfile,
 
 
 @pytest.mark.parametrize("text", [
-    top_runfile(members=100_000, t_end=100.0, save_dt=0.1),
+    top_runfile(members=100_000, t_end=100.0, save_dt=0.1) + "[measure]\ngrowth = true\n",
     "scene = 'chain'\nmethod = 'verlet'\ndt = 0.01\nt_end = 10.0\nsave_dt = 0.01\nmembers = 5000\nseed = 1\n"
     "save = ['energy']\n[parameters]\nn = 256\nm = 1.0\nk = 1.0\n",
     "scene = 'chain'\nmethod = 'verlet'\ndt = 0.01\nt_end = 10.0\nsave_dt = 0.1\nmembers = 5000\nseed = 1\n"
@@ -214,8 +214,9 @@ def test_bad_command_line_input_is_one_line_and_exit_2(args, key, write_runfile,
 ])
 def test_default_chunk_keeps_kernel_samples_and_saved_data_near_the_budget(text):
     """A chunk holds a segment of the kernel's samples (state rows) and of the saved variables, its work arrays,
-    and two amplitudes per saved sample, 8 bytes a value; it is whole kernel blocks, and a single block when one
-    block alone exceeds the budget. A segment is every sample unless one block's would exceed the budget."""
+    and (`[measure] growth`) two amplitudes per saved sample, 8 bytes a value; it is whole kernel blocks, and a
+    single block when one block alone exceeds the budget. A segment is every sample unless one block's would
+    exceed the budget."""
     spec = parse(text)
     chunk = runner.default_chunk(spec)
     block = runner.run_block(spec)
@@ -224,7 +225,7 @@ def test_default_chunk_keeps_kernel_samples_and_saved_data_near_the_budget(text)
     segment = min(spec.n_save, runner.CHUNK_BYTES // (8 * (state_rows + saved) * block))
     assert runner.segment_samples(spec) == segment
     work = launch.work_rows(SCENES[spec.scene], METHODS[spec.methods[0]], spec.constants)
-    per_member = (segment * (state_rows + saved) + work + 2 * spec.n_save) * 8
+    per_member = (segment * (state_rows + saved) + work + (2 * spec.n_save if spec.measure["growth"] else 0)) * 8
     assert chunk % block == 0
     if block * per_member > runner.CHUNK_BYTES:
         assert chunk == block
@@ -239,7 +240,7 @@ def test_a_long_record_runs_in_segments_within_the_memory_budget(tmp_path, monke
     import tracemalloc
 
     monkeypatch.setattr(runner, "CHUNK_BYTES", 2**20)
-    spec = parse(top_runfile(members=1, t_end=200.0, save_dt=1e-3))
+    spec = parse(top_runfile(members=1, t_end=200.0, save_dt=1e-3) + "[measure]\ngrowth = true\n")
     assert spec.n_save == 200_001 and runner.segment_samples(spec) == 2**20 // (8 * 7 * 128)
     tracemalloc.start()
     try:

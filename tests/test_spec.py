@@ -207,8 +207,13 @@ def test_a_variable_saved_twice_is_refused(tmp_path, capsys):
 
 
 def test_a_record_longer_than_memory_is_refused_before_the_run(tmp_path, capsys):
-    """One kernel block of 128 members holding 1e9 saved times each cannot be held: refused with the number."""
-    refused(top_runfile(t_end=1e7, save_dt=0.01, dt=0.01), tmp_path, capsys, "holding 1000000001 saved times each")
+    """One kernel block of 128 members fitting growth to 1e9 saved times each cannot be held: refused with the
+    number. Without `[measure] growth` the record runs in segments within the memory budget."""
+    line = refused(top_runfile(t_end=1e7, save_dt=0.01, dt=0.01) + "[measure]\ngrowth = true\n", tmp_path, capsys,
+                   "holding 1000000001 saved times each")
+    assert line.endswith("or measure no growth")
+    plain = parse(top_runfile(t_end=1e7, save_dt=0.01, dt=0.01))
+    assert runner.smallest_chunk(plain) * runner.member_bytes(plain) <= 2 * runner.CHUNK_BYTES
 
 
 @pytest.mark.parametrize("content, expected", [(b"\xff\xfe scene", "run file: is not UTF-8 text (byte 0)"),

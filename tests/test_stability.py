@@ -7,7 +7,7 @@ import netCDF4
 import numpy as np
 import pytest
 
-from ensemble import cli, records, runner, stability
+from ensemble import cli, fit, records, runner, stability
 from ensemble.engine import launch
 from ensemble.methods import METHODS
 from ensemble.scenes import chain, top
@@ -176,6 +176,8 @@ save_dt = 4.0
 members = {members}
 seed = 3
 {head}
+[measure]
+growth = true
 [parameters]
 n = 4
 m = {{ uniform = [0.5, 2.0] }}
@@ -210,6 +212,23 @@ def test_ten_percent_past_the_limit_are_flagged_and_the_rest_unaffected(tmp_path
     alone = runner.simulate(load(path))
     np.testing.assert_array_equal(ds["x"].values[~past], alone["x"].values)
     np.testing.assert_array_equal(ds["growth_per_step"].values[~past], alone["growth_per_step"].values)
+    assert "second half of its samples" in ds["growth_per_step"].attrs["comment"]
+
+
+def test_growth_is_measured_only_when_the_run_file_asks_and_the_map_says_how(tmp_path):
+    """Without `[measure] growth = true` a run neither fits nor stores growth_per_step, and stability_map says in
+    one line what to add; every other variable is bit for bit the same."""
+    path = tmp_path / "scan.toml"
+    path.write_text(verlet_chain_text([0.5, 2.5], 2))
+    asked = runner.simulate(load(path))
+    path.write_text(verlet_chain_text([0.5, 2.5], 2).replace("[measure]\ngrowth = true\n", ""))
+    plain = runner.simulate(load(path))
+    assert "growth_per_step" in asked and "growth_per_step" not in plain
+    assert set(asked.data_vars) - set(plain.data_vars) == {"growth_per_step"}
+    for name in plain.data_vars:
+        np.testing.assert_array_equal(plain[name].values, asked[name].values)
+    with pytest.raises(fit.FitError, match=r"add `\[measure\] growth = true` to its run file"):
+        stability.stability_map(plain)
 
 
 def test_growth_of_a_chain_started_in_its_highest_mode_matches_theory_within_1_percent(tmp_path):
