@@ -28,7 +28,7 @@ NUMBA_NUM_THREADS 1 against 2 for a whole run (whose
 finishing thread uses a second core even with one kernel thread), and the warm start-up of a 10-member run.
 --whole runs the two workloads alone, --repeats times each (medians), between
 two measurements of the C.
-Quick took 33 s here and --full 91 s (2026-11-25). The figures go to --out
+Quick took 33 s here and --full 69 to 91 s (2026-11-25). The figures go to --out
 (NetCDF) and the charts (rate against members, against N and against threads)
 to --charts; the last lines print each target and whether it is met. The
 first line names the host.
