@@ -7,12 +7,13 @@ with a single base pointer LLVM proves the rows disjoint and emits only the
 vector loop (separate arrays add a runtime overlap check whose scalar fallback
 rounds differently, so results would depend on heap addresses).
 
-Kernel arrays are laid out by block: state0 and rate (blocks, rows, B) and
-samples (n_save, blocks, rows, B), so a block reads and writes contiguous
-memory (as (rows, members) arrays, each row of a block was a separate cache
-line far from the next: loading and saving a block of 16-mass chains cost
-about as much as 200 of its steps, measured). Per-member arrays (limit,
-status, failure_time, control, counts) are (..., members).
+Kernel inputs are laid out by block: state0 and rate (blocks, rows, B), so a
+block reads contiguous memory (as (rows, members) arrays, each row of a block
+was a separate cache line far from the next: loading and saving a block of
+16-mass chains cost about as much as 200 of its steps, measured). Samples are
+(members, count, state rows), member by member (sample_out), the saved
+variables' layout. Per-member arrays (limit, status, failure_time, control,
+counts) are (..., members).
 
 Each scene's kernels (ensemble/scenes/<scene>/kernels.py) are generated per
 method by factories whose closures capture the method's data as constants;
