@@ -18,24 +18,32 @@ is that job's steps over its time. Cases and peers:
   decades until its error is no larger; diffrax (jit of vmap, Tsit5 and
   Dopri8 with the same rule) when installed (pip install 'ensemble[bench]');
 - the hand-written C of ../shared/limit/limit.py, when it sits beside the
-  checkout (its lines are parsed), for the ratios the targets ask for;
+  checkout, for the ratios the targets ask for: its top rk4 and its
+  fixed-chain verlet of the same N are timed in a process of their own right
+  after each of ensemble's timed calls of top rk4 and of every chain and ring
+  case (hostinfo.CBeside), and each ratio is the median of the rounds'
+  ratios, so a slow spell of the machine hits both sides. Its printed line
+  (`C limit`) comes first, as limit.py runs it;
 - the top's rk4 kernel alone on 1, 2, ... threads, in rounds;
 - dopri5 against rk4 per member-step on 4096 16-mass chains (bench_dopri5.py's).
 
 --full adds whole `ensemble run` processes: the two whole-run workloads of
 issue 15, throughput and peak RSS against members (10^2 .. 10^6 tops),
-NUMBA_NUM_THREADS 1 against 2 for a whole run (whose
-finishing thread uses a second core even with one kernel thread), and the warm start-up of a 10-member run.
+NUMBA_NUM_THREADS 1 against 2 for a whole run (whose finishing thread uses a
+second core even with one kernel thread), each in three rounds of all its
+processes (medians; the thread gain the median of the rounds' ratios), and
+the warm start-up of a 10-member run.
 --whole runs the two workloads alone, --repeats times each (medians), between
 two measurements of the C.
-Quick took 33 s here and --full 69 to 91 s (2026-11-25). The figures go to --out
-(NetCDF) and the charts (rate against members, against N and against threads)
-to --charts; the last lines print each target and whether it is met. The
-first line names the host.
+Quick took 53 s here and --full 120 s (2026-11-25, with the C in rounds and
+the whole runs in three). The figures go to --out (NetCDF) and the charts
+(rate against members, against N and against threads) to --charts; the last
+lines print each target and whether it is met. The first line names the host.
 """
 from __future__ import annotations
 
 import argparse
+import functools
 import os
 import re
 import statistics
@@ -50,7 +58,7 @@ import numpy as np
 import xarray as xr
 from bench_chain import numpy_verlet
 from bench_top import numpy_rk
-from hostinfo import LIMIT, host
+from hostinfo import LIMIT, CBeside, host
 
 from ensemble import records
 from ensemble.arguments import OneLineParser, positive_int
@@ -78,12 +86,29 @@ def naive_members(members: int, n: int, steps: int) -> int:
 
 
 def median_seconds(fn, repeats: int) -> float:
-    times = []
+    return statistics.median(timed_rounds(fn, repeats)[0])
+
+
+def timed_rounds(fn, repeats: int, c=None) -> tuple[list[float], list[float]]:
+    """Seconds of `repeats` calls of fn() and, given c(), the C's rate measured right after each call."""
+    seconds, c_rates = [], []
     for _ in range(repeats):
         start = time.perf_counter()
         fn()
-        times.append(time.perf_counter() - start)
-    return statistics.median(times)
+        seconds.append(time.perf_counter() - start)
+        if c is not None:
+            c_rates.append(c())
+    return seconds, c_rates
+
+
+def ensemble_rates(work: float, seconds: list[float], c_rates: list[float]) -> dict[str, float]:
+    """ensemble's rate, `work` steps over the median of `seconds`, and with C rates taken in the same rounds,
+    their median ("C") and the median of the rounds' ratios ("to_C")."""
+    rates = {"ensemble": work / statistics.median(seconds)}
+    if c_rates:
+        rates["C"] = statistics.median(c_rates)
+        rates["to_C"] = statistics.median(work / s / c for s, c in zip(seconds, c_rates))
+    return rates
 
 
 # --- the scenes' workloads -------------------------------------------------------------------------------------
@@ -225,19 +250,19 @@ def diffrax_seconds(solver: str, vector_field, y0: np.ndarray, args: np.ndarray,
 
 # --- the cases -------------------------------------------------------------------------------------------------
 
-def top_case(method: str, members: int, steps: int, repeats: int, peers: bool, naive, timed: int | None = None
-             ) -> dict[str, float]:
+def top_case(method: str, members: int, steps: int, repeats: int, peers: bool, naive, timed: int | None = None,
+             c=None) -> dict[str, float]:
     """Rates (member-steps/s) of the top with `method` over `steps` steps of 1e-4 s, and its peers'; ensemble's
-    from `timed` calls (default `repeats`)."""
+    from `timed` calls (default `repeats`), each followed by c() (the C's rate) when given (ensemble_rates)."""
     h, values, constants = 1e-4, top_values(members), {}
     launch.prepare(top, METHODS[method], constants)
     adaptive = METHODS[method].adaptive
     settings = dict(rtol=1e-8, atol=1e-12) if adaptive else dict(dt=h)
     call = launch.Launch(top, METHODS[method], values, constants, n_save=2, save_dt=h * steps,
                          blowup_factor=np.inf, **settings)
-    seconds = median_seconds(call.run, timed or repeats)
+    seconds, c_rates = timed_rounds(call.run, timed or repeats, c)
     taken = call.outcome().counts[:2].sum() if adaptive else members * steps
-    rates = {"ensemble": taken / seconds}
+    rates = ensemble_rates(taken, seconds, c_rates)
     if not peers:
         return rates
     state, rate = top.inputs(values, constants)
@@ -290,9 +315,9 @@ def _stack(*rows):
 
 
 def chain_case(method: str, n: int, masses: int, steps: int, repeats: int, peers: bool, naive,
-               timed: int | None = None, boundary: str = "fixed") -> dict[str, float]:
+               timed: int | None = None, boundary: str = "fixed", c=None) -> dict[str, float]:
     """Rates (mass-steps/s) of chains of n masses with `method`, h = 0.01, and (fixed ends) its peers' (verlet's
-    job); ensemble's from `timed` calls (default `repeats`)."""
+    job); ensemble's from `timed` calls (default `repeats`), each followed by c() when given (as top_case's)."""
     h, constants, rng = 0.01, {"n": n, "boundary": boundary}, np.random.default_rng(1)
     block = launch.block_size(chain, constants, METHODS[method])
     members = max(masses // n // block, 1) * block
@@ -300,7 +325,7 @@ def chain_case(method: str, n: int, masses: int, steps: int, repeats: int, peers
     launch.prepare(chain, METHODS[method], constants)
     call = launch.Launch(chain, METHODS[method], values, constants, n_save=2, save_dt=h * steps, dt=h,
                          blowup_factor=np.inf)
-    rates = {"ensemble": members * n * steps / median_seconds(call.run, timed or repeats)}
+    rates = ensemble_rates(members * n * steps, *timed_rounds(call.run, timed or repeats, c))
     if not peers or boundary != "fixed":
         return rates
     state, rate = chain.inputs(values, constants)
@@ -460,17 +485,25 @@ def main() -> None:
     lengths = (2, 16, 128, 1024) if args.full else (2, 16)
     limit = c_limit()
     print_limit("C limit", limit)
-    runs = {f"top {m}": lambda peers, timed=None, m=m: top_case(m, 65536, 1000, args.repeats, peers, naive, timed)
+    runs = {f"top {m}": lambda peers, timed=None, c=None, m=m: top_case(m, 65536, 1000, args.repeats, peers, naive,
+                                                                       timed, c)
             for m in ("rk4", "exact", "split2", "dopri5")}
-    runs.update({f"chain {m} N={n}": lambda peers, timed=None, m=m, n=n: chain_case(
-        m, n, 2**20, 1000, args.repeats, peers, naive, timed) for m in ("verlet", "yoshida4") for n in lengths})
-    runs.update({f"ring verlet N={n}": lambda peers, timed=None, n=n: chain_case(
-        "verlet", n, 2**20, 1000, args.repeats, False, naive, timed, "periodic") for n in lengths})
+    runs.update({f"chain {m} N={n}": lambda peers, timed=None, c=None, m=m, n=n: chain_case(
+        m, n, 2**20, 1000, args.repeats, peers, naive, timed, c=c) for m in ("verlet", "yoshida4") for n in lengths})
+    runs.update({f"ring verlet N={n}": lambda peers, timed=None, c=None, n=n: chain_case(
+        "verlet", n, 2**20, 1000, args.repeats, False, naive, timed, "periodic", c) for n in lengths})
     with_peers = [name for name in runs if peers and (name == "top rk4" or name.startswith("chain"))]  # on tops,
     # the peers do rk4's job
     # ensemble's kernels first, before any peer has loaded its libraries (JAX starts threads of its own) into this
-    # process; a case with peers then calls its kernel once more, for the error the peers must match
-    cases = {name: case(False) for name, case in runs.items()}
+    # process, each timed call followed by its C kernel's (c_kernel_beside); a case with peers then calls its
+    # kernel once more, for the error the peers must match
+    beside = CBeside()
+    try:
+        cases = {name: case(False, c=functools.partial(beside.rate, c_kernel_beside(name))
+                            if beside.available and c_kernel_beside(name) else None)
+                 for name, case in runs.items()}
+    finally:
+        beside.close()
     threads, by_threads = kernel_threads(65536, 1000, args.repeats)
     chain_spec = parse(bench_dopri5.CHAIN.format(members=4096, n=16))
     per_step = bench_dopri5.per_step(chain, members_table(chain_spec), chain_spec.constants, 1e-2, 1.0, 11,
@@ -479,12 +512,9 @@ def main() -> None:
     print(f"chain dopri5 per member-step (4096 16-mass chains): {chain_adaptive:.2f}x rk4", flush=True)
     for name, case in runs.items():
         if name in with_peers:
-            cases[name] = {**case(True, timed=1), "ensemble": cases[name]["ensemble"]}
+            cases[name] = {**case(True, timed=1), **cases[name]}  # ensemble's (and the C's) from the rounds
         print(name, _row(cases[name]), flush=True)
     print("top rk4 kernel on", ", ".join(f"{t} thread(s) {r:.3g}" for t, r in zip(threads, by_threads)), flush=True)
-    for name, rate in limit.items():
-        if name in cases:
-            cases[name]["C"] = rate
     names = list(cases)
     rates = np.array([[cases[c].get(p, np.nan) for p in PEERS] for c in names])
     ds = xr.Dataset({"rate": (("case", "implementation"), rates, {
@@ -494,6 +524,10 @@ def main() -> None:
         coords={"case": names, "implementation": list(PEERS)}, attrs={"host": host(), "full": int(args.full)})
     ds["kernel_thread_rate"] = ("kernel_threads", by_threads, {
         "units": "member-steps/s", "long_name": "top rk4 kernel alone (65,536 members, 1000 steps)"})
+    ds["ratio_to_c"] = ("case", [cases[c].get("to_C", np.nan) for c in names], {
+        "units": "1", "long_name": "ensemble over the C kernel it stands beside",
+        "comment": "the median over rounds of each round's ratio: a C call (limit.py's kernels) right after each "
+                   "of ensemble's timed calls; chains and rings beside the C's fixed-chain verlet of their N"})
     ds = ds.assign_coords(kernel_threads=threads)
     ds["chain_dopri5_cost"] = ((), chain_adaptive, {"units": "1", "long_name": "chain dopri5 over rk4 seconds per "
                                                     "member-step (4096 16-mass chains)"})
@@ -507,9 +541,8 @@ def main() -> None:
     targets.append(("dopri5 per member-step on 16-mass chains <= 2.5x rk4", f"{chain_adaptive:.2f}x",
                     chain_adaptive <= 2.5))
     for name in names:
-        if name.startswith(("chain", "ring")) and "C" in cases.get(f"chain verlet N={name.split('N=')[1]}", {}):
-            c = cases[f"chain verlet N={name.split('N=')[1]}"]["C"]
-            share = cases[name]["ensemble"] / c
+        if name.startswith(("chain", "ring")) and "to_C" in cases[name]:
+            share = cases[name]["to_C"]
             sweeps = len(YOSHIDA4) if "yoshida4" in name else 1  # force sweeps a step; C verlet makes one
             per_sweep = f" ({share * sweeps:.2f} per force sweep)" if sweeps > 1 else ""
             targets.append((f"{name} >= 0.9 of C verlet's mass-steps/s", f"{share:.2f}{per_sweep}", share >= 0.9))
@@ -540,7 +573,18 @@ def whole_only(repeats: int) -> None:
 
 
 def _row(rates: dict[str, float]) -> str:
-    return "  ".join(f"{p} {rates[p]:.3g}" for p in PEERS if p in rates and np.isfinite(rates[p]))
+    to_c = f"  (ensemble / C {rates['to_C']:.2f}, median over rounds)" if "to_C" in rates else ""
+    return "  ".join(f"{p} {rates[p]:.3g}" for p in PEERS if p in rates and np.isfinite(rates[p])) + to_c
+
+
+def c_kernel_beside(case: str) -> str | None:
+    """The C kernel (limit.py's name) a case is measured beside: top rk4 beside the C's, a chain or ring of N
+    masses (any method) beside the C's fixed-chain verlet of N masses; None for the rest."""
+    if case == "top rk4":
+        return "top rk4"
+    if case.startswith(("chain", "ring")):
+        return f"chain verlet N={case.split('N=')[1]}"
+    return None
 
 
 def workloads(limit: dict[str, float], targets: list, folder: Path, repeats: int) -> dict[str, float]:
@@ -564,31 +608,36 @@ def print_limit(label: str, limit: dict[str, float]) -> None:
     print(f"{label}:", ", ".join(f"{k} {v:.3g}" for k, v in limit.items()) or "limit.py not found", flush=True)
 
 
+WHOLE_ROUNDS = 3  # --full's whole runs: rounds of every process of a comparison, medians over them
+
+
 def full_runs(limit: dict[str, float], targets: list) -> xr.Dataset:
     """Whole `ensemble run` processes: the two workloads against C (measured again just before them), members,
-    threads, RSS and the start-up."""
+    threads, RSS and the start-up; each comparison in WHOLE_ROUNDS rounds of all its processes, medians."""
     limit = c_limit() or limit
     print_limit("C limit, again", limit)
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(tmp)
-        workloads(limit, targets, folder, repeats=1)
+        workloads(limit, targets, folder, repeats=WHOLE_ROUNDS)
         members = [10**k for k in range(2, 7)]
-        runs = [whole_run(TOPS.format(t_end=2.0, save_dt=0.02, members=m, save='["tilt"]'), folder) for m in members]
-        rate = np.array([r for _, _, r, _ in runs])
-        rss = np.array([p for _, _, _, p in runs])
-        for m, (wall, work, r, mb) in zip(members, runs):
-            print(f"{m:>8} tops (101 samples): {r:.3g} member-steps/s in the run ({work / wall:.3g} with start-up), "
-                  f"peak RSS {mb:.0f} MB", flush=True)
+        runs = np.array([[whole_run(TOPS.format(t_end=2.0, save_dt=0.02, members=m, save='["tilt"]'), folder)
+                          for m in members] for _ in range(WHOLE_ROUNDS)])  # (round, members, wall/work/rate/RSS)
+        wall, work, rate, rss = np.median(runs, axis=0).T
+        for k, m in enumerate(members):
+            print(f"{m:>8} tops (101 samples): {rate[k]:.3g} member-steps/s in the run ({work[k] / wall[k]:.3g} "
+                  f"with start-up), peak RSS {rss[k]:.0f} MB; medians of {WHOLE_ROUNDS} rounds", flush=True)
         spread = rate[2:].min() / rate[2:].max()
         targets.append(("throughput (the run's own) from 10^4 members within 20% of the best", f"{spread:.2f}",
                         spread >= 0.8))
         targets.append(("10^6 tops with 100 samples under 600 MB", f"{rss[-1]:.0f} MB", rss[-1] < 600))
         threads = [1, 2]
         text = TOPS.format(t_end=8.0, save_dt=0.1, members=65536, save='["omega", "tilt"]')
-        by_threads = np.array([whole_run(text, folder, t)[2] for t in threads])
-        gain = by_threads[1] / by_threads[0]
+        by_round = np.array([[whole_run(text, folder, t)[2] for t in threads] for _ in range(WHOLE_ROUNDS)])
+        by_threads = np.median(by_round, axis=0)
+        gain = float(np.median(by_round[:, 1] / by_round[:, 0]))
         print(f"threads 1 -> 2 (65536 tops, the run's own rate): {by_threads[0]:.3g} -> {by_threads[1]:.3g} "
-              f"member-steps/s, {gain:.2f}x", flush=True)
+              f"member-steps/s, {gain:.2f}x (median of the rounds' ratios: "
+              f"{', '.join(f'{g:.2f}' for g in by_round[:, 1] / by_round[:, 0])})", flush=True)
         targets.append(("whole run, 1 -> 2 threads >= 1.8x", f"{gain:.2f}x", gain >= 1.8))
         start = warm_start(folder)
         print(f"warm 10-member run: {start:.2f} s", flush=True)

@@ -3,6 +3,8 @@ from __future__ import annotations
 
 import os
 import platform
+import subprocess
+import sys
 from pathlib import Path
 
 #: The hand-written C kernels beside the checkout: the machine's limit (python ../shared/limit/limit.py).
@@ -29,6 +31,61 @@ def limit_module():
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module
+
+
+_SERVE = """
+import sys
+sys.path.insert(0, {folder!r})
+from hostinfo import limit_module
+limit = limit_module()
+
+
+def rate(name):
+    if name == "top rk4":
+        return limit.top_rk4_rate(repeats=3)
+    return limit.chain_verlet_rate(N=int(name.split("N=")[1]), repeats=3)[0]
+
+
+seen = set()
+for line in sys.stdin:
+    name = line.strip()
+    if name not in seen:  # a kernel's first call in this process is slower: not a measurement
+        seen.add(name)
+        rate(name)
+    print(rate(name), flush=True)
+"""
+
+
+class CBeside:
+    """limit.py's C kernels in a process of their own, timed when asked: rate("top rk4") in member-steps/s,
+    rate("chain verlet N=16") in mass-steps/s at its best block, as limit.py measures them but from the median
+    of 3 timed calls where limit.py takes 5 (after an untimed first call). A benchmark asks right after each of
+    its own timed calls, so that its ratios to the C are taken round by round, not against a C measured minutes
+    before. A process apart, since limit.py's -ffast-math library sets flush-to-zero for the process that loads
+    it. `available` is False without limit.py."""
+
+    def __init__(self):
+        self.available = LIMIT.exists()
+        self._process = None
+        if self.available:
+            quiet_openmp()
+            self._process = subprocess.Popen([sys.executable, "-c", _SERVE.format(folder=str(Path(__file__).parent))],
+                                             stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+
+    def rate(self, name: str) -> float:
+        """The C kernel `name`'s rate now."""
+        self._process.stdin.write(name + "\n")
+        self._process.stdin.flush()
+        answer = self._process.stdout.readline()
+        if not answer:
+            raise RuntimeError(f"limit.py stopped while timing {name}")
+        return float(answer)
+
+    def close(self) -> None:
+        if self._process is not None:
+            self._process.stdin.close()
+            self._process.wait()
+            self._process = None
 
 
 def host() -> str:

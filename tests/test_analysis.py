@@ -143,6 +143,32 @@ def test_the_c_dopri5_yardstick_steps_as_ensembles_dopri5(tmp_path, monkeypatch)
     assert np.array([5e-324]) > 0.0  # loading the C left subnormal numbers alone (no flush-to-zero modes)
 
 
+@pytest.mark.skipif(shutil.which("gcc") is None, reason="the C yardstick needs gcc")
+def test_the_benchmark_times_the_c_beside_its_own_calls_in_a_process_apart(monkeypatch):
+    """benchmark.py's ratios to the C come round by round from hostinfo.CBeside: limit.py's kernels timed on
+    request in a process of their own, whose -ffast-math library then sets no flush-to-zero mode here; a round's
+    ratio is ensemble's work over its own seconds over the C's rate of that round."""
+    monkeypatch.syspath_prepend(str(ROOT / "analysis"))
+    import benchmark
+    import hostinfo
+    if not hostinfo.LIMIT.exists():
+        pytest.skip("no ../shared/limit/limit.py beside the checkout")
+    beside = hostinfo.CBeside()
+    try:
+        rates = [beside.rate(name) for name in ("top rk4", "chain verlet N=2", "chain verlet N=16")]
+    finally:
+        beside.close()
+    assert all(np.isfinite(rate) and rate > 1e6 for rate in rates)  # steps/s: even a slow host makes millions
+    assert np.array([5e-324]) > 0.0  # subnormal numbers survive in this process
+    assert [benchmark.c_kernel_beside(case) for case in ("top rk4", "top dopri5", "chain yoshida4 N=128",
+                                                         "ring verlet N=2")] == [
+        "top rk4", None, "chain verlet N=128", "chain verlet N=2"]
+    seconds, c_rates = [1.0, 2.0, 4.0, 8.0, 0.5], [10.0, 5.0, 1.0, 1.0, 40.0]  # rounds, work 10 steps each
+    got = benchmark.ensemble_rates(10.0, seconds, c_rates)
+    ratios = sorted(10.0 / s / c for s, c in zip(seconds, c_rates))  # 1, 1, 2.5, 1.25, 0.5
+    assert got == {"ensemble": 10.0 / 2.0, "C": 5.0, "to_C": ratios[2]}
+
+
 def test_compare_revisions_runs_each_revisions_own_code_even_from_the_checkout(tmp_path, monkeypatch):
     """A process under compare_revisions' environment for a revision imports ensemble from that revision's
     folder, also when started in the checkout (whose own ensemble Python would otherwise find first)."""
