@@ -622,10 +622,12 @@ def full_runs(limit: dict[str, float], targets: list) -> xr.Dataset:
         members = [10**k for k in range(2, 7)]
         runs = np.array([[whole_run(TOPS.format(t_end=2.0, save_dt=0.02, members=m, save='["tilt"]'), folder)
                           for m in members] for _ in range(WHOLE_ROUNDS)])  # (round, members, wall/work/rate/RSS)
-        wall, work, rate, rss = np.median(runs, axis=0).T
+        wall, work, rate, _ = np.median(runs, axis=0).T
+        rss = runs[:, :, 3].max(axis=0)  # the largest of the rounds' peaks
         for k, m in enumerate(members):
             print(f"{m:>8} tops (101 samples): {rate[k]:.3g} member-steps/s in the run ({work[k] / wall[k]:.3g} "
-                  f"with start-up), peak RSS {rss[k]:.0f} MB; medians of {WHOLE_ROUNDS} rounds", flush=True)
+                  f"with start-up), peak RSS {rss[k]:.0f} MB; medians (RSS: the largest) of {WHOLE_ROUNDS} rounds",
+                  flush=True)
         spread = rate[2:].min() / rate[2:].max()
         targets.append(("throughput (the run's own) from 10^4 members within 20% of the best", f"{spread:.2f}",
                         spread >= 0.8))
