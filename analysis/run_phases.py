@@ -27,6 +27,7 @@ the same two cores. --members and --save-dt replace the run file's values;
 from __future__ import annotations
 
 import collections
+import dataclasses
 import functools
 import re
 import tempfile
@@ -102,9 +103,8 @@ def main(argv=None) -> None:
         for key, value in (("members", args.members), ("save_dt", args.save_dt)):
             if value is not None:
                 spec = parse(re.sub(rf"(?m)^{key}\s*=.*$", f"{key} = {value!r}", spec.text))
-        if args.growth and not spec.measure["growth"]:
-            spec = parse(re.sub(r"(?m)^\[measure\]$", "[measure]\ngrowth = true", spec.text) if "[measure]" in
-                         spec.text else spec.text + "\n[measure]\ngrowth = true\n")
+        if args.growth:  # whatever the run file's [measure] table looks like (its text is not edited)
+            spec = dataclasses.replace(spec, measure={**spec.measure, "growth": True})
     except SpecError as e:
         parser.error(f"{args.runfile or args.workload}: {e}")
     cli._skip_numba_blas_probe()  # as `ensemble run` does, so loading the kernels takes what it takes there

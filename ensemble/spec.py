@@ -105,7 +105,7 @@ class Spec:
     noise: dict[str, float] = field(default_factory=dict)  # Gaussian observation noise: variable -> stddev
     rtol: float | None = None  # top-level tolerances of adaptive methods
     atol: float | None = None
-    measure: dict[str, object] = field(default_factory=dict)  # [measure]: error, timing, repeats
+    measure: dict[str, object] = field(default_factory=dict)  # [measure]: error, timing, repeats, growth
     blowup_factor: float = DEFAULT_BLOWUP_FACTOR  # a member fails when its state outgrows its start this much
     table: dict[str, np.ndarray] | None = field(default=None, repr=False, compare=False)  # see members_table
 
