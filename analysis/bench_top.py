@@ -26,9 +26,10 @@ from hostinfo import host, limit_module
 
 from ensemble.arguments import OneLineParser, positive_int
 from ensemble.engine import launch
+from ensemble.engine.kernels import BLOCK
 from ensemble.methods import METHODS
 from ensemble.scenes import body, top
-from ensemble.scenes.top.kernels import BLOCK, rhs
+from ensemble.scenes.top.physics import rhs
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -36,7 +37,7 @@ ROOT = Path(__file__).resolve().parents[1]
 def numpy_rk(tableau, state, rate, h, steps):
     """Explicit Runge-Kutta over members with NumPy, from the same tableau and right-hand side."""
     def f(y):
-        return np.stack(rhs.py_func(y[0], y[1], y[2], rate[0], rate[1], rate[2]))
+        return np.stack(rhs(0.0, y[0], y[1], y[2], rate[0], rate[1], rate[2]))
     for _ in range(steps):
         k = []
         for s in range(tableau.stages):

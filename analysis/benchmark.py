@@ -65,7 +65,7 @@ from ensemble.arguments import OneLineParser, positive_int
 from ensemble.engine import launch
 from ensemble.methods import METHODS
 from ensemble.scenes import chain, top
-from ensemble.scenes.top.kernels import rhs as top_rhs
+from ensemble.scenes.top.physics import rhs as top_rhs
 from ensemble.spec import members_table, parse
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -141,7 +141,7 @@ def naive_numba():
     from numba import njit, prange
 
     @njit
-    def top_f(y, p, out):  # p = (p, r1, r3), as the top's kernels.rhs
+    def top_f(y, p, out):  # p = (p, r1, r3), as the top's physics.rhs
         out[0] = -p[0] * y[2] * y[1] - p[1] * y[0]
         out[1] = p[0] * y[2] * y[0] - p[1] * y[1]
         out[2] = -p[2] * y[2]
@@ -279,8 +279,8 @@ def top_case(method: str, members: int, steps: int, repeats: int, peers: bool, n
                                                                             steps, False), repeats)
     y0, ex = state[:, :IVP_MEMBERS], exact[:, :IVP_MEMBERS]
     for name in ("RK45", "DOP853"):
-        seconds, _, _ = solve_ivp_seconds(name, lambda j: lambda t, y: np.array(top_rhs.py_func(
-            y[0], y[1], y[2], rate[0, j], rate[1, j], rate[2, j])), y0, h * steps, ex, target)
+        seconds, _, _ = solve_ivp_seconds(name, lambda j: lambda t, y: np.array(top_rhs(
+            t, y[0], y[1], y[2], rate[0, j], rate[1, j], rate[2, j])), y0, h * steps, ex, target)
         rates[f"solve_ivp_{name}"] = IVP_MEMBERS * steps / seconds
 
     def field(t, y, a):

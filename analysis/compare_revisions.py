@@ -18,6 +18,7 @@ import re
 import statistics
 import subprocess
 import tempfile
+from contextlib import contextmanager
 from pathlib import Path
 
 from benchmark import WORKLOADS, c_limit, print_limit, whole_run
@@ -35,19 +36,13 @@ def revision_env(tree: Path, cache: Path) -> dict[str, str]:
     return {"PYTHONPATH": str(tree), "PYTHONSAFEPATH": "1", "NUMBA_CACHE_DIR": str(cache)}
 
 
-def main(argv=None) -> None:
-    parser = OneLineParser(description=__doc__.split("\n")[0])
-    parser.add_argument("old", help="a git revision")
-    parser.add_argument("new", nargs="?", help="a git revision (default: the working tree)")
-    parser.add_argument("--workload", choices=WORKLOADS, default="tops")
-    parser.add_argument("--members", type=positive_int, help="replace the workload's member count")
-    parser.add_argument("--repeats", type=positive_int, default=5)
-    args = parser.parse_args(argv)
-    print(host(), flush=True)
-    with tempfile.TemporaryDirectory() as tmp:
-        folder = Path(tmp)
-        trees = {}  # name -> its code's folder
-        for label, revision in (("old", args.old), ("new", args.new)):
+@contextmanager
+def checked_out(parser, old: str, new: str | None, folder: Path):
+    """Revisions old and new (None: the working tree) in git worktrees under `folder`, removed afterwards: yields
+    {name: (its code's folder, its environment)}, each with a Numba cache of its own."""
+    trees = {}
+    try:
+        for label, revision in (("old", old), ("new", new)):
             if revision is None:
                 trees["working tree"] = ROOT
                 continue
@@ -57,26 +52,39 @@ def main(argv=None) -> None:
             if added.returncode != 0:
                 parser.error(f"{revision}: not a revision of {ROOT} ({added.stderr.strip().splitlines()[-1]})")
             trees[revision] = tree
-        try:
-            envs = {name: revision_env(tree, folder / f"cache{k}") for k, (name, tree) in enumerate(trees.items())}
-            text = WORKLOADS[args.workload]
-            if args.members:
-                text = re.sub(r"(?m)^members = .*$", f"members = {args.members}", text)
-            for env in envs.values():
-                whole_run(text, folder, env=env)  # untimed: compiles
-            print_limit("C limit, before", c_limit())
-            walls, owns = {name: [] for name in trees}, {name: [] for name in trees}
-            for _ in range(args.repeats):
-                for name, env in envs.items():
-                    wall, work, rate, _ = whole_run(text, folder, env=env)
-                    walls[name].append(wall)
-                    owns[name].append(work / rate)
-            print_limit("C limit, after", c_limit())
-        finally:
-            for tree in trees.values():
-                if tree != ROOT:
-                    subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(tree)],
-                                   capture_output=True)
+        yield {name: (tree, revision_env(tree, folder / f"cache{k}")) for k, (name, tree) in enumerate(trees.items())}
+    finally:
+        for tree in trees.values():
+            if tree != ROOT:
+                subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(tree)],
+                               capture_output=True)
+
+
+def main(argv=None) -> None:
+    parser = OneLineParser(description=__doc__.split("\n")[0])
+    parser.add_argument("old", help="a git revision")
+    parser.add_argument("new", nargs="?", help="a git revision (default: the working tree)")
+    parser.add_argument("--workload", choices=WORKLOADS, default="tops")
+    parser.add_argument("--members", type=positive_int, help="replace the workload's member count")
+    parser.add_argument("--repeats", type=positive_int, default=5)
+    args = parser.parse_args(argv)
+    print(host(), flush=True)
+    with tempfile.TemporaryDirectory() as tmp, checked_out(parser, args.old, args.new, Path(tmp)) as trees:
+        folder = Path(tmp)
+        envs = {name: env for name, (_, env) in trees.items()}
+        text = WORKLOADS[args.workload]
+        if args.members:
+            text = re.sub(r"(?m)^members = .*$", f"members = {args.members}", text)
+        for env in envs.values():
+            whole_run(text, folder, env=env)  # untimed: compiles
+        print_limit("C limit, before", c_limit())
+        walls, owns = {name: [] for name in trees}, {name: [] for name in trees}
+        for _ in range(args.repeats):
+            for name, env in envs.items():
+                wall, work, rate, _ = whole_run(text, folder, env=env)
+                walls[name].append(wall)
+                owns[name].append(work / rate)
+        print_limit("C limit, after", c_limit())
     workload = args.workload + (f" ({args.members} members)" if args.members else "")
     for label, seconds in (("wall", walls), ("the run's own", owns)):
         medians = {name: statistics.median(w) for name, w in seconds.items()}

@@ -25,6 +25,7 @@ import xarray as xr
 
 from ensemble import fit, report, stability
 from ensemble.arguments import OneLineParser
+from ensemble.errors import EXIT_BAD_INPUT
 from ensemble.methods import METHODS
 from ensemble.results import Status
 from ensemble.scenes import SCENES
@@ -145,7 +146,7 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     loaded = report.load_result(args.result, stability.stability_map)
     if loaded is None:
-        return 2
+        return EXIT_BAD_INPUT
     ds, points = loaded
     rows = stability.stability_limits(points)
     print(f"stability of {args.result} ({ds.attrs['scene']}, {ds.sizes['t'] - 1} saved intervals)")

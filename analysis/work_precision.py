@@ -23,6 +23,7 @@ import xarray as xr
 
 from ensemble import fit, report
 from ensemble.arguments import OneLineParser
+from ensemble.errors import EXIT_BAD_INPUT
 from ensemble.methods import METHODS
 
 
@@ -80,7 +81,7 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     loaded = report.load_result(args.result, fit.work_precision)
     if loaded is None:
-        return 2
+        return EXIT_BAD_INPUT
     ds, table = loaded
     print(f"work against precision in {args.result} ({ds.attrs['scene']}, t_end = {ds.attrs['t_end']} s)")
     print_table(table)

@@ -3,9 +3,7 @@ from __future__ import annotations
 
 import argparse
 
-EXIT_BAD_INPUT = 2  # bad input: nothing was run, nothing written
-EXIT_FAILED = 3  # the run failed midway (a full disk, chunks failing on a cluster): its parts stay for --resume
-EXIT_INTERRUPTED = 130  # Ctrl-C
+from .errors import EXIT_BAD_INPUT, EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK  # noqa: F401 (the scripts' table)
 
 
 class OneLineParser(argparse.ArgumentParser):

@@ -12,7 +12,8 @@ from pathlib import Path
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 from . import __version__
-from .arguments import EXIT_BAD_INPUT, EXIT_FAILED, EXIT_INTERRUPTED, OneLineParser, positive_int
+from .arguments import OneLineParser, positive_int
+from .errors import EXIT_BAD_INPUT, EXIT_FAILED, EXIT_INTERRUPTED, EnsembleError
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -114,8 +115,10 @@ def _skip_numba_blas_probe() -> None:
 
 def _run(args) -> int:
     _skip_numba_blas_probe()
+    from .errors import Incomplete
     from .parts import PartsError
-    from .runner import Incomplete, run
+    from .runner import run
+    from .scenes import SceneError
     from .spec import SpecError, load
 
     try:
@@ -151,6 +154,8 @@ def _run(args) -> int:
         return _error(f"{out}: another run is writing it now; wait for it or choose another output")
     except PartsError as e:
         return _error(str(e))
+    except SceneError as e:  # a user's scene whose functions do not compile: found before any chunk ran
+        return _error(f"{args.runfile}: scene: {e}")
     except KeyboardInterrupt:
         print(f"ensemble: interrupted; {_left_behind(out, resume)}", file=sys.stderr)
         return EXIT_INTERRUPTED
@@ -250,7 +255,7 @@ def _left_behind(out: Path, resume: str) -> str:
             f"finishes the run")
 
 
-class OutputLocked(Exception):
+class OutputLocked(EnsembleError):
     """Another process holds the output's lock."""
 
 

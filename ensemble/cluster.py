@@ -21,13 +21,14 @@ from importlib.metadata import version
 import numpy as np
 
 from . import __version__
+from .errors import EnsembleError, Incomplete
 from .spec import Spec
 
 IN_FLIGHT_PER_THREAD = 2  # tasks submitted per worker thread at a time: one running, one queued
 CONNECT_SECONDS = 10
 
 
-class ClusterError(Exception):
+class ClusterError(EnsembleError):
     """The cluster cannot be used: one line for the user (exit status 2)."""
 
 
@@ -86,9 +87,7 @@ class Collected:
     """A chunk's saved variables in memory: the sink compute_chunk streams its samples to on a worker."""
 
     def __init__(self, spec: Spec, start: int, stop: int):
-        from .scenes import SCENES
-
-        scene = SCENES[spec.scene]
+        scene = spec.model
         sizes = {"member": stop - start, "t": spec.n_save, **scene.sizes(spec.constants)}
         self.start = start
         self.samples = {name: np.full([sizes[d] for d in scene.OBSERVABLES[name][0]], np.nan) for name in spec.save}
@@ -99,30 +98,14 @@ class Collected:
         put_samples(self.samples, start - self.start, first, data)
 
 
-def chunk_task(spec: Spec, start: int, stop: int, repeats: int = 0):
-    """On a worker: members start .. stop - 1 of `spec`, as (saved variables, records), arrays over members."""
-    from distributed import get_worker
-
-    from .engine import launch
-    from .runner import compute_chunk
-
-    threads = max(1, launch.thread_count() // get_worker().state.nthreads)
-    sink = Collected(spec, start, stop)
-    records = compute_chunk(spec, start, stop, sink, repeats, threads=threads)
-    return sink.samples, records
-
-
-def compute_on(client, spec: Spec, todo: list[tuple[int, int]], parts, tally, bar, repeats: int,
-               task=None) -> None:
-    """Compute the member ranges `todo` on the cluster and keep each as a part, in whatever order they finish;
-    raises runner.Incomplete naming the ranges whose tasks failed (after Dask's retries), once the rest are in."""
+def compute_on(client, spec: Spec, todo: list[tuple[int, int]], parts, tally, bar, repeats: int, task) -> None:
+    """Compute the member ranges `todo` on the cluster with task(spec, start, stop, repeats) -> (saved variables,
+    records) (runner.chunk_task) and keep each as a part, in whatever order they finish; raises Incomplete naming
+    the ranges whose tasks failed (after Dask's retries), once the rest are in."""
     from dataclasses import replace
 
     from distributed import as_completed
 
-    from .runner import Incomplete
-
-    task = task or chunk_task
     light = replace(spec, table=None)  # a few kB: each worker draws its own members (not scattered: a worker
     # that dies would take scattered data with it)
     limit = IN_FLIGHT_PER_THREAD * max(1, sum(client.nthreads().values()))

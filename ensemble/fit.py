@@ -21,6 +21,7 @@ from scipy.optimize import least_squares, linear_sum_assignment
 from scipy.signal import find_peaks
 from scipy.signal.windows import blackmanharris
 
+from .errors import EnsembleError
 from .methods import METHODS
 from .scenes import body, chain, top
 
@@ -32,7 +33,7 @@ PEAK_DYNAMIC_RANGE = 1e-7  # peaks weaker than this fraction of the strongest ar
 MIN_PERIODS = 4  # periods a mode must complete in the record: slower ones sit in the drift's main lobe
 
 
-class FitError(ValueError):
+class FitError(EnsembleError, ValueError):
     """A result that cannot be fitted: wrong scene, missing variables, too few samples."""
 
 

@@ -3,8 +3,10 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from .errors import EnsembleError
 
-class ParameterError(ValueError):
+
+class ParameterError(EnsembleError, ValueError):
     """A parameter value no scene member can have: `name` is the parameter, `problem` says why.
 
     The run file reports it as one line naming the key where the value was given.

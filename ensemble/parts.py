@@ -41,6 +41,7 @@ import netCDF4
 import numpy as np
 
 from . import __version__
+from .errors import EnsembleError
 from .spec import Spec
 from .store import RUN_RECORDS, fsync_path, put_records, record_names, temporary_path
 
@@ -60,7 +61,7 @@ def fingerprint(spec: Spec) -> dict[str, str]:
             "numba": version("numba"), "numpy": np.__version__, "netCDF4": netCDF4.__version__}
 
 
-class PartsError(Exception):
+class PartsError(EnsembleError):
     """The parts folder cannot be used as asked: one line for the user (exit status 2)."""
 
 

@@ -13,6 +13,7 @@ import numpy as np
 import xarray as xr
 
 from .arguments import OneLineParser
+from .errors import EXIT_BAD_INPUT
 
 Z_TOLERANCE = 5.0  # a sweep point passes when its mean is within this many standard errors of theory...
 RTOL = 1e-6  # ...or within this relative difference (noise-free runs have tiny standard errors)
@@ -157,7 +158,7 @@ def run_script(args, fit_function, *, name: str, value, units: str, title: str, 
     """
     loaded = load_result(args.result, fit_function, validate)
     if loaded is None:
-        return 2
+        return EXIT_BAD_INPUT
     ds, fits = loaded
     for axis in ds.attrs.get("sweep_axes", "").split():
         fits[axis] = ds[axis]

@@ -22,7 +22,6 @@ from .methods import METHODS, Method
 from .parts import Parts
 from .records import error_records, growth_per_step, measured_growth, relative_error
 from .results import COUNTS, Outcome, Status
-from .scenes import SCENES
 from .spec import Spec, members_table
 from .store import Writer
 
@@ -63,7 +62,7 @@ class Summary:
 def _record_bytes(spec: Spec) -> tuple[int, int]:
     """Bytes one member needs per saved sample while its chunk runs (kernel samples and saved variables), and once
     (its kernel work array, the largest of the run's methods)."""
-    scene = SCENES[spec.scene]
+    scene = spec.model
     sizes = scene.sizes(spec.constants)
     state_rows, _ = scene.kernel_rows(spec.constants)
     saved = sum(math.prod(sizes[d] for d in scene.OBSERVABLES[v][0][2:]) for v in spec.save)
@@ -74,7 +73,7 @@ def _record_bytes(spec: Spec) -> tuple[int, int]:
 def run_block(spec: Spec) -> int:
     """Members per kernel block for the run's chunks: the largest block of its methods' kernels (blocks are
     powers of 2, so a chunk of whole blocks of it is whole blocks of every method's)."""
-    scene = SCENES[spec.scene]
+    scene = spec.model
     return max(launch.block_size(scene, spec.constants, METHODS[name]) for name in spec.methods)
 
 
@@ -149,7 +148,7 @@ def integrate(spec: Spec, method: Method, values: dict[str, np.ndarray], repeats
               watch=None) -> tuple[Outcome, float]:
     """Integrate members that share one method and dt; returns what the launch did and, when `repeats` > 0, the
     kernel's seconds per member-step (see kernel_seconds_per_step; NaN otherwise). watch as launch.integrate's."""
-    scene = SCENES[spec.scene]
+    scene = spec.model
     settings = _settings(spec, method, values)
     outcome = launch.integrate(scene, method, values, spec.constants, **settings, watch=watch)
     if repeats < 1 or method.closed_form:
@@ -210,7 +209,7 @@ class _Record:
     def __init__(self, spec: Spec, method: Method, values: dict[str, np.ndarray], first: int, members: int,
                  write_samples):
         self.spec, self.method, self.values, self.write_samples = spec, method, values, write_samples
-        self.scene = SCENES[spec.scene]
+        self.scene = spec.model
         self.noise = {name: noise_streams(spec, name, first, members) for name in spec.noise}
         self.times, self.amplitudes, self.errors = spec.times(), [], []
 
@@ -257,7 +256,7 @@ def integrate_members(spec: Spec, method: Method, values: dict[str, np.ndarray],
     A record in one kernel call (segment_samples) is observed and written in finish(), so that finish can run on
     another thread while the next kernel runs; a record in segments is, segment by segment, as it comes (its
     kernel's buffer is reused). watch as launch.integrate's."""
-    scene = SCENES[spec.scene]
+    scene = spec.model
     settings = _settings(spec, method, values)
     call = launch.Launch(scene, method, values, spec.constants, **settings, segment=segment_samples(spec))
     record = _Record(spec, method, values, first, call.members, write_samples)
@@ -322,15 +321,6 @@ class Tally:
         self.step_counts.update(np.unique(steps).tolist())
 
 
-class Incomplete(Exception):
-    """Some members could not be computed (their chunks kept failing on the cluster); the others are in parts."""
-
-    def __init__(self, ranges: list[tuple[int, int]], cause: str):
-        self.ranges, self.cause = ranges, cause
-        members = ", ".join(f"{a}..{b - 1}" if b - a > 1 else str(a) for a, b in ranges)
-        super().__init__(f"members {members} were not computed ({cause})")
-
-
 def run(spec: Spec, out: str | Path, *, chunk: int | None = None, progress: bool = True, force: bool = False,
         resume: bool = False, command: str | None = None, client=None, task=None) -> Summary:
     """Integrate every member of `spec` and write the dataset to `out` (NetCDF); an existing `out` only with
@@ -368,7 +358,7 @@ def run(spec: Spec, out: str | Path, *, chunk: int | None = None, progress: bool
                 else:
                     from .cluster import compute_on
 
-                    compute_on(client, spec, todo, parts, tally, bar, repeats, task)
+                    compute_on(client, spec, todo, parts, tally, bar, repeats, task or chunk_task)
             parts.settle()  # every part sealed before the result is complete
             records = parts.assemble()
     except BaseException:
@@ -383,6 +373,18 @@ def run(spec: Spec, out: str | Path, *, chunk: int | None = None, progress: bool
                    blew_up=int(failed[Status.BLEW_UP]), underflowed=int(failed[Status.STEP_SIZE_UNDERFLOW]),
                    closed_form=all(METHODS[name].closed_form for name in spec.methods), preparing=preparing,
                    resumed=n - tally.members)
+
+
+def chunk_task(spec: Spec, start: int, stop: int, repeats: int = 0):
+    """On a Dask worker: members start .. stop - 1 of `spec`, as (saved variables, records), arrays over members."""
+    from distributed import get_worker
+
+    from .cluster import Collected
+
+    threads = max(1, launch.thread_count() // get_worker().state.nthreads)
+    sink = Collected(spec, start, stop)
+    records = compute_chunk(spec, start, stop, sink, repeats, threads=threads)
+    return sink.samples, records
 
 
 def _compute_here(spec: Spec, todo: list[tuple[int, int]], parts: Parts, tally: Tally, bar: Bar,
@@ -473,13 +475,13 @@ def prepare_kernels(spec: Spec, announce: bool = True) -> float:
     (compiling, once per machine) and `announce`, one line on stderr says so
     while it happens, and another how long it took.
     """
-    scene = SCENES[spec.scene]
+    scene = spec.model
     names = "/".join(spec.methods)
     said = threading.Event()
 
     def say():
         said.set()
-        print(f"compiling the {names} kernels for {spec.scene} (once per machine; later runs load them) ...",
+        print(f"compiling the {names} kernels for {spec.model.NAME} (once per machine; later runs load them) ...",
               file=sys.stderr, flush=True)
 
     timer = threading.Timer(ANNOUNCE_AFTER, say)

@@ -27,14 +27,15 @@ from pathlib import Path
 
 import numpy as np
 
+from .errors import EnsembleError
 from .inertia import SHAPES, polygon
 from .methods import METHODS
 from .parameter import Mode, Parameter, ParameterError
 from .results import DEFAULT_BLOWUP_FACTOR
-from .scenes import SCENES, applies, methods_for
+from .scenes import SceneError, absolute, applies, methods_for, resolve
 
 
-class SpecError(ValueError):
+class SpecError(EnsembleError, ValueError):
     """A problem in a run file, tied to the key where it is."""
 
     def __init__(self, key: str, problem: str):
@@ -108,6 +109,11 @@ class Spec:
     measure: dict[str, object] = field(default_factory=dict)  # [measure]: error, timing, repeats, growth
     blowup_factor: float = DEFAULT_BLOWUP_FACTOR  # a member fails when its state outgrows its start this much
     table: dict[str, np.ndarray] | None = field(default=None, repr=False, compare=False)  # see members_table
+
+    @property
+    def model(self):
+        """The scene (ensemble.scenes.Scene) that `scene` names."""
+        return resolve(self.scene)
 
     @property
     def n_save(self) -> int:
@@ -252,17 +258,18 @@ def _grids(sweep) -> tuple[list[dict], list[str]]:
 def parse(text: str, path: str = "<string>") -> Spec:
     """Validate run-file text; raises SpecError naming the first bad key."""
     values = _top_level(text)
-    scene = values["scene"]
-    if scene not in SCENES:
-        raise SpecError("scene", f"unknown scene {scene!r}; scenes: {', '.join(SCENES)}")
-    module = SCENES[scene]
+    scene = absolute(values["scene"], Path(path).parent if path != "<string>" else Path.cwd())
+    try:
+        module = resolve(scene)
+    except SceneError as error:
+        raise SpecError("scene", str(error)) from None
 
     t_end = _positive("t_end", values["t_end"])
     save_dt = _positive("save_dt", values["save_dt"])
     grids, labels = _grids(values.get("sweep", {}))
     settings = {key: values[key] for key in SETTINGS if key in values}
-    setting_axes = [_settings(settings, {k: v for k, v in grid.items() if k in SETTINGS}, label, scene, save_dt)
-                    for grid, label in zip(grids, labels)] or [_settings(settings, {}, "sweep", scene, save_dt)]
+    setting_axes = [_settings(settings, {k: v for k, v in grid.items() if k in SETTINGS}, label, module, save_dt)
+                    for grid, label in zip(grids, labels)] or [_settings(settings, {}, "sweep", module, save_dt)]
     _whole_ratio("t_end", t_end, save_dt, "save_dt")
     if values["members"] < 1:
         raise SpecError("members", f"must be >= 1, got {values['members']}")
@@ -272,7 +279,8 @@ def parse(text: str, path: str = "<string>") -> Spec:
     save = tuple(values.get("save", module.OBSERVABLES))
     for i, name in enumerate(save):
         if name not in module.OBSERVABLES:
-            raise SpecError(f"save[{i}]", f"unknown variable {name!r}; {scene} saves: {', '.join(module.OBSERVABLES)}")
+            raise SpecError(f"save[{i}]", f"unknown variable {name!r}; {module.NAME} saves: "
+                                          f"{', '.join(module.OBSERVABLES)}")
     if not save:
         raise SpecError("save", "must name at least one variable")
     for i, name in enumerate(save):
@@ -433,7 +441,7 @@ def _axis(key: str, axis, kind) -> tuple:
     return values
 
 
-def _settings(top: dict, axes: dict, label: str, scene: str, save_dt: float) -> dict[str, tuple]:
+def _settings(top: dict, axes: dict, label: str, module, save_dt: float) -> dict[str, tuple]:
     """Check how one grid's members integrate: its method, dt, rtol and atol axes against the top-level values.
 
     Returns the grid's setting axes (the swept ones).
@@ -453,30 +461,34 @@ def _settings(top: dict, axes: dict, label: str, scene: str, save_dt: float) -> 
                 raise SpecError(where[key], f"must be > 0 and finite, got {value!r}")
     for value in out.get("dt", (top["dt"],) if "dt" in top else ()):
         _positive(where["dt"], value)
-    module = SCENES[scene]
-    names = ", ".join(m.name for m in methods_for(module))
-    adaptive = [m.name for m in methods_for(module) if m.adaptive]
     for method in out.get("method", (top.get("method"),)):
-        if method not in METHODS:
-            raise SpecError(where["method"], f"unknown method {method!r}; methods for {scene}: {names}")
-        m = METHODS[method]
-        if not applies(m, module):
-            raise SpecError(where["method"], f"{method!r} does not apply to scene {scene!r}; use one of: {names}")
-        if m.adaptive:
-            if "dt" in out:
-                raise SpecError(where["dt"], f"is swept, but {method!r} is adaptive: dt is only its first trial step; "
-                                             f"sweep rtol instead")
-            continue
-        if tolerances:
-            raise SpecError(where[tolerances[0]], f"tolerances apply only to adaptive methods "
-                                                  f"({', '.join(adaptive)}); {method!r} takes a fixed step dt")
-        if "dt" not in top and "dt" not in out:
-            if m.closed_form:
-                continue
-            raise SpecError("dt", f"missing (required by the fixed-step method {method!r})")
-        for value in out.get("dt", (top.get("dt"),)):
-            _whole_ratio("save_dt", save_dt, value, "dt")
+        _check_method(method, module, where, tolerances, "dt" in out, "dt" in top or "dt" in out)
+        if not METHODS[method].adaptive and ("dt" in top or "dt" in out):
+            for value in out.get("dt", (top.get("dt"),)):
+                _whole_ratio("save_dt", save_dt, value, "dt")
     return out
+
+
+def _check_method(method: str, module, where: dict[str, str], tolerances: list[str], dt_swept: bool,
+                  dt_given: bool) -> None:
+    """One method of a grid: known, applicable to the scene, and given the settings its kind takes."""
+    names = ", ".join(m.name for m in methods_for(module))
+    if method not in METHODS:
+        raise SpecError(where["method"], f"unknown method {method!r}; methods for {module.NAME}: {names}")
+    m = METHODS[method]
+    if not applies(m, module):
+        raise SpecError(where["method"], f"{method!r} does not apply to scene {module.NAME!r}; use one of: {names}")
+    if m.adaptive:
+        if dt_swept:
+            raise SpecError(where["dt"], f"is swept, but {method!r} is adaptive: dt is only its first trial step; "
+                                         f"sweep rtol instead")
+        return
+    if tolerances:
+        adaptive = ", ".join(m.name for m in methods_for(module) if m.adaptive)
+        raise SpecError(where[tolerances[0]], f"tolerances apply only to adaptive methods ({adaptive}); {method!r} "
+                                              f"takes a fixed step dt")
+    if not dt_given and not m.closed_form:
+        raise SpecError("dt", f"missing (required by the fixed-step method {method!r})")
 
 
 def _measure(measure: dict, module) -> dict[str, object]:
@@ -585,32 +597,13 @@ def _build_table(spec: Spec, start: int = 0, stop: int | None = None) -> dict[st
     for name in spec.sweep:
         if name not in SETTINGS:
             table[name] = np.array([p[name] for p in points], dtype=float)[point]
-    top_level = {"method": spec.method, "dt": spec.dt, "rtol": spec.rtol, "atol": spec.atol}
-    settings = [{key: p.get(key, top_level[key]) for key in SETTINGS} for p in points]
-    for s in settings:
-        if METHODS[s["method"]].adaptive:
-            s.update({key: value for key, value in DEFAULT_TOLERANCES.items() if s[key] is None})
-    table["method"] = np.array([s["method"] for s in settings])[point]
-    for key in ("dt", "rtol", "atol"):
-        table[key] = np.array([np.nan if s[key] is None else s[key] for s in settings], dtype=float)[point]
-    scene = SCENES[spec.scene]
+    table.update(_member_settings(spec, points, point))
+    scene = spec.model
     sizes = scene.sizes(spec.constants)
-    modes = {}
+    modes = {name: value for name, value in spec.parameters.items() if isinstance(value, Mode)}
     for name, value in spec.parameters.items():
-        per = spec.declared[name].per
-        shape = (n, sizes[per]) if per else (n,)
-        if isinstance(value, Mode):
-            modes[name] = value
-        elif isinstance(value, Distribution):
-            per_member = math.prod(shape[1:])
-            table[name] = value.draw(spec.seed, name, start * per_member, n * per_member).reshape(shape)
-        elif isinstance(value, list):
-            if len(value) != shape[1]:
-                raise SpecError(f"parameters.{name}", f"has {len(value)} values; this chain has {shape[1]} "
-                                                      f"{'masses' if per == 'site' else 'springs'}")
-            table[name] = np.tile(np.array(value, dtype=float), (n, 1))
-        else:
-            table[name] = np.full(shape, value, dtype=float)
+        if name not in modes:
+            table[name] = _values(spec, name, value, start, n, sizes)
     for name in spec.sweep:
         per = spec.declared[name].per if name in spec.declared else None
         if per:
@@ -633,6 +626,34 @@ def _build_table(spec: Spec, start: int = 0, stop: int | None = None) -> dict[st
     return table
 
 
+def _member_settings(spec: Spec, points: list[dict], point: np.ndarray) -> dict[str, np.ndarray]:
+    """Each member's method, dt, rtol and atol (NaN where its method takes none), from its sweep point."""
+    top_level = {"method": spec.method, "dt": spec.dt, "rtol": spec.rtol, "atol": spec.atol}
+    settings = [{key: p.get(key, top_level[key]) for key in SETTINGS} for p in points]
+    for s in settings:
+        if METHODS[s["method"]].adaptive:
+            s.update({key: value for key, value in DEFAULT_TOLERANCES.items() if s[key] is None})
+    out = {"method": np.array([s["method"] for s in settings])[point]}
+    for key in ("dt", "rtol", "atol"):
+        out[key] = np.array([np.nan if s[key] is None else s[key] for s in settings], dtype=float)[point]
+    return out
+
+
+def _values(spec: Spec, name: str, value, start: int, n: int, sizes: dict[str, int]) -> np.ndarray:
+    """Parameter `name` of members start .. start + n - 1: (n,), or (n, sites or springs) for a per-site one."""
+    per = spec.declared[name].per
+    shape = (n, sizes[per]) if per else (n,)
+    if isinstance(value, Distribution):
+        per_member = math.prod(shape[1:])
+        return value.draw(spec.seed, name, start * per_member, n * per_member).reshape(shape)
+    if isinstance(value, list):
+        if len(value) != shape[1]:
+            raise SpecError(f"parameters.{name}", f"has {len(value)} values; this chain has {shape[1]} "
+                                                  f"{'masses' if per == 'site' else 'springs'}")
+        return np.tile(np.array(value, dtype=float), (n, 1))
+    return np.full(shape, value, dtype=float)
+
+
 def _from_shape(spec: Spec, source: str, table: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     """The parameters that shape parameter `source` derives, for every member."""
     name = spec.constants[f"{source}_shape"]
@@ -647,6 +668,6 @@ def _from_shape(spec: Spec, source: str, table: dict[str, np.ndarray]) -> dict[s
         where = "sweep" if f"{source}_{e.name}" in spec.sweep else "parameters"
         raise SpecError(f"{where}.{source}.{e.name}", e.problem) from None
     try:
-        return SCENES[spec.scene].from_body(body, source)
+        return spec.model.from_body(body, source)
     except ParameterError as e:
         raise SpecError(f"parameters.{e.name}", e.problem) from None

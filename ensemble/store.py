@@ -21,7 +21,6 @@ import numpy as np
 
 from . import __version__
 from .results import Status
-from .scenes import SCENES
 from .spec import Spec
 
 
@@ -49,7 +48,7 @@ def fsync_path(path: Path, release: bool = False) -> None:
 
 def output_bytes(spec: Spec) -> int:
     """Bytes the result of `spec` takes on disk, about: its saved variables and per-member records, uncompressed."""
-    scene = SCENES[spec.scene]
+    scene = spec.model
     sizes = {"member": spec.n_members, "t": spec.n_save, **scene.sizes(spec.constants)}
     saved = sum(math.prod(sizes[d] for d in scene.OBSERVABLES[name][0]) for name in spec.save)
     return 8 * (saved + spec.n_members * (len(RUN_RECORDS) + len(spec.declared)))
@@ -97,12 +96,13 @@ def global_attributes(spec: Spec, table: dict[str, np.ndarray], command: str | N
     return {
         **spec.constants,
         "Conventions": "CF-1.9",
-        "title": f"ensemble {spec.scene} run{'' if spec.path == '<string>' else ' ' + Path(spec.path).stem} "
+        "title": f"ensemble {spec.model.NAME} run{'' if spec.path == '<string>' else ' ' + Path(spec.path).stem} "
                  f"({methods})",
         "history": f"{now} ensemble {__version__}: {command or 'ensemble run ' + spec.path}",
         "source": f"ensemble {__version__}",
         "comment": "Each member's parameters are variables over member; `spec` holds the run file.",
-        "scene": spec.scene,
+        "scene": spec.model.NAME,
+        **({"scene_source": spec.scene} if spec.scene != spec.model.NAME else {}),  # a user's scene file or module
         "method": methods,
         **shared,
         "save_dt": spec.save_dt,
@@ -150,7 +150,7 @@ class Writer:
         """`reopen`: continue the OUT.tmp an interrupted run of the same spec left (ensemble.parts checked it)."""
         self.path = Path(path)
         self.temporary = temporary_path(self.path)
-        self.scene = SCENES[spec.scene]
+        self.scene = spec.model
         self.spec = spec
         if reopen:
             self.nc = netCDF4.Dataset(self.temporary, "a")

@@ -65,18 +65,28 @@ def test_every_kernel_family_gives_the_same_bits_compiled_and_cached(tmp_path):
             assert a.dtype == b.dtype and same, f"{scene} {name}: {np.sum(a != b)} values differ"
 
 
-def test_every_kernel_holds_the_helpers_stamp_that_keys_its_cache():
-    """Numba keys a cached kernel on its own file and its closure: each kernel's closure holds blocks.HELPERS, a
-    hash of the helpers it inlines, so a kernel compiled before a helper changed is not loaded after."""
+def test_every_kernel_is_keyed_on_the_helpers_and_its_scenes_physics():
+    """Numba keys a cached kernel on its own file (and closure) alone. A kernel generated from the engine's templates
+    lives in a file whose text holds hashes of blocks.HELPERS (the helpers it inlines) and of its scene's physics
+    file, so a change to either makes a new file that compiles anew; the chain's hand-written kernels hold
+    HELPERS in their closures."""
+    import hashlib
+
+    from ensemble.engine import kernels
     from ensemble.engine.blocks import HELPERS
     from ensemble.methods import METHODS
     from ensemble.scenes import SCENES, applies
 
     constants = {"top": {}, "body": {"spin_axis": 2}, "chain": {"n": 16, "boundary": "fixed"}}
     for name, scene in SCENES.items():
-        kernels = __import__(f"ensemble.scenes.{name}.kernels", fromlist=["kernel"])
         for method in METHODS.values():
-            if applies(method, scene) and not method.closed_form:
-                closure = kernels.kernel(method, constants[name]).function.py_func.__closure__
+            if not applies(method, scene) or method.closed_form:
+                continue
+            function = kernels.kernel(scene, method, constants[name]).function.py_func
+            if getattr(scene, "KERNELS", None):
                 assert any(isinstance(cell.cell_contents, str) and cell.cell_contents == HELPERS
-                           for cell in closure), (name, method.name)
+                           for cell in function.__closure__), (name, method.name)
+                continue
+            text = Path(function.__code__.co_filename).read_text()
+            physics = hashlib.sha256(kernels.physics_file(scene.PHYSICS).read_bytes()).hexdigest()
+            assert f"# helpers: {HELPERS}" in text and f"# physics: {physics}" in text, (name, method.name)

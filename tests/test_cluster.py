@@ -10,6 +10,7 @@ import sys
 import pytest
 
 from ensemble import cli, cluster, runner
+from ensemble.errors import Incomplete
 from ensemble.parts import folder_of
 from ensemble.spec import load
 
@@ -59,7 +60,7 @@ def _dies_on(marker, start: int, always: bool = False):
         if j0 == start and (always or not marker.exists()):
             marker.touch()
             os._exit(1)
-        return cluster.chunk_task(spec, j0, j1, repeats)
+        return runner.chunk_task(spec, j0, j1, repeats)
     return task
 
 
@@ -76,7 +77,7 @@ def test_a_chunk_that_keeps_failing_is_named_and_resume_completes_it(client, tmp
     path = write_runfile(NOISY_TOPS)
     local, remote = tmp_path / "local.nc", tmp_path / "remote.nc"
     assert cli.main(["run", str(path), "-o", str(local), "--quiet"]) == 0
-    with pytest.raises(runner.Incomplete, match=r"members (.*, )?21..27(, .*)? were not computed") as failure:
+    with pytest.raises(Incomplete, match=r"members (.*, )?21..27(, .*)? were not computed") as failure:
         runner.run(load(path), remote, chunk=7, progress=False, client=client,
                    task=_dies_on(tmp_path / "died", 21, always=True))
     # a chunk queued on a worker that died with it may be blamed too (Dask's suspicious tasks)

@@ -9,9 +9,7 @@ LONGEST = 60
 # Kernel factories whose compiled body is one loop nest: split into functions, its stages would no longer be
 # unrolled and fused by LLVM in one place (see engine/blocks.py).
 KERNEL_BODIES = {
-    "ensemble/scenes/top/kernels.py": {"_fixed_kernel", "_adaptive_kernel", "kernel"},
     "ensemble/scenes/chain/kernels.py": {"_fixed_kernel", "_adaptive_kernel", "kernel"},
-    "ensemble/scenes/body/kernels.py": {"_adaptive_kernel", "kernel"},
 }
 
 

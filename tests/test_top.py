@@ -6,7 +6,7 @@ from scipy.integrate import solve_ivp
 from ensemble.engine import launch
 from ensemble.methods import METHODS
 from ensemble.scenes import applies, top
-from ensemble.scenes.top.kernels import rhs
+from ensemble.scenes.top.physics import rhs
 
 
 def members(lambda1, lambda3, c, spin0, tilt0, azimuth0):
@@ -38,7 +38,7 @@ def test_exact_matches_tight_reference_integration():
     exact = top.closed_form(state0, rate, t)
     for j in range(state0.shape[1]):
         def f(_, w, p=rate[:, j]):
-            return rhs.py_func(*w, *p)
+            return rhs(0.0, *w, *p)
         ref = solve_ivp(f, (0, t[-1]), state0[:, j], method="DOP853", t_eval=t, rtol=1e-13, atol=1e-12)
         err = np.abs(ref.y.T - exact[:, :, j]).max() / np.abs(ref.y).max()
         assert err < 1e-10, (j, err)

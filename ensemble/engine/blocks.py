@@ -15,12 +15,10 @@ was a separate cache line far from the next: loading and saving a block of
 variables' layout. Per-member arrays (limit, status, failure_time, control,
 counts) are (..., members).
 
-Each scene's kernels (ensemble/scenes/<scene>/kernels.py) are generated per
-method by factories whose closures capture the method's data as constants;
-Numba caches each on disk. They call the helpers here directly: compiled
-functions passed as arguments, or held by a closure, defeat the disk cache.
-Numba keys a cached kernel on its own file and closure alone, so every kernel's
-closure also holds HELPERS, a hash of the helpers' source.
+The kernels are built from the engine's templates (ensemble.engine.templates), one per method family, and
+inline the helpers here; the chain's hand-written kernels (ensemble/scenes/chain/kernels.py) do too. Numba keys
+a cached kernel on its own file and closure alone, so a generated kernel's file holds HELPERS, a hash of the
+helpers' source, and the chain's kernels hold it in their closures.
 How the runner calls a kernel is in `ensemble.engine.launch`.
 """
 from __future__ import annotations
@@ -453,25 +451,24 @@ def splitting_schedule(pieces, fractions, h, steps_per_save, chunk):
     return kinds[:count], taus[:count], lags
 
 
-# Kernels of a scene whose state is three rates (rows 0, 1, 2) followed by its parameters, as the top's and the
-# body's; adaptive ones keep stage slopes at rows K + 3 s + c and the trial step's new state at rows NEW + c.
+# A member's state: D rows from row 0, then its P parameter rows (the engine's templates, ensemble.engine.templates);
+# adaptive kernels keep stage slopes at rows K + D s + c and the trial step's new state at rows NEW + c.
 
 @njit(inline="always", **FAST)
-def rates_load(work, state0, rate, block, samples, parameters, B):
-    """Start a block's (zeroed) work array: the three rates, then `parameters` rows of parameters; also its first
-    sample."""
-    rows_in(work, 0, state0[block], 0, 3, B)
-    rows_in(work, 3, rate[block], 0, parameters, B)
-    sample_out(work, 0, samples, 0, block, 0, 3, B)
+def state_load(work, state0, rate, block, samples, D, P, B):
+    """Start a block's (zeroed) work array: D state rows, then P parameter rows; also its first sample."""
+    rows_in(work, 0, state0[block], 0, D, B)
+    rows_in(work, D, rate[block], 0, P, B)
+    sample_out(work, 0, samples, 0, block, 0, D, B)
 
 
 @njit(inline="always", **FAST)
-def rates_saved(work, samples, save, block, limit, status, failure_time, progress, t, step_row, B):
+def state_saved(work, samples, save, block, limit, status, failure_time, progress, t, step_row, D, B):
     """End of a save interval at time t (s): fail the members that blew up, store sample `save`; when no member
     of the block runs any more, fill its later samples with NaN and return True (the block is done). progress[block]
     becomes the last sample the block has stored."""
-    running = check_members(work, 0, 3, B, block * B, limit, status, failure_time, t, step_row)
-    sample_out(work, 0, samples, save, block, 0, 3, B)
+    running = check_members(work, 0, D, B, block * B, limit, status, failure_time, t, step_row)
+    sample_out(work, 0, samples, save, block, 0, D, B)
     if running == 0:
         fill_failed(samples, save + 1, block, B)
     progress[block] = samples.shape[1] - 1 if running == 0 else save
@@ -479,50 +476,50 @@ def rates_saved(work, samples, save, block, limit, status, failure_time, progres
 
 
 @njit(inline="always", **FAST)
-def rates_start(work, control, K, C0, B, j, j0, d1, d2, d3, save_dt):
-    """Start member j of a block of an adaptive three-rate kernel: its first slopes (d1, d2, d3) into rows
-    K .. K + 2, its tolerances and first trial step from `control` (Hairer's guess where none is given), one rhs
-    evaluation counted."""
-    y1, y2, y3 = work[j], work[B + j], work[2 * B + j]
-    work[K * B + j], work[(K + 1) * B + j], work[(K + 2) * B + j] = d1, d2, d3
+def state_start(work, control, K, C0, B, j, j0, D, save_dt):
+    """Start member j of a block of an adaptive kernel, its first slopes already in rows K .. K + D - 1: its
+    tolerances and first trial step from `control` (Hairer's guess where none is given), one rhs evaluation
+    counted."""
     rtol, atol = control[1, j0 + j], control[2, j0 + j]
     h = control[0, j0 + j]
     if h <= 0.0:
-        scale = atol + rtol * max(abs(y1), abs(y2), abs(y3))
-        h = first_step(max(abs(y1), abs(y2), abs(y3)) / scale, max(abs(d1), abs(d2), abs(d3)) / scale, save_dt)
+        size = abs(work[j])
+        slope = abs(work[K * B + j])
+        for c in range(1, D):
+            size = max(size, abs(work[c * B + j]))
+            slope = max(slope, abs(work[(K + c) * B + j]))
+        scale = atol + rtol * size
+        h = first_step(size / scale, slope / scale, save_dt)
     start_control(work, C0, B, j, rtol, atol, h)
 
 
 @njit(inline="always", **FAST)
-def rates_error(work, K, NEW, C0, S, e, B):
-    """Each member's error norm of its trial step into row C0 + ERR: the RMS over the three rates of h sum_s e_s
+def state_error(work, K, NEW, C0, S, e, D, B):
+    """Each member's error norm of its trial step into row C0 + ERR: the RMS over the D state rows of h sum_s e_s
     k_s over atol + rtol max(|y|, |y_new|). FSAL: the last stage was evaluated at the new state NEW."""
     for j in range(B):
         h = work[(C0 + STEP) * B + j]
-        y1, y2, y3 = work[j], work[B + j], work[2 * B + j]
-        z1, z2, z3 = work[NEW * B + j], work[(NEW + 1) * B + j], work[(NEW + 2) * B + j]
-        e1, e2, e3 = 0.0, 0.0, 0.0
-        for s in range(S):
-            e1 += e[s] * work[(K + 3 * s) * B + j]
-            e2 += e[s] * work[(K + 3 * s + 1) * B + j]
-            e3 += e[s] * work[(K + 3 * s + 2) * B + j]
         rtol, atol = work[(C0 + RTOL) * B + j], work[(C0 + ATOL) * B + j]
-        q1 = h * e1 / (atol + rtol * max(abs(y1), abs(z1)))
-        q2 = h * e2 / (atol + rtol * max(abs(y2), abs(z2)))
-        q3 = h * e3 / (atol + rtol * max(abs(y3), abs(z3)))
-        work[(C0 + ERR) * B + j] = math.sqrt((q1 * q1 + q2 * q2 + q3 * q3) / 3.0)
+        total = 0.0
+        for c in range(D):
+            estimate = 0.0
+            for s in range(S):
+                estimate += e[s] * work[(K + D * s + c) * B + j]
+            q = h * estimate / (atol + rtol * max(abs(work[c * B + j]), abs(work[(NEW + c) * B + j])))
+            total += q * q
+        work[(C0 + ERR) * B + j] = math.sqrt(total / D)
 
 
 @njit(inline="always", **FAST)
-def rates_accept(work, K, NEW, C0, S, B):
+def state_accept(work, K, NEW, C0, S, D, B):
     """After control_step: members whose step was accepted move to the new state (its last stage is the next
     step's first); members whose step underflowed become NaN."""
     for j in range(B):  # selects, not branches: see control_step
         err = work[(C0 + ERR) * B + j]
         accepted = (work[(C0 + REJECTED_LAST) * B + j] == 0.0) & (err >= 0.0)
         underflowed = err == UNDERFLOWED
-        for c in range(3):
+        for c in range(D):
             state, new = work[c * B + j], work[(NEW + c) * B + j]
-            slope, last = work[(K + c) * B + j], work[(K + 3 * (S - 1) + c) * B + j]
+            slope, last = work[(K + c) * B + j], work[(K + D * (S - 1) + c) * B + j]
             work[c * B + j] = select(accepted, new, select(underflowed, np.nan, state))
             work[(K + c) * B + j] = select(accepted, last, slope)

@@ -1,9 +1,8 @@
 """The one way into the kernels: integrate(scene, method, values, constants, ...) -> Outcome.
 
-The runner, `prepare`, the tests and every benchmark call this. A scene's
-kernels module (ensemble/scenes/<scene>/kernels.py) provides
-block_size(constants, method) and kernel(method, constants); its kernels follow one of
-two call conventions, over arrays laid out by block (see engine.blocks):
+The runner, `prepare`, the tests and every benchmark call this. A scene's kernels come from
+ensemble.engine.kernels (its family's template filled in with the scene's physics); they follow one of two call
+conventions, over arrays laid out by block (see engine.blocks):
 
 - fixed step: kernel(state0, rate, h, steps_per_save, limit, samples, status, failure_time, progress, works, start,
   first_block, end_block);
@@ -27,31 +26,26 @@ Numba's parallel lowering made compiling a kernel take twice as long
 """
 from __future__ import annotations
 
-import importlib
 import math
 import threading
-from types import ModuleType
 
 import numba
 import numpy as np
 
 from ..methods import Method
 from ..results import DEFAULT_BLOWUP_FACTOR, Outcome
-
-
-def kernels_of(scene) -> ModuleType:
-    """A scene's kernels module: `kernels` beside its model (imports Numba)."""
-    return importlib.import_module(f"{scene.__name__}.kernels")
+from ..scenes.contract import SceneError
+from . import kernels
 
 
 def work_rows(scene, method: Method, constants: dict) -> int:
     """Rows of a kernel's work array (each B floats a block); 0 for the closed form (no kernel)."""
-    return 0 if method.closed_form else kernels_of(scene).kernel(method, constants).rows
+    return 0 if method.closed_form else kernels.kernel(scene, method, constants).rows
 
 
 def block_size(scene, constants: dict, method: Method) -> int:
     """Members per kernel block of the scene's kernel of `method` for a run's constants."""
-    return kernels_of(scene).block_size(constants, method)
+    return kernels.block_size(scene, constants, method)
 
 
 def integrate(scene, method: Method, values: dict[str, np.ndarray], constants: dict, *, n_save: int,
@@ -92,9 +86,8 @@ class Launch:
             self.exact = lambda first, count: scene.exact(values, constants, times[first:first + count])
             return
         state0, rate = scene.inputs(values, constants)
-        kernels = kernels_of(scene)
-        block = kernels.block_size(constants, method)
-        self.kernel = kernels.kernel(method, constants)
+        block = kernels.block_size(scene, constants, method)
+        self.kernel = kernels.kernel(scene, method, constants)
         limit = _limits(state0, blowup_factor)
         if method.adaptive:
             control = np.stack([np.nan_to_num(np.broadcast_to(np.asarray(x, dtype=float), (self.members,)), nan=0.0)
@@ -220,13 +213,28 @@ def _fixed_counts(method: Method, scene, failure_time: np.ndarray, dt: float, st
 
 
 def prepare(scene, method: Method, constants: dict) -> None:
-    """Compile (or load from Numba's disk cache) the kernel of a stepping method, on one empty block."""
+    """Compile (or load from Numba's disk cache) the kernel of a stepping method, on one empty block. A scene whose
+    functions Numba cannot compile raises SceneError, one line saying why."""
     if method.closed_form:
         return
-    kernels = kernels_of(scene)
+    try:
+        _call_once(scene, method, constants)
+    except numba.core.errors.NumbaError as error:
+        raise SceneError(f"{scene.PHYSICS}: the {method.name} kernel does not compile: {_cause(str(error))}") from None
+
+
+def _cause(message: str) -> str:
+    """The informative line of a Numba error message (its first lines name the compiler pass that failed)."""
+    skip = ("Failed in", "During:", "File ", "<source", "^", "No implementation of function", "There are")
+    lines = [line.strip() for line in message.splitlines()]
+    useful = [line for line in lines if line and not line.startswith(skip)]
+    return (useful[0] if useful else lines[0])[:300]
+
+
+def _call_once(scene, method: Method, constants: dict) -> None:
     state_rows, rate_rows = scene.kernel_rows(constants)
-    block = kernels.block_size(constants, method)
-    kernel = kernels.kernel(method, constants)
+    block = kernels.block_size(scene, constants, method)
+    kernel = kernels.kernel(scene, method, constants)
     works = np.zeros((1, kernel.rows * block))
     state0, rate = np.zeros((1, state_rows, block)), np.zeros((1, rate_rows, block))
     samples = np.empty((block, 1, state_rows))

@@ -1,9 +1,14 @@
-"""Scenes: the physical systems. Each is one folder: `model.py` (numpy only) and `kernels.py` (Numba).
+"""Scenes: the physical systems. A built-in scene is one folder: `model.py` (numpy only) and `physics.py` (its
+right-hand side and exactly solved pieces, from which ensemble.engine builds its kernels). A user's scene is a
+file or module written to the short contract of `ensemble.scenes.contract`.
 
-A new scene is its folder, one line in SCENES, its run files and its tests; `Scene` lists what it provides.
+A new built-in scene is its folder, one line in SCENES, its run files and its tests; `Scene` lists what it
+provides.
 """
 from __future__ import annotations
 
+from functools import cache
+from pathlib import Path
 from typing import Protocol
 
 import numpy as np
@@ -11,17 +16,19 @@ import numpy as np
 from ..methods import METHODS, Method
 from ..parameter import Parameter
 from . import body, chain, top
+from .contract import SceneError, UserScene, load
 
 
 class Scene(Protocol):
     """What a scene's model provides (its package's names). Arrays are over members on their first axis in
     `values` (name -> (members,) or (members, site)); kernel arrays are (rows, members).
 
-    Its `kernels` module provides block_size(constants, method) -> int and kernel(method, constants) -> compiled
-    kernel, with the call convention in `ensemble.engine.launch`.
+    PHYSICS names the module (or file) whose functions the engine's templates call: rhs(t, *state, *parameters)
+    and each piece's flow (ensemble.engine.templates).
     """
 
     NAME: str
+    PHYSICS: str  # its physics module, by dotted name or file path
     PARAMETERS: dict[str, Parameter]  # run-file parameters
     OBSERVABLES: dict[str, tuple[tuple[str, ...], str, str]]  # saved variables: name -> (dims, units, long_name)
     PIECES: tuple[str, ...]  # the exactly solved pieces its splitting methods take (see methods.Splitting)
@@ -47,6 +54,29 @@ class Scene(Protocol):
 
 
 SCENES: dict[str, Scene] = {"top": top, "chain": chain, "body": body}
+
+
+def resolve(name: str) -> Scene:
+    """A scene by a run file's `scene`: a built-in name, a Python file (a path ending in .py), or a module by its
+    dotted name. Raises SceneError (one line) for an unknown name or a file that breaks the contract."""
+    if name in SCENES:
+        return SCENES[name]
+    if name.endswith(".py") or "." in name:
+        return _user_scene(name)
+    raise SceneError(f"unknown scene {name!r}; scenes: {', '.join(SCENES)}, or a scene file (path/to/scene.py) or "
+                     f"module (package.scene)")
+
+
+@cache
+def _user_scene(where: str) -> UserScene:
+    return UserScene(load(where), where)
+
+
+def absolute(name: str, folder: Path) -> str:
+    """A run file's `scene` with a relative file path made absolute against the run file's folder."""
+    if name.endswith(".py") and not Path(name).expanduser().is_absolute():
+        return str((folder / Path(name).expanduser()).resolve())
+    return str(Path(name).expanduser()) if name.endswith(".py") else name
 
 
 def applies(method: Method, scene: Scene) -> bool:

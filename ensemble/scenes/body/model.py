@@ -11,8 +11,8 @@ The state is the three body rates (rad/s) and nothing more: with a drag torque
 lambda_i (i, j, k cyclic) and r_i = c / lambda_i the equations read
 w_i' = a_i w_j w_k - r_i w_i. About the largest and the smallest moment the
 rotation is stable and small tilts wobble; about the intermediate one they grow
-(the tennis-racket effect). The compiled right-hand side and the kernels are in
-`kernels.py` beside this file.
+(the tennis-racket effect). The right-hand side and pieces the kernels are built from are
+in `physics.py` beside this file.
 """
 from __future__ import annotations
 
@@ -23,6 +23,7 @@ from ...methods import AXIS_ROTATIONS, Method
 from ...parameter import Parameter, ParameterError
 
 NAME = "body"
+PHYSICS = "ensemble.scenes.body.physics"  # rhs and pieces, from which ensemble.engine builds the kernels
 PIECES = AXIS_ROTATIONS  # splitting methods: L turned about each body axis in turn, and drag, each exact
 EVALUATING_PIECES = ()
 AXES = (1, 2, 3)

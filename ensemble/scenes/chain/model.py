@@ -17,6 +17,7 @@ from ...methods import KICK_DRIFT, Method
 from ...parameter import Mode, Parameter, ParameterError
 
 NAME = "chain"
+KERNELS = "ensemble.scenes.chain.kernels"  # its kernels, written by hand: force sweeps, tiles and ring halos
 PIECES = KICK_DRIFT  # splitting methods: kick (v += tau a(x)) and drift (x += tau v)
 EVALUATING_PIECES = ("kick",)  # a kick evaluates the forces
 BOUNDARIES = ("fixed", "free", "periodic")

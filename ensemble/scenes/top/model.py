@@ -9,7 +9,7 @@ Body frame, lambda1 = lambda2, air-drag torque -c omega:
 The state is the three body rates (rad/s) and nothing more. With
 p = (lambda3 - lambda1)/lambda1, r1 = c/lambda1 and r3 = c/lambda3 the
 equations read w1' = -p w3 w2 - r1 w1, w2' = p w3 w1 - r1 w2, w3' = -r3 w3.
-The compiled right-hand side and the kernels are in `kernels.py` beside this file.
+The right-hand side and the exactly solved pieces the kernels are built from are in `physics.py` beside this file.
 """
 from __future__ import annotations
 
@@ -20,6 +20,7 @@ from ...methods import DRAG_ROTATION, Method
 from ...parameter import Parameter, ParameterError
 
 NAME = "top"
+PHYSICS = "ensemble.scenes.top.physics"  # rhs and pieces, from which ensemble.engine builds the kernels
 PIECES = DRAG_ROTATION  # splitting methods: drag decay and free rotation, each solved exactly
 EVALUATING_PIECES = ()  # neither piece evaluates the right-hand side
 
@@ -235,7 +236,7 @@ def step_growth(method: Method, values: dict[str, np.ndarray], constants: dict, 
 def amplitudes(samples: np.ndarray, values: dict[str, np.ndarray], constants: dict) -> np.ndarray:
     """Amplitudes of the top's two motions, |(w1, w2)| and |w3| (rad/s), shape (members, 2, samples), from
     samples (samples, 3, members)."""
-    from .kernels import observed_amplitudes  # compiled: the model alone does not import Numba
+    from .physics import observed_amplitudes  # compiled: the model alone does not import Numba
 
     return observed_amplitudes(np.ascontiguousarray(samples.transpose(2, 0, 1)))
 
@@ -257,9 +258,9 @@ def conserved_energy(ds) -> np.ndarray:
 
 def observe(samples: np.ndarray, names, values: dict[str, np.ndarray], constants: dict) -> dict[str, np.ndarray]:
     """Saved variables, member-major, from kernel samples of shape (t, 3, members) (a run's are a view of a
-    member-major array, which omega then is). The tilt is compiled (kernels.observed_tilt): it is tilt() to a
+    member-major array, which omega then is). The tilt is compiled (physics.observed_tilt): it is tilt() to a
     few units in the last place, at a tenth of libm's cost."""
-    from .kernels import observed_tilt  # compiled: the model alone does not import Numba
+    from .physics import observed_tilt  # compiled: the model alone does not import Numba
 
     omega = np.ascontiguousarray(samples.transpose(2, 0, 1))
     out = {}

@@ -1,0 +1,147 @@
+"""A scene's kernel for a method: its family's template (ensemble.engine.templates) filled in with the scene's
+physics, written as a Python file that Numba keys its disk cache on, then imported.
+
+The file's name holds a hash of its text, and its text holds hashes of the scene's physics file and of the
+engine's helpers (blocks.HELPERS): a change to any of them makes a new file, which compiles once, and a file is
+never rewritten (Numba's cache index checks its source file's time stamp). The files live in kernel_folder().
+"""
+from __future__ import annotations
+
+import hashlib
+import importlib
+import importlib.util
+import os
+import sys
+import tempfile
+from functools import cache
+from pathlib import Path
+from types import ModuleType
+
+from numba import njit
+from numba.core.registry import CPUDispatcher
+
+from ..methods import Method
+from ..scenes.contract import load
+from . import templates
+from .blocks import FAST, HELPERS, Kernel
+
+BLOCK = 128  # members per block of a scene whose kernel_rows are its whole state (rows of B floats each)
+
+
+def kernel_folder() -> Path:
+    """Where generated kernel files go: ENSEMBLE_KERNEL_DIR, else NUMBA_CACHE_DIR/ensemble-kernels, else the user's
+    cache folder (XDG_CACHE_HOME or ~/.cache)/ensemble/kernels."""
+    if os.environ.get("ENSEMBLE_KERNEL_DIR"):
+        return Path(os.environ["ENSEMBLE_KERNEL_DIR"])
+    if os.environ.get("NUMBA_CACHE_DIR"):
+        return Path(os.environ["NUMBA_CACHE_DIR"]) / "ensemble-kernels"
+    return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "ensemble" / "kernels"
+
+
+def physics_module(where: str) -> ModuleType:
+    """A scene's physics: a module by dotted name, or a Python file by path."""
+    return load(where)
+
+
+def physics_functions(where: str, names: tuple[str, ...]) -> tuple:
+    """The compiled functions `names` of a scene's physics: its own @njit functions as they are, plain Python
+    functions compiled to be inlined into the kernels (with the kernels' fast-math flags)."""
+    module = physics_module(where)
+    found = [getattr(module, name) for name in names]
+    return tuple(f if isinstance(f, CPUDispatcher) else _inlined(f) for f in found)
+
+
+@cache
+def _inlined(function):
+    return njit(inline="always", **FAST)(function)
+
+
+def physics_file(where: str) -> Path:
+    """The file a scene's physics is read from."""
+    return Path(where).resolve() if where.endswith(".py") else Path(physics_module(where).__file__)
+
+
+def python_function(f):
+    """The Python function behind a physics function (compiled or not), to call it without compiling."""
+    return getattr(f, "py_func", f)
+
+
+def factor_counts(where: str, pieces: tuple[str, ...], parameters: int) -> dict[str, int]:
+    """For each piece with a `<piece>_factors(tau, *p)` function, how many values it returns (called in Python)."""
+    module = physics_module(where)
+    counts = {}
+    for piece in pieces:
+        factors = getattr(module, f"{piece}_factors", None)
+        if factors is not None:
+            counts[piece] = len(python_function(factors)(0.5, *([1.0] * parameters)))
+    return counts
+
+
+def block_size(scene, constants: dict, method: Method) -> int:
+    """Members per kernel block."""
+    own = _own_kernels(scene)
+    return own.block_size(constants, method) if own else getattr(scene, "BLOCK", BLOCK)
+
+
+def kernel(scene, method: Method, constants: dict) -> Kernel:
+    """Kernel(function, work rows) of a stepping method for a scene: compiled, or loaded from Numba's cache."""
+    own = _own_kernels(scene)
+    if own:
+        return own.kernel(method, constants)
+    D, P = scene.kernel_rows(constants)
+    return _generated(scene.NAME, scene.PHYSICS, tuple(scene.PIECES), method, D, P,
+                      getattr(scene, "BLOCK", BLOCK))
+
+
+def _own_kernels(scene) -> ModuleType | None:
+    """A scene whose kernels are still written by hand (the chain's: its force sweeps, tiles and halos are not in
+    a template yet) names their module as KERNELS."""
+    own = getattr(scene, "KERNELS", None)
+    return importlib.import_module(own) if own else None
+
+
+@cache
+def _generated(name: str, where: str, pieces: tuple[str, ...], method: Method, D: int, P: int, B: int) -> Kernel:
+    if method.adaptive:
+        family, (body, rows), used = "adaptive", templates.adaptive(method, D, P), ("rhs",)
+    elif method.tableau is not None:
+        family, (body, rows), used = "runge_kutta", templates.runge_kutta(method, D, P), ("rhs",)
+    else:
+        module = physics_module(where)
+        factors = factor_counts(where, pieces, P)
+        coordinates = hasattr(module, "to_pieces")
+        family = "splitting"
+        body, rows = templates.splitting(method, D, P, pieces, factors, coordinates)
+        used = (*pieces, *(f"{p}_factors" for p in factors), *(("to_pieces", "from_pieces") if coordinates else ()))
+    physics_import = (f"from ensemble.engine.kernels import physics_functions\n\n"
+                      f"{', '.join(used)}, = physics_functions({where!r}, {used!r})")
+    source = templates.header(family, name, method, physics_import,
+                              hashlib.sha256(physics_file(where).read_bytes()).hexdigest(), HELPERS, D, P, B) + body
+    return Kernel(_load(source, f"{name}_{method.name}").kernel, rows)
+
+
+def _load(source: str, label: str) -> ModuleType:
+    """Import generated `source` from its file in kernel_folder(), writing the file first if it is not there."""
+    name = f"ensemble_kernel_{label}_{hashlib.sha256(source.encode()).hexdigest()[:16]}"
+    if name in sys.modules:
+        return sys.modules[name]
+    folder = kernel_folder()
+    folder.mkdir(parents=True, exist_ok=True)
+    path = folder / f"{name}.py"
+    if not path.exists():
+        # Written under a temporary name and linked into place: never half a file, never a rewrite (other
+        # processes may be writing the same file at once)
+        handle, temporary = tempfile.mkstemp(dir=folder, suffix=".tmp")
+        with os.fdopen(handle, "w") as out:
+            out.write(source)
+        try:
+            os.link(temporary, path)
+        except FileExistsError:
+            pass
+        finally:
+            os.unlink(temporary)
+    spec = importlib.util.spec_from_file_location(name, path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    sys.modules[name] = module
+    return module

@@ -1,0 +1,228 @@
+"""A scene from a user's own file or module, written to the short contract, and the checks that tell its author
+what is wrong in one line.
+
+A scene file (see docs/scenes.md and examples/driven_oscillator.py) needs:
+
+- STATE: name -> (units, long_name) of each state variable, in order;
+- PARAMETERS: name -> ensemble.Parameter; `<state>0` gives a state variable's value at t = 0, every other
+  parameter is passed to the right-hand side, in this order;
+- rhs(t, *state, *parameters): the time derivative of one member's state, a tuple of len(STATE) numbers.
+
+Optional:
+
+- NAME (default: the file's stem);
+- PIECES, and for each piece `<piece>(tau, *state, *parameters)`: its exact flow for time tau, for splitting
+  methods (methods.KICK_DRIFT, say); EVALUATING_PIECES: those that evaluate the forces;
+- exact(t, *state0, *parameters): the closed form with numpy broadcasting (t is a column (times, 1), every
+  other argument a row (1, members)), a tuple of len(STATE) arrays; it gives the `exact` method and
+  [measure] error;
+- check(values): raise ensemble.ParameterError(name, problem) for a value no member can have;
+- fit(ds): the scene's fit of a result, an xarray.Dataset (its theory against what was measured).
+
+Its functions are compiled with Numba (nopython mode), so they use math and numpy, and any helper they call
+is itself decorated with numba.njit.
+"""
+from __future__ import annotations
+
+import hashlib
+import importlib
+import importlib.util
+import inspect
+import sys
+from pathlib import Path
+from types import ModuleType
+
+import numpy as np
+
+from ..errors import EnsembleError
+from ..parameter import Parameter
+
+#: Names a result already uses: a scene's state and parameters must not take them.
+RESERVED = ("t", "member", "method", "dt", "rtol", "atol", "steps_accepted", "steps_rejected", "rhs_evals",
+            "error_max", "error_final", "seconds_per_step", "status", "failure_time", "growth_per_step")
+
+
+class SceneError(EnsembleError, ValueError):
+    """A scene that does not keep the contract; the message is one line that says what is wrong and where."""
+
+
+def module_from_file(path: Path) -> ModuleType:
+    """Import a Python file once per process, under a module name made from its resolved path."""
+    path = Path(path).resolve()
+    name = f"ensemble_scene_{path.stem}_{hashlib.sha256(str(path).encode()).hexdigest()[:12]}"
+    if name not in sys.modules:
+        spec = importlib.util.spec_from_file_location(name, path)
+        module = importlib.util.module_from_spec(spec)
+        sys.modules[name] = module
+        try:
+            spec.loader.exec_module(module)
+        except BaseException:
+            del sys.modules[name]
+            raise
+    return sys.modules[name]
+
+
+def load(where: str) -> ModuleType:
+    """A scene's module: a file by path (ending in .py) or a module by dotted name; SceneError when it does not
+    import."""
+    try:
+        if where.endswith(".py"):
+            if not Path(where).is_file():
+                raise SceneError(f"{where}: no such file")
+            return module_from_file(Path(where))
+        return importlib.import_module(where)
+    except SceneError:
+        raise
+    except Exception as error:  # noqa: BLE001 (any error in the user's file is reported in one line)
+        line = _line_of(error, where)
+        raise SceneError(f"{where} does not import{line}: {type(error).__name__}: {error}") from None
+
+
+def _line_of(error: BaseException, where: str) -> str:
+    if isinstance(error, SyntaxError) and error.lineno:
+        return f" (line {error.lineno})"
+    frames = [f for f in inspect.getinnerframes(error.__traceback__) if f.filename.endswith(Path(where).name)]
+    return f" (line {frames[-1].lineno})" if frames else ""
+
+
+def _parameters_of(function) -> list[str]:
+    return list(inspect.signature(getattr(function, "py_func", function)).parameters)
+
+
+class UserScene:
+    """A scene written to the short contract, with everything else the engine and the store ask of a scene."""
+
+    BLOCK = 128
+    STABILITY_AXES: tuple[str, ...] = ()
+
+    def __init__(self, module: ModuleType, where: str):
+        self.module, self.PHYSICS = module, where
+        self.NAME = getattr(module, "NAME", Path(where).stem if where.endswith(".py") else where.rsplit(".", 1)[-1])
+        for required in ("STATE", "PARAMETERS", "rhs"):
+            if not hasattr(module, required):
+                raise SceneError(f"{where} has no {required} ({_REQUIRED[required]})")
+        self.STATE = dict(module.STATE)
+        self.PARAMETERS = dict(module.PARAMETERS)
+        self.PIECES = tuple(getattr(module, "PIECES", ()))
+        self.EVALUATING_PIECES = tuple(getattr(module, "EVALUATING_PIECES", ()))
+        self.starts = [f"{name}0" for name in self.STATE]
+        self.rates = [name for name in self.PARAMETERS if name not in self.starts]
+        self.OBSERVABLES = {name: (("member", "t"), units, long_name)
+                            for name, (units, long_name) in self.STATE.items()}
+        if hasattr(module, "exact"):
+            self.exact = self._exact
+        if hasattr(module, "fit"):
+            self.fit = module.fit
+        _check(self)
+
+    def sizes(self, constants: dict) -> dict[str, int]:
+        return {}
+
+    def coordinates(self, constants: dict) -> dict:
+        return {}
+
+    def check_constants(self, constants: dict) -> None:
+        pass
+
+    def check(self, values: dict[str, np.ndarray]) -> None:
+        if hasattr(self.module, "check"):
+            self.module.check(values)
+
+    def derive(self, values: dict, constants: dict) -> dict:
+        return {}
+
+    def kernel_rows(self, constants: dict) -> tuple[int, int]:
+        return len(self.STATE), len(self.rates)
+
+    def inputs(self, values: dict[str, np.ndarray], constants: dict) -> tuple[np.ndarray, np.ndarray]:
+        """The state at t = 0 (len(STATE), members) and the rhs's parameters (len(rates), members)."""
+        members = len(next(iter(values.values())))
+        state0 = np.stack([np.broadcast_to(np.asarray(values[name], dtype=float), (members,)) for name in self.starts])
+        rates = [np.broadcast_to(np.asarray(values[name], dtype=float), (members,)) for name in self.rates]
+        return state0, np.stack(rates) if rates else np.zeros((0, members))
+
+    def _exact(self, values: dict[str, np.ndarray], constants: dict, t: np.ndarray) -> np.ndarray:
+        """The module's closed form at times t (s): (len(t), len(STATE), members)."""
+        state0, rates = self.inputs(values, constants)
+        t = np.asarray(t, dtype=float)[:, None]
+        columns = self.module.exact(t, *(row[None, :] for row in state0), *(row[None, :] for row in rates))
+        return np.stack([np.broadcast_to(c, (t.shape[0], state0.shape[1])) for c in columns], axis=1)
+
+    def observe(self, samples: np.ndarray, names, values: dict, constants: dict) -> dict[str, np.ndarray]:
+        """Each saved state variable, (members, t), from samples (t, state, members)."""
+        return {name: np.ascontiguousarray(samples[:, c, :].T) for c, name in enumerate(self.STATE) if name in names}
+
+    def amplitudes(self, samples: np.ndarray, values: dict, constants: dict) -> np.ndarray:
+        """|each state variable|, (members, len(STATE), t): the motions whose growth [measure] growth fits."""
+        return np.abs(samples.transpose(2, 1, 0))
+
+    def conserved_energy(self, ds) -> np.ndarray:
+        """No conserved energy is declared: NaN (member, t)."""
+        return np.full((ds.sizes["member"], ds.sizes["t"]), np.nan)
+
+
+_REQUIRED = {"STATE": "name -> (units, long_name) of each state variable",
+             "PARAMETERS": "name -> ensemble.Parameter, with <state>0 for each state variable's start",
+             "rhs": "its right-hand side, rhs(t, *state, *parameters)"}
+
+
+def _check(scene: UserScene) -> None:
+    """The contract's rules, each failure one line naming the scene's file and what is wrong."""
+    where, module = scene.PHYSICS, scene.module
+    if not scene.STATE:
+        raise SceneError(f"{where}: STATE is empty")
+    for name, value in scene.PARAMETERS.items():
+        if not isinstance(value, Parameter):
+            raise SceneError(f"{where}: PARAMETERS[{name!r}] is not an ensemble.Parameter")
+    for name in (*scene.STATE, *scene.PARAMETERS):
+        if name in RESERVED:
+            raise SceneError(f"{where}: {name!r} is a name every result already uses ({', '.join(RESERVED)})")
+    missing = [name for name in scene.starts if name not in scene.PARAMETERS]
+    if missing:
+        raise SceneError(f"{where}: PARAMETERS has no {missing[0]!r} (the value of {missing[0][:-1]!r} at t = 0)")
+    clash = [name for name in scene.STATE if name in scene.PARAMETERS]
+    if clash:
+        raise SceneError(f"{where}: {clash[0]!r} is both a state variable and a parameter")
+    arguments = ["t", *scene.STATE, *scene.rates]
+    _signature(where, module.rhs, "rhs", arguments)
+    _returns(where, module.rhs, "rhs", [0.0] + [1.0] * (len(arguments) - 1), len(scene.STATE))
+    for piece in scene.PIECES:
+        if not hasattr(module, piece):
+            raise SceneError(f"{where}: PIECES names {piece!r}, but the file has no function {piece}")
+        factors = []
+        if hasattr(module, f"{piece}_factors"):
+            function, name = getattr(module, f"{piece}_factors"), f"{piece}_factors"
+            _signature(where, function, name, ["tau", *scene.rates])
+            factors = [f"f{i}" for i in range(len(_returns(where, function, name, [0.5] + [1.0] * len(scene.rates))))]
+        _signature(where, getattr(module, piece), piece, ["tau", *scene.STATE, *scene.rates, *factors])
+        _returns(where, getattr(module, piece), piece, [0.5] + [1.0] * (len(arguments) - 1 + len(factors)),
+                 len(scene.STATE))
+    if hasattr(module, "exact"):
+        _signature(where, module.exact, "exact", ["t", *scene.starts, *scene.rates])
+
+
+def _signature(where: str, function, name: str, arguments: list[str]) -> None:
+    if not callable(function):
+        raise SceneError(f"{where}: {name} is not a function")
+    found = _parameters_of(function)
+    if len(found) != len(arguments):
+        raise SceneError(f"{where}: {name} takes {len(found)} argument(s), ({', '.join(found)}); ensemble calls it "
+                         f"as {name}({', '.join(arguments)})")
+
+
+def _returns(where: str, function, name: str, arguments: list[float], size: int | None = None) -> tuple:
+    """Call `function` in Python on sample values: it must return `size` numbers (any number if None)."""
+    try:
+        with np.errstate(all="ignore"):
+            result = getattr(function, "py_func", function)(*arguments)
+    except Exception as error:  # noqa: BLE001 (reported in one line)
+        raise SceneError(f"{where}: {name}({', '.join(map(str, arguments))}) raised {type(error).__name__}: "
+                         f"{error}") from None
+    values = result if isinstance(result, (tuple, list)) else (result,)
+    numbers = all(isinstance(v, (int, float, np.floating, np.integer)) for v in values)
+    if size is not None and (len(values) != size or not numbers):
+        raise SceneError(f"{where}: {name} must return a tuple of {size} numbers (one per state variable), got "
+                         f"{result!r}")
+    if not numbers:
+        raise SceneError(f"{where}: {name} must return a tuple of numbers, got {result!r}")
+    return tuple(values)

@@ -1,0 +1,77 @@
+"""A damped, driven oscillator, x'' + 2 gamma x' + omega0^2 x = F cos(Omega t): a scene of your own.
+
+Run it with `scene = "examples/driven_oscillator.py"` in a run file (a path relative to the run file's folder,
+as runs/driven_oscillator.toml does). This file is the whole scene: its state, its parameters and its
+right-hand side (required), and its closed form and its steady-state theory with a fit (optional). See
+docs/scenes.md for the contract.
+"""
+import math
+
+import numpy as np
+
+from ensemble import Parameter
+
+NAME = "driven_oscillator"
+
+STATE = {"x": ("m", "displacement"), "v": ("m s-1", "velocity")}
+
+PARAMETERS = {  # x0 and v0 start the state; the others are the right-hand side's, in this order
+    "gamma": Parameter("s-1", "damping rate"),
+    "omega0": Parameter("rad s-1", "natural angular frequency"),
+    "F": Parameter("m s-2", "driving force per unit mass"),
+    "Omega": Parameter("rad s-1", "driving angular frequency"),
+    "x0": Parameter("m", "displacement at t = 0"),
+    "v0": Parameter("m s-1", "velocity at t = 0", default=0.0),
+}
+
+
+def rhs(t, x, v, gamma, omega0, F, Omega):
+    """(x', v') of one member at time t (s)."""
+    return v, F * math.cos(Omega * t) - 2.0 * gamma * v - omega0 * omega0 * x
+
+
+def steady_state(gamma, omega0, F, Omega):
+    """The driven response's cos and sin coefficients (m), x = A cos(Omega t) + B sin(Omega t)."""
+    detuning, friction = omega0**2 - Omega**2, 2.0 * gamma * Omega
+    squared = detuning**2 + friction**2
+    return F * detuning / squared, F * friction / squared
+
+
+def steady_amplitude(gamma, omega0, F, Omega):
+    """The theory: F / sqrt((omega0^2 - Omega^2)^2 + (2 gamma Omega)^2) (m)."""
+    return np.hypot(*steady_state(gamma, omega0, F, Omega))
+
+
+def exact(t, x0, v0, gamma, omega0, F, Omega):
+    """x(t) and v(t), numpy arrays broadcast over t (times, 1) and the members' values (1, members): the steady
+    response plus the free motion that brings it to x0, v0 (under-, critically or over-damped)."""
+    A, B = steady_state(gamma, omega0, F, Omega)
+    damped = np.sqrt((omega0**2 - gamma**2) + 0j)  # imaginary when overdamped: cos and sin become cosh and sinh
+    c = np.cos(damped * t).real
+    s = np.where(damped == 0, t, (np.sin(damped * t) / np.where(damped == 0, 1, damped)).real)  # sin(w t) / w
+    x_free, v_free = x0 - A, v0 - B * Omega  # the free motion's start
+    k = v_free + gamma * x_free
+    decay = np.exp(-gamma * t)
+    x = A * np.cos(Omega * t) + B * np.sin(Omega * t) + decay * (x_free * c + k * s)
+    v = (-A * Omega * np.sin(Omega * t) + B * Omega * np.cos(Omega * t)
+         + decay * ((k - gamma * x_free) * c - (gamma * k + (omega0**2 - gamma**2) * x_free) * s))
+    return x, v
+
+
+def fit(ds):
+    """Each member's steady amplitude, fitted (least squares of A cos + B sin) to x over the record's last
+    quarter, against the theory; an xarray Dataset over member."""
+    import xarray as xr
+
+    t = ds["t"].values
+    late = t >= t[0] + 0.75 * (t[-1] - t[0])
+    Omega = np.broadcast_to(ds["Omega"].values, (ds.sizes["member"],))
+    amplitude = np.empty(ds.sizes["member"])
+    for j in range(ds.sizes["member"]):
+        design = np.stack([np.cos(Omega[j] * t[late]), np.sin(Omega[j] * t[late])], axis=1)
+        (a, b), *_ = np.linalg.lstsq(design, ds["x"].values[j, late], rcond=None)
+        amplitude[j] = math.hypot(a, b)
+    theory = steady_amplitude(*(ds[name].values for name in ("gamma", "omega0", "F", "Omega")))
+    return xr.Dataset({"amplitude": ("member", amplitude, {"units": "m", "long_name": "fitted steady amplitude"}),
+                       "amplitude_theory": ("member", np.broadcast_to(theory, amplitude.shape),
+                                            {"units": "m", "long_name": "steady amplitude, theory"})})

@@ -1,0 +1,150 @@
+"""A scene of the user's own, from a file: every method family that applies to it converges at its order to the
+closed form, its run file runs and fits like a built-in scene's, and each mistake in a scene file is one line,
+exit status 2, with nothing written."""
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import xarray as xr
+from scipy.integrate import solve_ivp
+
+from ensemble.engine import launch
+from ensemble.methods import METHODS
+from ensemble.scenes import SceneError, methods_for, resolve
+
+ROOT = Path(__file__).resolve().parents[1]
+EXAMPLE = ROOT / "examples" / "driven_oscillator.py"
+# Under-, critically and over-damped members, driven off and on resonance
+MEMBERS = {"gamma": np.array([0.1, 1.0, 2.5, 0.05]), "omega0": np.array([1.0, 1.0, 1.5, 2.0]),
+           "F": np.array([0.5, 0.3, 1.0, 0.2]), "Omega": np.array([0.9, 2.0, 0.7, 2.0]),
+           "x0": np.array([1.0, -0.5, 0.2, 0.0]), "v0": np.array([0.0, 0.3, -1.0, 0.5])}
+# A harmonic oscillator with exactly solved kick and drift pieces: splittings apply to it
+SPRING = '''
+from ensemble import Parameter
+from ensemble.methods import KICK_DRIFT
+
+STATE = {"x": ("m", "position"), "v": ("m s-1", "velocity")}
+PARAMETERS = {"omega": Parameter("rad s-1", "angular frequency"), "x0": Parameter("m", "start"),
+              "v0": Parameter("m s-1", "start", default=0.0)}
+PIECES = KICK_DRIFT
+EVALUATING_PIECES = ("kick",)
+
+def rhs(t, x, v, omega):
+    return v, -omega * omega * x
+
+def kick(tau, x, v, omega):
+    return x, v - tau * omega * omega * x
+
+def drift(tau, x, v, omega):
+    return x + tau * v, v
+
+def exact(t, x0, v0, omega):
+    import numpy as np
+    c, s = np.cos(omega * t), np.sin(omega * t)
+    return x0 * c + v0 / omega * s, v0 * c - x0 * omega * s
+'''
+
+
+def largest_error(scene, method, values, dt=None, t_end=4.0, **tolerances):
+    """max |x - x_exact| over the saved samples (every 0.5 s), over every member."""
+    n_save = round(t_end / 0.5) + 1
+    outcome = launch.integrate(scene, METHODS[method], values, {}, n_save=n_save, save_dt=0.5, dt=dt, **tolerances)
+    exact = scene.exact(values, {}, np.arange(n_save) * 0.5)
+    assert np.all(outcome.status == 0)
+    return np.abs(outcome.samples - exact).max()
+
+
+def test_the_examples_closed_form_solves_its_equation():
+    """The closed form (under-, critically and over-damped) against scipy's DOP853 at tight tolerances: an
+    independent check of the reference every method is measured against."""
+    scene = resolve(str(EXAMPLE))
+    t = np.linspace(0.0, 8.0, 33)
+    exact = scene.exact(MEMBERS, {}, t)
+    for j in range(4):
+        p = [MEMBERS[name][j] for name in ("gamma", "omega0", "F", "Omega")]
+        reference = solve_ivp(lambda s, y: scene.module.rhs(s, *y, *p), (0.0, 8.0),
+                               [MEMBERS["x0"][j], MEMBERS["v0"][j]], method="DOP853", t_eval=t, rtol=1e-12,
+                               atol=1e-13)
+        assert np.abs(reference.y.T - exact[:, :, j]).max() < 1e-10, j
+
+
+@pytest.mark.parametrize("method, order", [("euler", 1), ("rk4", 4)])
+def test_fixed_step_methods_converge_at_their_order_on_the_example(method, order):
+    scene = resolve(str(EXAMPLE))
+    assert {m.name for m in methods_for(scene)} == {"euler", "rk4", "dopri5", "exact"}
+    coarse, fine = (largest_error(scene, method, MEMBERS, dt) for dt in (0.01, 0.005))
+    assert order - 0.2 < np.log2(coarse / fine) < order + 0.3, (coarse, fine)
+
+
+def test_dopri5_meets_its_tolerance_and_the_exact_method_is_the_closed_form_on_the_example():
+    scene = resolve(str(EXAMPLE))
+    loose, tight = (largest_error(scene, "dopri5", MEMBERS, rtol=rtol, atol=rtol * 1e-3) for rtol in (1e-5, 1e-9))
+    assert tight < 1e-7 and loose / tight > 1e3, (loose, tight)
+    assert largest_error(scene, "exact", MEMBERS) == 0.0
+
+
+@pytest.mark.parametrize("method, order", [("symplectic_euler", 1), ("verlet", 2), ("yoshida4", 4)])
+def test_a_user_scenes_splittings_converge_at_their_order(tmp_path, method, order):
+    (tmp_path / "spring.py").write_text(SPRING)
+    scene = resolve(str(tmp_path / "spring.py"))
+    values = {"omega": np.array([1.0, 2.0, 3.0]), "x0": np.array([1.0, 0.5, -0.2]), "v0": np.array([0.0, 1.0, 0.4])}
+    coarse, fine = (largest_error(scene, method, values, dt) for dt in (0.02, 0.01))
+    assert order - 0.2 < np.log2(coarse / fine) < order + 0.3, (coarse, fine)
+
+
+def run(runfile: Path, out: Path, *extra):
+    return subprocess.run([sys.executable, "-m", "ensemble", "run", str(runfile), "-o", str(out), "--quiet", *extra],
+                          capture_output=True, text=True, timeout=600)
+
+
+def test_the_examples_run_file_runs_and_its_fit_finds_the_steady_amplitude(tmp_path):
+    done = run(ROOT / "runs" / "driven_oscillator.toml", tmp_path / "osc.nc")
+    assert done.returncode == 0, done.stderr
+    ds = xr.load_dataset(tmp_path / "osc.nc")
+    assert ds.attrs["scene"] == "driven_oscillator" and ds.attrs["scene_source"] == str(EXAMPLE)
+    assert ds["x"].attrs["units"] == "m" and ds["x"].dims == ("member", "t")
+    fitted = resolve(str(EXAMPLE)).fit(ds)
+    np.testing.assert_allclose(fitted["amplitude"], fitted["amplitude_theory"], rtol=2e-3)
+
+
+BROKEN = {
+    "no rhs": ("STATE = {'x': ('m', 'x')}\nPARAMETERS = {'x0': Parameter('m', 'start')}\n", "has no rhs"),
+    "wrong signature": (_ := "STATE = {'x': ('m', 'x')}\nPARAMETERS = {'k': Parameter('s-1', 'rate'), "
+                        "'x0': Parameter('m', 'start')}\n") + "def rhs(t, x):\n    return (-x,)\n",
+    "wrong size": _ + "def rhs(t, x, k):\n    return -k * x, 0.0\n",
+    "reserved name": "STATE = {'status': ('1', 's')}\nPARAMETERS = {'status0': Parameter('1', 'start')}\n"
+                     "def rhs(t, status):\n    return (0.0,)\n",
+    "does not import": _ + "def rhs(t, x, k):\n    return (-k * x,\n",
+    "does not compile": "import scipy.special\n" + _ + "def rhs(t, x, k):\n    return (scipy.special.erf(x) * k,)\n",
+}
+BROKEN["no rhs"] = BROKEN["no rhs"][0]
+SAYS = {"no rhs": "has no rhs", "wrong signature": "rhs takes 2 argument(s), (t, x); ensemble calls it as rhs(t, x, k)",
+        "wrong size": "rhs must return a tuple of 1 numbers", "reserved name": "'status' is a name every result",
+        "does not import": "does not import (line", "does not compile": "the rk4 kernel does not compile"}
+
+
+@pytest.mark.parametrize("mistake", sorted(BROKEN))
+def test_a_mistake_in_a_scene_file_is_one_line_and_exit_2_with_nothing_written(tmp_path, mistake):
+    (tmp_path / "scene.py").write_text("from ensemble import Parameter\n" + BROKEN[mistake])
+    runfile = tmp_path / "run.toml"
+    runfile.write_text('scene = "scene.py"\nmethod = "rk4"\ndt = 0.1\nt_end = 1.0\nsave_dt = 0.5\nmembers = 2\n'
+                       'seed = 1\n[parameters]\n' + ("status0 = 1.0\n" if mistake == "reserved name" else
+                                                    "x0 = 1.0\n" + ("k = 1.0\n" if mistake != "no rhs" else "")))
+    done = run(runfile, tmp_path / "out" / "result.nc")
+    assert done.returncode == 2, done.stderr
+    assert len(done.stderr.strip().splitlines()) == 1 and SAYS[mistake] in done.stderr, done.stderr
+    assert "Traceback" not in done.stderr and not (tmp_path / "out").exists() or not any((tmp_path / "out").iterdir())
+
+
+def test_an_unknown_scene_name_says_what_a_scene_can_be():
+    with pytest.raises(SceneError, match="unknown scene 'pendulum'; scenes: top, chain, body, or a scene file"):
+        resolve("pendulum")
+
+
+def test_the_reserved_names_are_every_name_a_result_gives_each_member():
+    from ensemble.scenes.contract import RESERVED
+    from ensemble.store import RUN_RECORDS, SETTING_UNITS
+
+    assert {"t", "member", "method", *RUN_RECORDS, *SETTING_UNITS} <= set(RESERVED)
