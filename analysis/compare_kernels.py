@@ -1,11 +1,12 @@
 """The kernels of two revisions of ensemble, alternated in the same minutes: a change's effect on each kernel.
 
-    python analysis/compare_kernels.py OLD [NEW] [--repeats 5] [--members 16384] [--steps 2000]
+    python analysis/compare_kernels.py OLD [NEW] [--repeats 5] [--members 16384] [--steps 10000] [--only top]
 
 Checks out OLD and NEW (default: the working tree) as compare_revisions.py does, each with a Numba cache of its
 own, and times every method's kernel on tops and free bodies (launch.integrate, the kernel alone after one
-untimed call that compiles it) in one process per revision and round, the revisions alternated. Prints each
-kernel's member-steps per second, median of the rounds, and new / old.
+untimed call that compiles it) in one process per revision and round, the revisions alternated (--only: the
+kernels whose name, "top rk4" say, contains the text). Prints each kernel's member-steps per second, median of
+the rounds, the rounds' spread, and new / old.
 """
 from __future__ import annotations
 
@@ -41,7 +42,7 @@ rates = {{}}
 for name, table in values.items():
     scene = SCENES[name]
     for method in methods_for(scene):
-        if method.closed_form:
+        if method.closed_form or {only!r} not in f"{{name}} {{method.name}}":
             continue
         settings = dict(rtol=1e-8, atol=1e-10) if method.adaptive else dict(dt=1e-3)
         def call():
@@ -61,10 +62,11 @@ def main(argv=None) -> None:
     parser.add_argument("new", nargs="?", help="a git revision (default: the working tree)")
     parser.add_argument("--repeats", type=positive_int, default=5)
     parser.add_argument("--members", type=positive_int, default=16384)
-    parser.add_argument("--steps", type=positive_int, default=2000, help="steps per member per call")
+    parser.add_argument("--steps", type=positive_int, default=10000, help="steps per member per call")
+    parser.add_argument("--only", default="", help="time only the kernels whose name contains this")
     args = parser.parse_args(argv)
     print(host(), flush=True)
-    code = TIMER.format(members=args.members, steps=args.steps)
+    code = TIMER.format(members=args.members, steps=args.steps, only=args.only)
     with tempfile.TemporaryDirectory() as tmp, checked_out(parser, args.old, args.new, Path(tmp)) as trees:
         rounds = {name: [] for name in trees}
         for _ in range(args.repeats):
@@ -74,10 +76,13 @@ def main(argv=None) -> None:
                     raise SystemExit(f"compare_kernels: {name}: {done.stderr.strip().splitlines()[-1]}")
                 rounds[name].append(json.loads(done.stdout))
     (old_name, old), (new_name, new) = rounds.items()
-    print(f"{'kernel':<18} {old_name:>14} {new_name:>14}  new / old   (member-steps/s, medians of {args.repeats})")
+    print(f"{'kernel':<18} {old_name:>14} {new_name:>14}  new / old   (member-steps/s, medians of {args.repeats}; "
+          f"each revision's slowest and fastest round)")
     for kernel in old[0]:
         a, b = (statistics.median(r[kernel] for r in runs) for runs in (old, new))
-        print(f"{kernel:<18} {a:>14.3g} {b:>14.3g}  {b / a:.3f}")
+        spread = "  ".join(f"{min(r[kernel] for r in runs):.3g} to {max(r[kernel] for r in runs):.3g}"
+                           for runs in (old, new))
+        print(f"{kernel:<18} {a:>14.3g} {b:>14.3g}  {b / a:.3f}   {spread}")
 
 
 if __name__ == "__main__":

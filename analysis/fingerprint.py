@@ -43,12 +43,14 @@ def fingerprints(ds: xr.Dataset) -> dict[str, str]:
 def fits_of(ds: xr.Dataset) -> dict[str, xr.Dataset]:
     """The fits the analysis scripts write for this result."""
     from ensemble import fit, stability
+    from ensemble.scenes.chain import fits as chain_fit
+    from ensemble.scenes.top import fits as top_fit
 
     out = {}
     if ds.attrs.get("scene") == "top" and "tilt" in ds and ds.sizes["t"] >= fit.MIN_SAMPLES:
-        out["tilt_decay"] = fit.tilt_decay(ds)
+        out["tilt_decay"] = top_fit.tilt_decay(ds)
     if ds.attrs.get("scene") == "chain" and "x" in ds and ds.sizes["t"] >= fit.MIN_SAMPLES:
-        out["normal_modes"] = fit.mode_frequencies(ds)
+        out["normal_modes"] = chain_fit.mode_frequencies(ds)
     if "error_max" in ds:
         out["work_precision"] = fit.work_precision(ds)
     if "growth_per_step" in ds and ds.attrs.get("members_per_sweep_point") == 1:

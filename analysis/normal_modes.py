@@ -15,7 +15,8 @@ import sys
 
 import numpy as np
 
-from ensemble import fit, report
+from ensemble import report
+from ensemble.scenes.chain import fits as chain_fit
 
 
 def label(sel, point, mode) -> str:
@@ -62,7 +63,7 @@ def main(argv=None) -> int:
         if not 0 <= args.member < ds.sizes["member"]:
             raise ValueError(f"--member {args.member} is not in 0..{ds.sizes['member'] - 1}")
 
-    return report.run_script(args, fit.mode_frequencies, name="normal_modes", value="frequency", units="rad/s",
+    return report.run_script(args, chain_fit.mode_frequencies, name="normal_modes", value="frequency", units="rad/s",
                              title="normal-mode frequencies", label=label, validate=validate,
                              draw=lambda *a: draw(*a, member=args.member))
 

@@ -17,8 +17,9 @@ import sys
 
 import numpy as np
 
-from ensemble import arguments, fit, report
+from ensemble import arguments, report
 from ensemble.scenes import body
+from ensemble.scenes.body import fits as body_fit
 
 QUANTITIES = (("growth_rate", "1/s", "growth rates of small tilts"),
               ("wobble_frequency", "rad/s", "wobble frequencies of small tilts"),
@@ -83,7 +84,7 @@ def main(argv=None) -> int:
     parser = report.parser(__doc__)
     parser.add_argument("--sample", type=arguments.positive_int, default=6, help="members drawn in the tilt chart")
     args = parser.parse_args(argv)
-    return report.run_script(args, fit.body_rates, name="rigid_body", value=QUANTITIES, units="",
+    return report.run_script(args, body_fit.body_rates, name="rigid_body", value=QUANTITIES, units="",
                              title="free-body motions", label=label,
                              draw=lambda *a: draw(*a, sample=args.sample))
 

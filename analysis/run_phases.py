@@ -43,7 +43,6 @@ from hostinfo import host  # noqa: E402
 from ensemble import cli, parts, runner, store  # noqa: E402
 from ensemble.arguments import OneLineParser, positive_int  # noqa: E402
 from ensemble.engine import launch  # noqa: E402
-from ensemble.scenes import SCENES  # noqa: E402
 from ensemble.spec import SpecError, load, parse  # noqa: E402
 
 totals: dict[str, float] = collections.defaultdict(float)
@@ -108,8 +107,8 @@ def main(argv=None) -> None:
     except SpecError as e:
         parser.error(f"{args.runfile or args.workload}: {e}")
     cli._skip_numba_blas_probe()  # as `ensemble run` does, so loading the kernels takes what it takes there
-    timed(SCENES[spec.scene], "observe", "  observing")
-    timed(SCENES[spec.scene], "amplitudes", "  amplitudes")
+    timed(spec.model, "observe", "  observing")
+    timed(spec.model, "amplitudes", "  amplitudes")
     time_kernel_calls()
     timed(runner, "_keep", "finishing")
     timed(runner, "growth_per_step", "  growth fit")

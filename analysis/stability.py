@@ -28,7 +28,7 @@ from ensemble.arguments import OneLineParser
 from ensemble.errors import EXIT_BAD_INPUT
 from ensemble.methods import METHODS
 from ensemble.results import Status
-from ensemble.scenes import SCENES
+from ensemble.scenes import of_result
 
 LIMIT_RTOL = 0.02  # --check: measured limits within this of theory
 
@@ -63,7 +63,7 @@ def print_limits(rows: list[dict], points: xr.Dataset) -> None:
 
 
 def draw_map(plt, points: xr.Dataset, rows: list[dict], stem: Path) -> Path:
-    scene = SCENES[points.attrs["scene"]]
+    scene = of_result(points.attrs)
     axes_used = [a for a in scene.STABILITY_AXES if (points["axis"].values == a).any()]
     fig, panels = plt.subplots(1, len(axes_used), figsize=(6.5 * len(axes_used), 5), layout="constrained",
                                squeeze=False)
@@ -109,7 +109,7 @@ def draw_energy(plt, ds: xr.Dataset, points: xr.Dataset, drift_step: float, stem
     except fit.FitError as e:
         print(f"no energy chart: {e}")
         return None
-    oscillation = SCENES[points.attrs["scene"]].STABILITY_AXES[0]  # the energy is conserved without drag
+    oscillation = of_result(points.attrs).STABILITY_AXES[0]  # the energy is conserved without drag
     fig, ax = plt.subplots(figsize=(7, 4.5), layout="constrained")
     drawn = False
     for i, method in enumerate(dict.fromkeys(points["method"].values)):

@@ -14,7 +14,8 @@ import sys
 
 import numpy as np
 
-from ensemble import arguments, fit, report
+from ensemble import arguments, report
+from ensemble.scenes.top import fits as top_fit
 
 
 def label(sel, point, mode) -> str:
@@ -52,7 +53,7 @@ def main(argv=None) -> int:
     parser = report.parser(__doc__)
     parser.add_argument("--sample", type=arguments.positive_int, default=6, help="members drawn in the tilt chart")
     args = parser.parse_args(argv)
-    return report.run_script(args, fit.tilt_decay, name="tilt_decay", value="rate", units="1/s",
+    return report.run_script(args, top_fit.tilt_decay, name="tilt_decay", value="rate", units="1/s",
                              title="tilt decay rates", label=label,
                              draw=lambda *a: draw(*a, sample=args.sample))
 

@@ -16,7 +16,7 @@ from scipy.optimize import brentq
 from . import fit
 from .methods import METHODS
 from .results import Status
-from .scenes import SCENES
+from .scenes import of_result
 
 #: A member counts as growing when its measured factor per step exceeds 1 by more than this.
 GROWTH_TOLERANCE = 1e-3
@@ -90,7 +90,7 @@ def stability_map(ds: xr.Dataset) -> xr.Dataset:
     step_growth at the member's h) and status. Closed-form members are left
     out.
     """
-    scene = SCENES.get(ds.attrs.get("scene"))
+    scene = of_result(ds.attrs)
     if scene is None:
         raise fit.FitError("stability_map needs a result of `ensemble run`")
     if "growth_per_step" not in ds:
@@ -119,6 +119,8 @@ def stability_map(ds: xr.Dataset) -> xr.Dataset:
                                                           "flag_values": Status.flag_values(),
                                                           "flag_meanings": Status.flag_meanings()})
     out.attrs["scene"] = ds.attrs["scene"]
+    if "scene_source" in ds.attrs:
+        out.attrs["scene_source"] = ds.attrs["scene_source"]
     return out
 
 
@@ -129,7 +131,7 @@ def stability_limits(points: xr.Dataset) -> list[dict]:
     measured, last_stable, first_growing (see measured_limit), members.
     Adaptive methods are left out: their step control chooses x.
     """
-    scene = SCENES[points.attrs["scene"]]
+    scene = of_result(points.attrs)
     rows = []
     for name in dict.fromkeys(points["method"].values):
         method = METHODS[name]
@@ -150,7 +152,7 @@ def stability_limits(points: xr.Dataset) -> list[dict]:
 def energy_drift(ds: xr.Dataset) -> xr.DataArray:
     """|E(t) / E(0) - 1| over (member, t) for members whose energy the physics conserves; NaN elsewhere
     (see the scene's conserved_energy: a chain's saved energy, a top's kinetic energy without drag)."""
-    scene = SCENES.get(ds.attrs.get("scene"))
+    scene = of_result(ds.attrs)
     if scene is None:
         raise fit.FitError("energy_drift needs a result of `ensemble run`")
     try:

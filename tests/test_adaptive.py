@@ -10,6 +10,7 @@ from ensemble.engine import launch
 from ensemble.methods import DOPRI5, METHODS
 from ensemble.records import measured_error
 from ensemble.scenes import top
+from ensemble.scenes.top import fits as top_fit
 from ensemble.spec import SpecError, members_table, parse
 from tests.conftest import top_runfile
 
@@ -103,7 +104,7 @@ def test_tolerances_and_methods_sweep_in_grids_and_are_recorded():
     # members of one kernel call share its timing
     assert ds.seconds_per_step.values[0] == ds.seconds_per_step.values[1]
     # fits know each member's method: rk4's prediction differs from split4's (which is the physics)
-    rates = fit.tilt_decay(ds)
+    rates = top_fit.tilt_decay(ds)
     assert np.all(rates.rate_method.values[4:] == rates.rate_theory.values[4:])
 
 

@@ -16,6 +16,7 @@ from ensemble import fit, runner
 from ensemble.engine import launch
 from ensemble.methods import METHODS
 from ensemble.scenes import body, top
+from ensemble.scenes.body import fits as body_fit
 from ensemble.spec import parse
 from tests.conftest import refused
 
@@ -299,7 +300,7 @@ def fitted(tmp_path, method="rk4", dt=1e-3, t_end=12.0, members=6, c=0.0, axis=2
     text = FIT_RUN.format(method=method, dt=dt, t_end=t_end, members=members, c=c, axis=axis, tilt0=tilt0,
                           observe=observe, save_dt=save_dt)
     runner.run(parse(text, "fit.toml"), path, progress=False)
-    return fit.body_rates(xr.load_dataset(path), **kw)
+    return body_fit.body_rates(xr.load_dataset(path), **kw)
 
 
 @pytest.mark.parametrize("axis, name", [(1, "wobble_frequency"), (2, "growth_rate"), (3, "wobble_frequency")])
@@ -367,7 +368,7 @@ def test_body_rates_refuses_a_top_result(tmp_path):
                         "lambda1 = 1.0\nlambda3 = 2.0").replace("spin_axis = 2\n", "")
     runner.run(parse(text, "top.toml"), path, progress=False)
     with pytest.raises(fit.FitError, match="body_rates needs a body result; this one is a 'top' result"):
-        fit.body_rates(xr.load_dataset(path))
+        body_fit.body_rates(xr.load_dataset(path))
 
 
 def test_rigid_body_script_checks_the_course_plate(tmp_path):

@@ -3,8 +3,9 @@ import numpy as np
 import pytest
 import xarray as xr
 
-from ensemble import fit, runner
+from ensemble import runner
 from ensemble.combine import open_results
+from ensemble.scenes.top import fits as top_fit
 from ensemble.spec import parse
 from tests.conftest import top_runfile
 
@@ -42,7 +43,7 @@ def test_groupby_and_fits_work_on_the_combined_dataset(two_runs):
     by_c = combined["tilt0"].groupby(combined["c"]).mean()
     run = xr.load_dataset(two_runs[0])
     np.testing.assert_allclose(by_c.values, run["tilt0"].groupby(run["c"]).mean().values, rtol=1e-15)
-    together, alone = fit.tilt_decay(combined), fit.tilt_decay(run)
+    together, alone = top_fit.tilt_decay(combined), top_fit.tilt_decay(run)
     np.testing.assert_array_equal(together["rate"].values, np.concatenate([alone["rate"].values] * 2))
 
 

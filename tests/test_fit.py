@@ -11,6 +11,8 @@ from scipy import stats
 from ensemble import fit, runner, spec
 from ensemble.methods import METHODS
 from ensemble.scenes import chain
+from ensemble.scenes.chain import fits as chain_fit
+from ensemble.scenes.top import fits as top_fit
 
 from .conftest import top_runfile
 
@@ -59,7 +61,7 @@ def test_splitting_eigenvalues_give_the_verlet_frequency():
 
 def test_exact_tilt_decay_reproduces_the_course_rate():
     ds = simulate(top_runfile(method="exact", t_end=30.0, members=3, parameters={"c": None}, sweep={"c": [5e-5, 2e-4]}))
-    fitted = fit.tilt_decay(ds)
+    fitted = top_fit.tilt_decay(ds)
     assert np.allclose(fitted.rate, fitted.rate_theory, rtol=1e-8)
     assert np.allclose(fitted.rate_theory.values, ds.c.values * (1 / 1e-3 - 1 / 2e-3))
     assert fitted.attrs["members_failed"] == 0
@@ -67,7 +69,7 @@ def test_exact_tilt_decay_reproduces_the_course_rate():
 
 def test_prolate_tilt_grows_as_a_negative_rate():
     ds = simulate(small(RUNS / "prolate.toml", 3))
-    fitted = fit.tilt_decay(ds)
+    fitted = top_fit.tilt_decay(ds)
     assert np.all(fitted.rate < 0)
     assert np.allclose(fitted.rate, -0.1, rtol=1e-8)
 
@@ -75,14 +77,14 @@ def test_prolate_tilt_grows_as_a_negative_rate():
 def test_euler_shows_its_own_tilt_rate_not_the_physics():
     # W h = 0.06 per step: euler multiplies the transverse rates by |1 + h (i W - r1)| > 1 each step.
     ds = simulate(top_runfile(method="euler", dt=1e-3, t_end=5.0, members=2))
-    fitted = fit.tilt_decay(ds)
+    fitted = top_fit.tilt_decay(ds)
     assert np.all(fitted.rate_method < 0) and np.all(fitted.rate_theory > 0)
     assert np.allclose(fitted.rate, fitted.rate_method, rtol=2e-3)
 
 
 def test_noisy_tilt_error_bars_are_calibrated():
     text = small(RUNS / "aerobie_noisy.toml", 150)
-    fitted = fit.tilt_decay(simulate(text))
+    fitted = top_fit.tilt_decay(simulate(text))
     z = fitted.z.values
     assert np.all(np.isfinite(z)) and z.size == 450
     assert stats.kstest(z, "norm").pvalue > 0.01
@@ -94,9 +96,9 @@ def test_noisy_tilt_error_bars_are_calibrated():
 def test_noisy_tilt_is_not_fitted_below_the_noise():
     ds = simulate(top_runfile(method="exact", t_end=200.0, save_dt=0.5, members=2, parameters={"c": 2e-4})
                   + '[observe]\nnoise = { tilt = 0.002 }\n')
-    fitted = fit.tilt_decay(ds)
+    fitted = top_fit.tilt_decay(ds)
     model = np.arctan(np.tan(ds.tilt0.values[:, None]) * np.exp(-0.1 * ds.t.values[None, :]))
-    assert np.all(fitted.samples_used.values <= (model > fit.NOISE_WINDOW * 0.002).sum(axis=1))
+    assert np.all(fitted.samples_used.values <= (model > top_fit.NOISE_WINDOW * 0.002).sum(axis=1))
     assert np.all(fitted.samples_used.values < ds.sizes["t"] / 2)
 
 
@@ -105,7 +107,7 @@ def test_noisy_tilt_is_not_fitted_below_the_noise():
 
 def test_course_two_mass_chain_frequency():
     """Started from random displacements, both modes ring at Verlet's (2/h) asin(w h / 2), w^2 = k/m and 3k/m."""
-    fitted = fit.mode_frequencies(simulate(small(RUNS / "two_mass.toml", 2)))
+    fitted = chain_fit.mode_frequencies(simulate(small(RUNS / "two_mass.toml", 2)))
     verlet = 2 / 1e-3 * np.arcsin(np.array([1.0, np.sqrt(3.0)]) * 1e-3 / 2)
     assert np.allclose(fitted.frequency, verlet, rtol=1e-8)
     assert np.allclose(fitted.frequency_method, verlet, rtol=1e-14)
@@ -117,7 +119,7 @@ def test_a_mode_start_excites_that_mode_alone():
     """Started in mode 2, the start's amplitude in mode 1 is rounding (not excited) and mode 1 is not found."""
     text = small(RUNS / "two_mass.toml", 2).replace("x0 = { normal = [0.0, 0.1] }",
                                                     "x0 = { mode = 2, amplitude = 0.1 }")
-    fitted = fit.mode_frequencies(simulate(text))
+    fitted = chain_fit.mode_frequencies(simulate(text))
     assert np.all(np.isnan(fitted.frequency.sel(mode=1))) and np.all(fitted.excited.sel(mode=1) == 0)
     assert np.all(fitted.excited.sel(mode=2) == 1)
     # mode 2's shape is (1, -1) / sqrt(2 m) (M-normalized), so amplitude 0.1 at each mass is 0.1 sqrt(2)
@@ -126,7 +128,7 @@ def test_a_mode_start_excites_that_mode_alone():
 
 def test_uniform_32_chain_frequencies_from_data_alone():
     ds = simulate(small(RUNS / "uniform32.toml", 1).replace('method = "yoshida4"', 'method = "exact"'))
-    fitted = fit.mode_frequencies(ds)
+    fitted = chain_fit.mode_frequencies(ds)
     j = np.arange(1, 33)
     formula = 2 * np.sin(j * np.pi / 66)
     assert np.allclose(fitted.frequency.values, formula, rtol=1e-8)
@@ -135,14 +137,15 @@ def test_uniform_32_chain_frequencies_from_data_alone():
 
 def test_disordered_verlet_chain_shows_the_verlet_frequencies():
     """At dt = 0.01 s (the run file takes 1e-3 s, where Verlet's shift is below the check's tolerance)."""
-    fitted = fit.mode_frequencies(simulate(small(RUNS / "disordered.toml", 2).replace("dt = 1e-3 ", "dt = 0.01 ")))
+    text = small(RUNS / "disordered.toml", 2).replace("dt = 1e-3 ", "dt = 0.01 ")
+    fitted = chain_fit.mode_frequencies(simulate(text))
     assert np.allclose(fitted.frequency, fitted.frequency_method, rtol=1e-8)
     assert not np.allclose(fitted.frequency, fitted.frequency_theory, rtol=1e-6)  # the integrator effect shows
 
 
 def test_noisy_chain_error_bars_are_calibrated():
     text = chain_runfile(members=200, x0="{ uniform = [-0.1, 0.1] }", noise=0.01)
-    fitted = fit.mode_frequencies(simulate(text))
+    fitted = chain_fit.mode_frequencies(simulate(text))
     for mode in (1, 2):
         z = fitted.z.sel(mode=mode).values
         z = z[np.isfinite(z)]
@@ -156,22 +159,22 @@ def test_noisy_chain_error_bars_are_calibrated():
 def test_wrong_scene_missing_variables_and_short_records_are_errors():
     top_ds = simulate(top_runfile(members=1, t_end=1.0))
     with pytest.raises(fit.FitError, match="needs a chain result"):
-        fit.mode_frequencies(top_ds)
+        chain_fit.mode_frequencies(top_ds)
     with pytest.raises(fit.FitError, match="lacks tilt"):
-        fit.tilt_decay(top_ds.drop_vars("tilt"))
+        top_fit.tilt_decay(top_ds.drop_vars("tilt"))
     with pytest.raises(fit.FitError, match="at least 5"):
-        fit.tilt_decay(top_ds.isel(t=slice(0, 3)))
+        top_fit.tilt_decay(top_ds.isel(t=slice(0, 3)))
 
 
 def test_members_that_cannot_be_fitted_are_counted_not_averaged():
     ds = simulate(chain_runfile(members=3))
     ds["x"][1, 10] = np.nan
-    fitted = fit.mode_frequencies(ds)
+    fitted = chain_fit.mode_frequencies(ds)
     assert np.all(np.isnan(fitted.frequency[1])) and np.all(np.isfinite(fitted.frequency[[0, 2]]))
     assert fitted.attrs["members_failed"] == 1
     top_ds = simulate(top_runfile(members=2, t_end=1.0))
     top_ds["tilt"][0] = np.nan
-    fitted = fit.tilt_decay(top_ds)
+    fitted = top_fit.tilt_decay(top_ds)
     assert np.isnan(fitted.rate[0]) and np.isfinite(fitted.rate[1]) and fitted.attrs["members_failed"] == 1
 
 

@@ -324,8 +324,8 @@ def test_not_a_top_names_its_three_moments():
 
 
 def test_an_annulus_top_decays_at_the_course_rate_and_records_its_body():
-    from ensemble import fit
     from ensemble.runner import simulate
+    from ensemble.scenes.top import fits as top_fit
     from ensemble.spec import parse
 
     ds = simulate(parse(ring_runfile('{ shape = "annulus", mass = 0.1, r_inner = 0.1, r_outer = 0.13 }')))
@@ -333,7 +333,7 @@ def test_an_annulus_top_decays_at_the_course_rate_and_records_its_body():
     assert "annulus" in ds.lambda1.attrs["comment"]
     lambda1 = 0.1 * (0.1**2 + 0.13**2) / 4
     np.testing.assert_allclose(ds.lambda1, lambda1, rtol=1e-14)
-    rates = fit.tilt_decay(ds)
+    rates = top_fit.tilt_decay(ds)
     # flat: 1/lambda1 - 1/lambda3 = 1/(2 lambda1)
     np.testing.assert_allclose(rates.rate, 1e-4 / (2 * lambda1), rtol=1e-9)
 

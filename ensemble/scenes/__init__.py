@@ -67,6 +67,16 @@ def resolve(name: str) -> Scene:
                      f"module (package.scene)")
 
 
+def of_result(attrs: dict) -> Scene | None:
+    """The scene a result was run with, from its attributes (`scene_source` for a user's scene, else `scene`);
+    None for a file ensemble did not write or a scene that cannot be found here."""
+    name = attrs.get("scene_source") or attrs.get("scene")
+    try:
+        return resolve(name) if isinstance(name, str) else None
+    except SceneError:
+        return None
+
+
 @cache
 def _user_scene(where: str) -> UserScene:
     return UserScene(load(where), where)

@@ -368,3 +368,10 @@ def amplitudes(samples: np.ndarray, values: dict[str, np.ndarray], constants: di
     w = samples.transpose(1, 0, 2)
     k, i, j = spin_axes(values["spin_axis"])
     return np.stack((np.hypot(_pick(w, i), _pick(w, j)), np.abs(_pick(w, k)))).transpose(2, 0, 1)
+
+
+def fit(ds):
+    """The scene's fit of a result (ensemble.scenes.body.fits.body_rates), an xarray Dataset over its members."""
+    from .fits import body_rates  # scipy and xarray: only when fitting
+
+    return body_rates(ds)

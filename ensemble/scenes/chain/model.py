@@ -307,3 +307,10 @@ def conserved_energy(ds) -> np.ndarray:
     if "energy" not in ds:
         raise KeyError("energy")
     return ds["energy"].values
+
+
+def fit(ds):
+    """The scene's fit of a result (ensemble.scenes.chain.fits.mode_frequencies), an xarray Dataset over its members."""
+    from .fits import mode_frequencies  # scipy and xarray: only when fitting
+
+    return mode_frequencies(ds)

@@ -269,3 +269,10 @@ def observe(samples: np.ndarray, names, values: dict[str, np.ndarray], constants
     if "tilt" in names:
         out["tilt"] = observed_tilt(omega)
     return out
+
+
+def fit(ds):
+    """The scene's fit of a result (ensemble.scenes.top.fits.tilt_decay), an xarray Dataset over its members."""
+    from .fits import tilt_decay  # scipy and xarray: only when fitting
+
+    return tilt_decay(ds)
