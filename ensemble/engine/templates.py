@@ -90,6 +90,11 @@ RUNGE_KUTTA_STEPS = '''            for step in range(steps_per_save):
 {add_sums}
 {store_step}'''
 
+# Splittings of at most UNROLLED pieces loop over their sequence, which LLVM unrolls; longer ones are written out
+# piece by piece: the body's rotations4 (19 pieces) ran 4.8 times faster so (analysis/README.md). Written out, the
+# top's split4 (7 pieces) took other last bits than its loop gives, so shorter sequences keep the loop.
+UNROLLED = 8
+
 SPLITTING = '''
 E = {E}
 PIECES = {pieces}  # the sequence: piece numbers and fractions of the step
@@ -104,9 +109,7 @@ SPLITTING_STEPS = '''{enter_pieces}
                 for j in range(B):
 {load_y}
 {load_p}
-                    for e in range(E):
-                        tau = h * FRACTIONS[e]
-{apply_pieces}
+{apply_sequence}
 {store_y}
 {leave_pieces}'''
 
@@ -223,11 +226,18 @@ def splitting(method: Method, D: int, P: int, pieces: tuple[str, ...], factors: 
             store_factors += [f"if PIECES[e] == {number}:", "    for j in range(B):", _loads("p", P, "D", 8),
                               f"        {_names('f', n)} = {name}_factors(tau, {ps})"]
             store_factors += [f"        work[(D + P + FACTORS * e + {c}) * B + j] = f{c}" for c in range(n)]
-    apply = []
-    for number, name in enumerate(pieces):
-        extra = "".join(f", work[(D + P + FACTORS * e + {c}) * B + j]" for c in range(factors.get(name, 0)))
-        apply += [f"{'if' if not apply else 'elif'} PIECES[e] == {number}:",
-                  f"    {ys} = {name}(tau, {y_args}, {ps}{extra})"]
+    if E <= UNROLLED:  # a loop over the sequence with a branch per piece; LLVM unrolls it and folds the branches
+        apply = ["for e in range(E):", "    tau = h * FRACTIONS[e]"]
+        for number, name in enumerate(pieces):
+            extra = "".join(f", work[(D + P + FACTORS * e + {c}) * B + j]" for c in range(factors.get(name, 0)))
+            apply += [f"    {'if' if number == 0 else 'elif'} PIECES[e] == {number}:",
+                      f"        {ys} = {name}(tau, {y_args}, {ps}{extra})"]
+    else:  # a longer sequence written out, one piece a line
+        apply = []
+        for e, number in enumerate(sequence):
+            name = pieces[number]
+            extra = "".join(f", work[(D + P + FACTORS * {e} + {c}) * B + j]" for c in range(factors.get(name, 0)))
+            apply.append(f"{ys} = {name}(h * FRACTIONS[{e}], {y_args}, {ps}{extra})")
 
     def change(function: str) -> str:
         if not coordinates:
@@ -239,7 +249,7 @@ def splitting(method: Method, D: int, P: int, pieces: tuple[str, ...], factors: 
     steps = SPLITTING_STEPS.format(
         enter_pieces=change("to_pieces"), leave_pieces=change("from_pieces"),
         load_y=_loads("y", D, "", 20), load_p=_loads("p", P, "D", 20),
-        apply_pieces="\n".join(" " * 24 + line for line in apply),
+        apply_sequence="\n".join(" " * 20 + line for line in apply),
         store_y="\n".join(" " * 20 + f"work[{_row(c)}] = y{c}" for c in range(D)))
     first_call = SPLITTING_FIRST_CALL.format(
         store_factors="\n".join(" " * 16 + line.replace("\n", "\n" + " " * 16) for line in store_factors)
