@@ -307,7 +307,8 @@ def work_precision(ds: xr.Dataset) -> xr.Dataset:
         chosen = points == point
         first = np.flatnonzero(chosen)[0]
         taken = np.median(steps[chosen])
-        mean_step = float(ds.attrs["t_end"]) / np.median(ds["steps_accepted"].values[chosen])
+        accepted = np.median(ds["steps_accepted"].values[chosen])
+        mean_step = float(ds.attrs["t_end"]) / accepted if accepted > 0 else np.nan  # the closed form takes none
         rows.append((methods[first], dt[first] if np.isfinite(dt[first]) else mean_step, rtol[first],
                      np.median(ds["error_max"].values[chosen]), taken, np.median(ds["rhs_evals"].values[chosen]),
                      np.median(timing[chosen] * steps[chosen])))
