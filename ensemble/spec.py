@@ -648,8 +648,7 @@ def _values(spec: Spec, name: str, value, start: int, n: int, sizes: dict[str, i
         return value.draw(spec.seed, name, start * per_member, n * per_member).reshape(shape)
     if isinstance(value, list):
         if len(value) != shape[1]:
-            raise SpecError(f"parameters.{name}", f"has {len(value)} values; this chain has {shape[1]} "
-                                                  f"{'masses' if per == 'site' else 'springs'}")
+            raise SpecError(f"parameters.{name}", f"has {len(value)} values; one per {per} takes {shape[1]}")
         return np.tile(np.array(value, dtype=float), (n, 1))
     return np.full(shape, value, dtype=float)
 

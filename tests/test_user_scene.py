@@ -189,3 +189,33 @@ def test_a_user_scene_chunks_resumes_runs_on_dask_and_measures_its_error_like_a_
         remote = tmp_path / "remote.nc"
         runner.run(load(path), remote, chunk=4, progress=False, client=client)
     same_bits(remote, whole)
+
+
+def test_an_edited_scene_file_compiles_anew_and_an_unchanged_one_loads_from_the_cache(tmp_path):
+    """Numba's cache keys a generated kernel on its file, whose text holds a hash of the scene's file: the same
+    scene loads its kernel from the cache in a new process, and an edited one compiles a kernel of its own."""
+    import os
+
+    scene = tmp_path / "decay.py"
+    text = ("from ensemble import Parameter\nSTATE = {'x': ('m', 'x')}\n"
+            "PARAMETERS = {'k': Parameter('s-1', 'rate'), 'x0': Parameter('m', 'start')}\n"
+            "def rhs(t, x, k):\n    return (-FACTOR * k * x,)\n")
+    scene.write_text(text.replace("FACTOR", "1.0"))
+    runfile = tmp_path / "run.toml"
+    runfile.write_text('scene = "decay.py"\nmethod = "rk4"\ndt = 0.01\nt_end = 1.0\nsave_dt = 1.0\nmembers = 1\n'
+                       'seed = 1\n[parameters]\nk = 1.0\nx0 = 1.0\n')
+    cache = tmp_path / "cache"
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(cache)}
+
+    def run(name):
+        done = subprocess.run([sys.executable, "-m", "ensemble", "run", str(runfile), "-o", str(tmp_path / name),
+                               "--quiet"], capture_output=True, text=True, env=env, timeout=600)
+        assert done.returncode == 0, done.stderr
+        return float(xr.load_dataset(tmp_path / name)["x"][0, -1]), sorted(p.name for p in cache.rglob("*.nbc"))
+
+    first, compiled = run("first.nc")
+    again, loaded = run("again.nc")
+    assert again == first == pytest.approx(np.exp(-1.0), rel=1e-7) and loaded == compiled
+    scene.write_text(text.replace("FACTOR", "2.0"))
+    edited, recompiled = run("edited.nc")
+    assert edited == pytest.approx(np.exp(-2.0), rel=1e-7) and len(recompiled) > len(compiled)

@@ -126,7 +126,11 @@ def _load(source: str, label: str) -> ModuleType:
     if name in sys.modules:
         return sys.modules[name]
     folder = kernel_folder()
-    folder.mkdir(parents=True, exist_ok=True)
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError:  # a home folder that cannot be written (some cluster nodes): this machine's temporary folder
+        folder = Path(tempfile.gettempdir()) / f"ensemble-kernels-{os.getuid()}"
+        folder.mkdir(parents=True, exist_ok=True)
     path = folder / f"{name}.py"
     if not path.exists():
         # Written under a temporary name and linked into place: never half a file, never a rewrite (other
