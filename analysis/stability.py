@@ -25,7 +25,7 @@ import xarray as xr
 
 from ensemble import fit, report, stability
 from ensemble.arguments import OneLineParser
-from ensemble.errors import EXIT_BAD_INPUT
+from ensemble.errors import EXIT_BAD_INPUT, EXIT_CHECK_FAILED, EXIT_OK
 from ensemble.methods import METHODS
 from ensemble.results import Status
 from ensemble.scenes import of_result
@@ -161,7 +161,7 @@ def main(argv=None) -> int:
             print("charts:", *[c for c in charts if c is not None])
     except OSError as e:
         report.cannot_write(out.parent, e)
-    return 1 if args.check and not all(limit_agrees(r) for r in rows) else 0
+    return EXIT_CHECK_FAILED if args.check and not all(limit_agrees(r) for r in rows) else EXIT_OK
 
 
 if __name__ == "__main__":

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import argparse
 
-from .errors import EXIT_BAD_INPUT, EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK  # noqa: F401 (the scripts' table)
+from .errors import EXIT_BAD_INPUT, EXIT_CHECK_FAILED, EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK  # noqa: F401
 
 
 class OneLineParser(argparse.ArgumentParser):

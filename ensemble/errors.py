@@ -6,6 +6,7 @@ wrong and where; its `exit_status` is the status `ensemble` and the analysis scr
 | status | meaning |
 |---|---|
 | 0 | done (members that blew up are counted in the summary, not an error) |
+| 1 | a fit's --check found results that disagree with the theory |
 | 2 | bad input: nothing was run, nothing written |
 | 3 | the run started and failed midway (a full disk, chunks that kept failing on a cluster): its finished chunks
       stay for --resume |
@@ -14,6 +15,7 @@ wrong and where; its `exit_status` is the status `ensemble` and the analysis scr
 from __future__ import annotations
 
 EXIT_OK = 0
+EXIT_CHECK_FAILED = 1
 EXIT_BAD_INPUT = 2
 EXIT_FAILED = 3
 EXIT_INTERRUPTED = 130

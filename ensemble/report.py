@@ -13,7 +13,7 @@ import numpy as np
 import xarray as xr
 
 from .arguments import OneLineParser
-from .errors import EXIT_BAD_INPUT
+from .errors import EXIT_BAD_INPUT, EXIT_CHECK_FAILED, EXIT_OK
 
 Z_TOLERANCE = 5.0  # a sweep point passes when its mean is within this many standard errors of theory...
 RTOL = 1e-6  # ...or within this relative difference (noise-free runs have tiny standard errors)
@@ -187,7 +187,7 @@ def run_script(args, fit_function, *, name: str, value, units: str, title: str, 
             print("charts:", *paths)
     except OSError as e:
         cannot_write(out.parent, e)
-    return 1 if args.check and not all(r.checked for r in table) else 0
+    return EXIT_CHECK_FAILED if args.check and not all(r.checked for r in table) else EXIT_OK
 
 
 def cannot_write(folder: Path, error: OSError) -> None:
