@@ -175,11 +175,32 @@ def _run(args) -> int:
     return 0
 
 
+def _scratch_problem(out: Path, runfile: Path) -> str | None:
+    """Why a run of `out` would destroy the run file (None if it would not): the run file is one of the
+    output's scratch paths (OUT.tmp, OUT.lock) or lies in its parts folder, which a run writes, replaces and
+    deletes."""
+    from .parts import folder_of
+    from .store import temporary_path
+
+    if not runfile.exists():
+        return None
+    runfile = runfile.resolve()
+    for scratch in (temporary_path(out), OutputLock.path_of(out)):
+        if scratch.resolve() == runfile:
+            return f"its scratch file {scratch} is the run file, which the run would overwrite; choose another output"
+    if folder_of(out).resolve() in runfile.parents:
+        return f"the run file lies in {folder_of(out)}, the folder a run of it writes and deletes; move the run file"
+    return None
+
+
 def _output_problem(out: Path, runfile: Path, force: bool) -> str | None:
     """Why `out` cannot be written (None if it can): the run file itself, a folder, an existing file without
     --force or not written by ensemble, a folder that cannot be made or written."""
     if out.exists() and runfile.exists() and out.resolve() == runfile.resolve():
         return "is the run file itself; choose another output"
+    problem = _scratch_problem(out, runfile)
+    if problem:
+        return problem
     if out.is_dir():
         return "is a folder; give the output file's name"
     if out.exists() and not force:
@@ -264,7 +285,11 @@ class OutputLock:
     killed run leaves no stale lock), so that two runs never write the same output at once."""
 
     def __init__(self, out: Path):
-        self.path = out.with_name(out.name + ".lock")
+        self.path = self.path_of(out)
+
+    @staticmethod
+    def path_of(out: Path) -> Path:
+        return out.with_name(out.name + ".lock")
 
     def __enter__(self):
         import fcntl

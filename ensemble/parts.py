@@ -30,7 +30,6 @@ import hashlib
 import json
 import os
 import re
-import shutil
 import zlib
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
@@ -88,6 +87,9 @@ class Parts:
         self.spec = spec
         self.dropped: list[str] = []  # what a resume found broken and deleted, one phrase each
         manifest = self.folder / MANIFEST
+        if self.folder.exists() and not manifest.exists() and any(self.folder.iterdir()):
+            raise PartsError(f"{self.folder} exists and holds files that are not a run's parts (no {MANIFEST}); "
+                             f"move them or choose another output")
         if self.folder.exists() and not resume:
             raise PartsError(f"{self.folder} holds the parts of an unfinished run; add --resume to finish it or "
                              f"--force to start over")
@@ -133,8 +135,21 @@ class Parts:
 
     @staticmethod
     def discard(out: Path) -> None:
-        """Delete the parts folder of `out` and its unfinished result, OUT.tmp."""
-        shutil.rmtree(folder_of(out), ignore_errors=True)
+        """Delete the parts of `out` and its unfinished result, OUT.tmp: only the files a run writes in the parts
+        folder (its manifest, parts and their .tmp files), and the folder once nothing else is in it. In a folder
+        without our manifest nothing is deleted."""
+        folder = folder_of(out)
+        if (folder / MANIFEST).is_file():
+            for path in folder.iterdir():
+                ours = path.name == MANIFEST or PART_NAME.fullmatch(path.name) or (
+                    path.name.startswith("members-") and path.name.endswith(".tmp"))
+                if ours and path.is_file():
+                    path.unlink()
+        if folder.is_dir():
+            try:
+                folder.rmdir()
+            except OSError:  # something of someone else's is in it
+                pass
         temporary_path(out).unlink(missing_ok=True)
 
     def _result_problem(self, path: Path) -> str | None:

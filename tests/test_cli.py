@@ -363,3 +363,36 @@ def test_default_chunk_bounds_the_work_between_progress_updates():
     assert runner.default_chunk(spec) == runner.CHUNK_MEMBER_STEPS // 1e6 // block * block
     one_block = parse(top_runfile(members=1000, t_end=1e5, save_dt=1e4))  # 1e8 steps: one block is the least
     assert runner.default_chunk(one_block) == block
+
+
+@pytest.mark.parametrize("name", ["job.nc.tmp", "job.nc.lock", "job.nc.parts/run.toml"])
+def test_a_run_file_named_like_the_outputs_scratch_paths_is_refused_and_kept(tmp_path, name):
+    """Issue 40: `ensemble run job.nc.tmp -o job.nc` deleted its run file, and so did a run file named job.nc.lock
+    or kept in job.nc.parts/ with --force. Now: one line, exit 2, the run file as it was."""
+    runfile = tmp_path / name
+    runfile.parent.mkdir(exist_ok=True)
+    runfile.write_text(top_runfile())
+    done = ensemble("run", str(runfile), "-o", str(tmp_path / "job.nc"), "--force", "--quiet", cwd=tmp_path)
+    assert done.returncode == 2 and len(done.stderr.strip().splitlines()) == 1, done.stderr
+    assert "run file" in done.stderr and runfile.read_text() == top_runfile()
+    assert not (tmp_path / "job.nc").exists()
+
+
+def test_force_deletes_only_what_a_run_wrote_in_a_parts_folder(tmp_path, write_runfile):
+    """Issue 40: --force removed a parts folder with whatever was in it. Now it deletes only a run's own files
+    there (its manifest and parts), and a folder that still holds someone else's file is refused in one line,
+    that file kept; once it is moved away, the run goes through."""
+    runfile = write_runfile(top_runfile())
+    out, parts = tmp_path / "job.nc", tmp_path / "job.nc.parts"
+    parts.mkdir()
+    (parts / "notes.txt").write_text("mine")
+    (parts / "manifest.json").write_text("{}")  # another run's parts folder, with a stranger in it
+    (parts / "members-000000000000-000000000004-0123abcd.nc").write_bytes(b"a part")
+    done = ensemble("run", str(runfile), "-o", str(out), "--force", "--quiet", cwd=tmp_path)
+    assert done.returncode == 2 and len(done.stderr.strip().splitlines()) == 1, done.stderr
+    assert "not a run's parts" in done.stderr and sorted(p.name for p in parts.iterdir()) == ["notes.txt"]
+    assert (parts / "notes.txt").read_text() == "mine" and not out.exists()
+    (parts / "notes.txt").rename(tmp_path / "notes.txt")
+    done = ensemble("run", str(runfile), "-o", str(out), "--force", "--quiet", cwd=tmp_path)
+    assert done.returncode == 0, done.stderr
+    assert not parts.exists() and xr.load_dataset(out).sizes["member"] == 4
