@@ -140,14 +140,15 @@ def _run(args) -> int:
     resume = f"ensemble run {args.runfile} -o {out} --resume"
     client = None
     try:
-        with OutputLock(out):
-            if args.scheduler or args.workers:
-                from .cluster import ClusterError, connect
+        if args.scheduler or args.workers:  # before anything is made: a cluster that cannot be had leaves nothing
+            from .cluster import ClusterError, connect
 
-                try:
-                    client = connect(args.scheduler, args.workers)
-                except ClusterError as e:
-                    return _error(str(e))
+            try:
+                client = connect(args.scheduler, args.workers)
+            except ClusterError as e:
+                return _error(str(e))
+        out.parent.mkdir(parents=True, exist_ok=True)
+        with OutputLock(out):
             summary = run(spec, out, chunk=args.chunk, progress=not args.quiet, force=args.force,
                           resume=args.resume, command=args.command_line, client=client)
     except OutputLocked:
@@ -207,13 +208,21 @@ def _output_problem(out: Path, runfile: Path, force: bool) -> str | None:
         return "exists; use --force to replace it"
     if out.exists() and not _is_result(out):
         return "exists and is not a result written by ensemble; not replacing it, even with --force"
-    try:
-        out.parent.mkdir(parents=True, exist_ok=True)
-    except OSError as e:
-        return f"cannot create the folder {out.parent} ({e.strerror})"
-    if not os.access(out.parent, os.W_OK):
-        return f"cannot write in the folder {out.parent} (permission denied)"
+    existing = _existing(out.parent)
+    if not existing.is_dir():
+        return f"cannot create the folder {out.parent} ({existing} is not a folder)"
+    if not os.access(existing, os.W_OK):
+        what = "write in" if existing == out.parent else "create"
+        return f"cannot {what} the folder {out.parent} (permission denied in {existing})"
     return None
+
+
+def _existing(folder: Path) -> Path:
+    """The folder itself if it exists, else its nearest ancestor that does (nothing is created before a run
+    starts)."""
+    while not folder.exists() and folder != folder.parent:
+        folder = folder.parent
+    return folder
 
 
 def _memory_problem(spec) -> str | None:
@@ -240,7 +249,7 @@ def _space_problem(out: Path, spec) -> str | None:
     from .store import output_bytes, record_names
 
     need = output_bytes(spec) + 8 * len(record_names(spec)) * spec.n_members
-    free = shutil.disk_usage(out.parent).free
+    free = shutil.disk_usage(_existing(out.parent)).free
     if need > free:
         return f"the result needs about {need / 1e6:.4g} MB and {out.parent} has {free / 1e6:.4g} MB free"
     return None

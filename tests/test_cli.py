@@ -396,3 +396,17 @@ def test_force_deletes_only_what_a_run_wrote_in_a_parts_folder(tmp_path, write_r
     done = ensemble("run", str(runfile), "-o", str(out), "--force", "--quiet", cwd=tmp_path)
     assert done.returncode == 0, done.stderr
     assert not parts.exists() and xr.load_dataset(out).sizes["member"] == 4
+
+
+@pytest.mark.parametrize("refusal", ["disk space", "scheduler"])
+def test_a_refusal_makes_no_output_folder(tmp_path, write_runfile, refusal):
+    """Issue 40, item 12: the disk-space refusal and an unreachable --scheduler each created the output's folder.
+    Now the folder is made only when the run starts."""
+    text = top_runfile(members=10**5, t_end=1000.0, save_dt=1e-3) if refusal == "disk space" else top_runfile()
+    runfile = write_runfile(text)
+    out = tmp_path / "new" / "deeper" / "job.nc"
+    extra = ["--scheduler", "tcp://127.0.0.1:1"] if refusal == "scheduler" else []
+    done = ensemble("run", str(runfile), "-o", str(out), "--quiet", *extra, cwd=tmp_path)
+    assert done.returncode == 2 and len(done.stderr.strip().splitlines()) == 1, done.stderr
+    assert ("needs about" if refusal == "disk space" else "cannot connect") in done.stderr
+    assert not (tmp_path / "new").exists()
