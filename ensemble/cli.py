@@ -137,7 +137,8 @@ def _run(args) -> int:
     problem = _output_problem(out, args.runfile, args.force) or _space_problem(out, spec)
     if problem:
         return _error(f"{out}: {problem}")
-    resume = f"ensemble run {args.runfile} -o {out} --resume"
+    # the command that finishes an interrupted run: a run that replaces an earlier result needs --force again
+    resume = f"ensemble run {args.runfile} -o {out} --resume{' --force' if out.exists() else ''}"
     client = None
     try:
         if args.scheduler or args.workers:  # before anything is made: a cluster that cannot be had leaves nothing

@@ -147,6 +147,30 @@ def test_interrupted_run_leaves_no_complete_looking_file(write_runfile, tmp_path
         assert np.all(np.isfinite(nc["omega"][:128]))
 
 
+def test_the_command_printed_after_an_interrupted_force_run_finishes_it(write_runfile, tmp_path, monkeypatch,
+                                                                         capsys):
+    """Issue 40, item 9: a --force run over an earlier result, interrupted, printed `... --resume`, which then
+    refused ("exists; use --force"). The printed command now finishes the run."""
+    runfile, out = write_runfile(top_runfile(members=300)), tmp_path / "out.nc"
+    assert cli.main(["run", str(runfile), "-o", str(out), "--quiet"]) == 0
+    segments, calls = launch.Launch.segments, []
+
+    def interrupted_after_one_chunk(self, *args, **kwargs):
+        if calls:
+            raise KeyboardInterrupt
+        calls.append(1)
+        return segments(self, *args, **kwargs)
+
+    monkeypatch.setattr(launch.Launch, "segments", interrupted_after_one_chunk)
+    assert cli.main(["run", str(runfile), "-o", str(out), "--chunk", "128", "--force", "--quiet"]) == 130
+    printed = capsys.readouterr().err.strip().splitlines()[-1]
+    command = printed.split("; ")[-1].removesuffix(" finishes the run").split()
+    assert command[:2] == ["ensemble", "run"] and "--resume" in command and "--force" in command
+    monkeypatch.setattr(launch.Launch, "segments", segments)
+    assert cli.main([*command[1:], "--quiet"]) == 0
+    assert xr.load_dataset(out).sizes["member"] == 300 and not out.with_name("out.nc.parts").exists()
+
+
 def test_ctrl_c_inside_a_long_kernel_call_stops_the_run_at_once(tmp_path):
     """One save interval of 5e9 steps (hours): Ctrl-C while the kernel runs ends the process within seconds, exit
     130, keeping nothing (no chunk had finished) and writing no output. The kernel runs on daemon threads; the
