@@ -131,12 +131,9 @@ def _run(args) -> int:
     if args.chunk is not None and args.chunk < 1:
         return _error(f"--chunk: must be >= 1, got {args.chunk}")
     out = args.output or Path("results") / f"{args.runfile.stem}.nc"
-    problem = _memory_problem(spec)
-    if problem:
-        return _error(f"{args.runfile}: {problem}")
-    problem = _output_problem(out, args.runfile, args.force) or _space_problem(out, spec)
-    if problem:
-        return _error(f"{out}: {problem}")
+    refusal = _refusal(args, spec, out)
+    if refusal:
+        return _error(refusal)
     # the command that finishes an interrupted run: a run that replaces an earlier result needs --force again
     resume = f"ensemble run {args.runfile} -o {out} --resume{' --force' if out.exists() else ''}"
     client = None
@@ -175,6 +172,15 @@ def _run(args) -> int:
             close(client)
     print(f"wrote {out}: {summary}")
     return 0
+
+
+def _refusal(args, spec, out: Path) -> str | None:
+    """Why the run is refused before it starts, in one line naming the run file or the output; None if it is not."""
+    problem = _memory_problem(spec)
+    if problem:
+        return f"{args.runfile}: {problem}"
+    problem = _output_problem(out, args.runfile, args.force) or _space_problem(out, spec)
+    return f"{out}: {problem}" if problem else None
 
 
 def _scratch_problem(out: Path, runfile: Path) -> str | None:

@@ -263,11 +263,18 @@ def _crossing(t, spin, after, sigma):
 
 def dataset(ds: xr.Dataset, data: dict, dims, *, noise: float, fit: str,
              estimates: tuple[str, ...] = ("rate", "frequency")) -> xr.Dataset:
+    """A fit's Dataset over members (and modes) from data: name -> (values, units, long_name). Members whose run
+    did not end well (status not ok: they blew up or their step underflowed) are left out: NaN in every float
+    variable, counted in members_not_ok and, having no estimate, in members_failed."""
     out = xr.Dataset(coords=_members(ds))
     if "mode" in dims:
         out = out.assign_coords(mode=("mode", np.arange(1, ds.sizes["site"] + 1, dtype=np.int32)))
         out["mode"].attrs = {"units": "1", "long_name": "normal mode number, ascending in frequency"}
+    not_ok = ds["status"].values != 0 if "status" in ds else np.zeros(ds.sizes["member"], dtype=bool)
     for name, (values, units, long_name) in data.items():
+        values = np.asarray(values)
+        if values.dtype.kind == "f" and not_ok.any():
+            values = np.where(not_ok.reshape(-1, *[1] * (values.ndim - 1)), np.nan, values)
         out[name] = (dims, values)
         out[name].attrs = {"units": units, "long_name": long_name}
     found = np.concatenate([out[name].values.reshape(out.sizes["member"], -1) for name in estimates if name in data],
@@ -281,6 +288,7 @@ def dataset(ds: xr.Dataset, data: dict, dims, *, noise: float, fit: str,
         "dt": ds.attrs.get("dt", np.nan),  # NaN when dt was swept
         "observation_noise_stddev": noise,
         "members_failed": failed,
+        "members_not_ok": int(not_ok.sum()),
         "sweep_axes": ds.attrs.get("sweep_axes", ""),
     }
     return out

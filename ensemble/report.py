@@ -174,8 +174,13 @@ def run_script(args, fit_function, *, name: str, value, units: str, title: str, 
             found = [r for r in found if np.isfinite(r.theory)]
         table += found
         print_table(f"{variable_title} of {args.result} ({ds.attrs['method']}, {step})", found, variable_units)
+    if fits.attrs.get("members_not_ok"):
+        print(f"{fits.attrs['members_not_ok']} members did not run to the end (their status is not ok) and are left "
+              f"out")
     if fits.attrs["members_failed"]:
         print(f"{fits.attrs['members_failed']} members could not be fitted and are left out")
+    if not table:
+        print("no member could be fitted: nothing to compare with the theory")
     out, stem = outputs(args.result, name)
     try:
         fits.to_netcdf(out)
@@ -187,7 +192,7 @@ def run_script(args, fit_function, *, name: str, value, units: str, title: str, 
             print("charts:", *paths)
     except OSError as e:
         cannot_write(out.parent, e)
-    return EXIT_CHECK_FAILED if args.check and not all(r.checked for r in table) else EXIT_OK
+    return EXIT_CHECK_FAILED if args.check and not (table and all(r.checked for r in table)) else EXIT_OK
 
 
 def cannot_write(folder: Path, error: OSError) -> None:

@@ -250,3 +250,19 @@ def test_run_phases_times_every_step_of_a_run():
     assert all(int(count) > 0 for _, _, count in steps), done.stdout
     run = float(re.search(r"the run ([0-9.]+) s", done.stdout)[1])
     assert seconds["kernel"] <= run + 0.005 and seconds["finishing"] <= run + 0.005, done.stdout  # rounding
+
+
+def test_members_that_blew_up_are_left_out_of_the_fit_and_a_check_with_none_left_fails(tmp_path):
+    """Issue 40, item 4: rigid_body.py --check said "pass" on a body result whose members had all blown up (it
+    fitted their records up to the failure). Now failed members are NaN in the fits, counted, and --check fails
+    when no member is left."""
+    unstable = {'method = "rk4"': 'method = "euler"', "dt = 1e-4": "dt = 1e-2", "seed = ": "blowup_factor = 2\nseed = ",
+                "spin0 = [10.0, 20.0, 40.0]": "spin0 = [40.0, 80.0, 160.0]"}
+    result = run_small("tennis_racket.toml", tmp_path, 3, **unstable)
+    ds = xr.load_dataset(result)
+    assert np.all(ds["status"].values != 0)  # forward Euler's rates grow every step, past twice their start
+    done = script("rigid_body.py", result, "--check")
+    assert done.returncode == 1, done.stdout + done.stderr
+    assert "did not run to the end" in done.stdout and "no member could be fitted" in done.stdout
+    fits = xr.load_dataset(result.with_name("tennis_racket_rigid_body.nc"))
+    assert fits.attrs["members_not_ok"] == ds.sizes["member"] and np.all(np.isnan(fits["z"].values))
