@@ -202,15 +202,32 @@ def cannot_write(folder: Path, error: OSError) -> None:
 
 
 def load_result(path: Path, fit_function, validate=None):
-    """(dataset, fit_function(dataset)) of a result file; None after one line on stderr for bad input."""
+    """(dataset, fit_function(dataset)) of a result file; None after one line on stderr for bad input: a file
+    that is not NetCDF or not a result of `ensemble run`, a result without members, or one that lacks a variable
+    its scene's results have (a `scene` attribute that does not say what the file holds)."""
     try:
         ds = xr.load_dataset(path, engine="netcdf4")
+        problem = _not_a_result(ds)
+        if problem:
+            raise ValueError(problem)
         if validate:
             validate(ds)
         return ds, fit_function(ds)
+    except KeyError as e:
+        print(f"error: {path}: the result has no variable {e}, which a {ds.attrs.get('scene')} result has",
+              file=sys.stderr)
+        return None
     except (OSError, ValueError) as e:
         print(f"error: {path}: {str(e).splitlines()[0]}", file=sys.stderr)
         return None
+
+
+def _not_a_result(ds: xr.Dataset) -> str | None:
+    if not str(ds.attrs.get("source", "")).startswith("ensemble") or "member" not in ds.dims:
+        return "is not a result of `ensemble run` (no `source` attribute of ensemble's, or no member dimension)"
+    if ds.sizes["member"] == 0:
+        return "has no members to fit"
+    return None
 
 
 def pyplot():

@@ -266,3 +266,20 @@ def test_members_that_blew_up_are_left_out_of_the_fit_and_a_check_with_none_left
     assert "did not run to the end" in done.stdout and "no member could be fitted" in done.stdout
     fits = xr.load_dataset(result.with_name("tennis_racket_rigid_body.nc"))
     assert fits.attrs["members_not_ok"] == ds.sizes["member"] and np.all(np.isnan(fits["z"].values))
+
+
+@pytest.mark.parametrize("name", ["work_precision.py", "stability.py", "normal_modes.py"])
+def test_a_foreign_empty_or_mislabelled_file_is_one_line_and_exit_2(tmp_path, name):
+    """Issue 40, item 18: work_precision.py on a zero-member result raised IndexError, normal_modes.py on a
+    foreign NetCDF KeyError: 'member', stability.py on a top result labelled a chain KeyError: 'm'."""
+    result = run_small("stability_top.toml", tmp_path, 1)
+    foreign, empty, mislabelled = tmp_path / "foreign.nc", tmp_path / "empty.nc", tmp_path / "mislabelled.nc"
+    xr.Dataset({"x": ("time", np.arange(3.0))}).to_netcdf(foreign)
+    ds = xr.load_dataset(result)
+    ds.isel(member=slice(0, 0)).drop_encoding().to_netcdf(empty)
+    ds.assign_attrs(scene="chain").to_netcdf(mislabelled)
+    for path, says in ((foreign, "is not a result of `ensemble run`"), (empty, "has no members"),
+                       (mislabelled, "")):
+        done = script(name, path)
+        assert done.returncode == 2 and len(done.stderr.strip().splitlines()) == 1, (path, done.stderr)
+        assert says in done.stderr and "Traceback" not in done.stderr
