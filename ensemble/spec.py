@@ -63,6 +63,8 @@ MAX_RUN_FILE_BYTES = 1_000_000  # a run file is a short text
 MAX_STEPS = 10**12  # steps per member (t_end / dt), and saved samples per member (t_end / save_dt)
 MAX_SEED = 2**63 - 1  # the seed is stored as a 64-bit integer
 MAX_TABLE_BYTES = 2**31  # every member's parameters, held in memory for the whole run
+MAX_REPEATS = 100  # [measure] repeats: timed kernel calls per chunk
+MAX_NOISE = 1e150  # observation noise's stddev: far below it a Gaussian draw (at most ~40 sd) stays finite
 POLYGON = "polygon"  # a shape given by its mass and its vertices (a run constant), not by lengths
 
 
@@ -499,8 +501,9 @@ def _measure(measure: dict, module) -> dict[str, object]:
         if key not in MEASURE_KEYS:
             raise _unknown(f"measure.{key}", key, MEASURE_KEYS)
         out[key] = _expect(f"measure.{key}", value, MEASURE_KEYS[key])
-    if out["repeats"] < 1:
-        raise SpecError("measure.repeats", f"must be >= 1, got {out['repeats']}")
+    if not 1 <= out["repeats"] <= MAX_REPEATS:
+        raise SpecError("measure.repeats", f"must be in 1..{MAX_REPEATS} (timed kernel calls per chunk), got "
+                                           f"{out['repeats']}")
     if out["error"] and getattr(module, "exact", None) is None:
         raise SpecError("measure.error", f"scene {module.NAME!r} has no exact solution to measure errors against")
     return out
@@ -546,8 +549,9 @@ def _noise(observe: dict, save: tuple[str, ...], module) -> dict[str, float]:
         if name not in save:
             raise SpecError(key, f"{name!r} is not saved; add it to save")
         sigma = _expect(key, sigma, float)
-        if not sigma >= 0 or math.isinf(sigma):
-            raise SpecError(key, f"must be a finite standard deviation >= 0, got {sigma}")
+        if not 0 <= sigma <= MAX_NOISE:
+            raise SpecError(key, f"must be a standard deviation in 0..{MAX_NOISE:g} (a larger one turns values into "
+                                 f"inf), got {sigma}")
         out[name] = sigma
     return out
 

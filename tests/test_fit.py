@@ -199,7 +199,8 @@ def test_noise_is_seeded_per_member_and_recorded(tmp_path):
 
 
 @pytest.mark.parametrize("observe, problem", [
-    ("noise = { x = -0.1 }", "observe.noise.x: must be a finite standard deviation >= 0"),
+    ("noise = { x = -0.1 }", "observe.noise.x: must be a standard deviation in 0..1e+150"),
+    ("noise = { x = 1e308 }", "observe.noise.x: must be a standard deviation in 0..1e+150 (a larger one turns"),
     ("noise = { y = 0.1 }", "observe.noise.y: unknown key"),
     ("noise = { x = 0.1 }\nnoisy = 1", "observe.noisy: unknown key"),
 ])

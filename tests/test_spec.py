@@ -202,6 +202,12 @@ def test_what_a_run_file_may_ask_for_is_bounded(change, expected, tmp_path, caps
     refused(top_runfile(**change), tmp_path, capsys, expected)
 
 
+def test_timing_repeats_are_bounded(tmp_path, capsys):
+    """Issue 40, item 15: [measure] repeats = 1000000000 was accepted and ran without end."""
+    text = top_runfile() + "[measure]\ntiming = true\nrepeats = 1000000000\n"
+    refused(text, tmp_path, capsys, "measure.repeats: must be in 1..100 (timed kernel calls per chunk), got 1000000000")
+
+
 def test_a_variable_saved_twice_is_refused(tmp_path, capsys):
     refused('save = ["tilt", "tilt"]\n' + top_runfile(), tmp_path, capsys, "save[1]: names 'tilt' a second time")
 
