@@ -113,8 +113,17 @@ def _skip_numba_blas_probe() -> None:
         del sys.modules["scipy.linalg.cython_blas"]
 
 
+def _quiet_numpy() -> None:
+    """Overflow in a value derived from extreme input (lambda1 = 1e-320, spin0 = 1e308) is judged by the checks
+    and the members' status, each reported in one line: numpy's own warnings would add lines of their own."""
+    import numpy as np
+
+    np.seterr(all="ignore")
+
+
 def _run(args) -> int:
     _skip_numba_blas_probe()
+    _quiet_numpy()
     from .errors import Incomplete
     from .parts import PartsError
     from .runner import run

@@ -434,3 +434,13 @@ def test_a_refusal_makes_no_output_folder(tmp_path, write_runfile, refusal):
     assert done.returncode == 2 and len(done.stderr.strip().splitlines()) == 1, done.stderr
     assert ("needs about" if refusal == "disk space" else "cannot connect") in done.stderr
     assert not (tmp_path / "new").exists()
+
+
+@pytest.mark.parametrize("parameters, top_level, status", [
+    ({"lambda1": 1e-320}, {}, 2), ({"spin0": 1e308}, {}, 0), ({}, {"blowup_factor": 1e308}, 0)])
+def test_extreme_values_print_no_numpy_warnings(tmp_path, write_runfile, parameters, top_level, status):
+    """Issue 40, item 17: these printed RuntimeWarnings before their one line (or beside a finished run)."""
+    runfile = write_runfile(top_runfile(parameters=parameters, **top_level))
+    done = ensemble("run", str(runfile), "-o", str(tmp_path / "out.nc"), "--quiet", cwd=tmp_path)
+    assert done.returncode == status and "Warning" not in done.stderr, done.stderr
+    assert len(done.stderr.strip().splitlines()) == (1 if status else 0), done.stderr
