@@ -188,7 +188,7 @@ def _refusal(args, spec, out: Path) -> str | None:
     problem = _memory_problem(spec)
     if problem:
         return f"{args.runfile}: {problem}"
-    problem = _output_problem(out, args.runfile, args.force) or _space_problem(out, spec)
+    problem = _output_problem(out, args.runfile, args.force) or _space_problem(out, spec, args.resume)
     return f"{out}: {problem}" if problem else None
 
 
@@ -259,12 +259,17 @@ def _memory_problem(spec) -> str | None:
     return None
 
 
-def _space_problem(out: Path, spec) -> str | None:
+def _space_problem(out: Path, spec, resume: bool = False) -> str | None:
     """The disk's free space against what the run will take: the result, and its parts (a copy of the per-member
-    records) until they are deleted (a full disk midway costs the run)."""
-    from .store import output_bytes, record_names
+    records) until they are deleted (a full disk midway costs the run). A resumed run counts only what is still
+    to come: OUT.tmp took its whole space when it was made, and the parts kept hold their records."""
+    from .parts import folder_of
+    from .store import output_bytes, record_names, temporary_path
 
     need = output_bytes(spec) + 8 * len(record_names(spec)) * spec.n_members
+    if resume:
+        made = [temporary_path(out), *(folder_of(out).iterdir() if folder_of(out).is_dir() else ())]
+        need = max(0, need - sum(path.stat().st_size for path in made if path.is_file()))
     free = shutil.disk_usage(_existing(out.parent)).free
     if need > free:
         return f"the result needs about {need / 1e6:.4g} MB and {out.parent} has {free / 1e6:.4g} MB free"

@@ -117,7 +117,19 @@ def test_a_disk_that_fills_up_midway_is_one_line_exit_3_and_resume_finishes_the_
     with netCDF4.Dataset(tmp_path / "out.nc.tmp") as nc:
         assert np.all(np.isfinite(nc["tilt"][:3 * 64]))
     monkeypatch.setattr(store, "put_samples", real)
+    # Issue 40, item 10: the disk as full as it was; what is still to write fits, the whole result would not
+    import shutil
+
+    from ensemble.spec import load
+    spec = load(runfile)
+    whole = store.output_bytes(spec) + 8 * len(store.record_names(spec)) * spec.n_members
+    room = whole - (tmp_path / "out.nc.tmp").stat().st_size + 10_000
+    free = shutil.disk_usage(tmp_path)._replace(free=room)
+    monkeypatch.setattr(shutil, "disk_usage", lambda path: free)
+    assert room < whole and cli.main([*command[:3], str(tmp_path / "elsewhere.nc"), "--quiet"]) == 2
+    assert "the result needs about" in capsys.readouterr().err
     assert cli.main([*command, "--resume"]) == 0
+    monkeypatch.undo()
     assert cli.main([*command[:3], str(tmp_path / "unhindered.nc"), "--quiet"]) == 0
     from tests.test_resume import same_bits
     same_bits(out, tmp_path / "unhindered.nc")
