@@ -84,6 +84,7 @@ def test_a_disk_full_before_the_first_chunk_is_one_line_exit_3_and_leaves_nothin
     assert done.returncode == 3, done.stderr
     lines = done.stderr.strip().splitlines()
     assert len(lines) == 1 and "writing failed" in lines[0] and "nothing was kept" in lines[0], lines
+    assert "past the file size limit of 600000 bytes (ulimit -f)" in lines[0], lines  # issue 40, item 11
     assert sorted(p.name for p in tmp_path.iterdir()) == ["run.toml"]
 
 
