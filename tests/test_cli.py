@@ -122,9 +122,9 @@ def test_save_limits_what_is_stored(write_runfile):
     assert "tilt" in ds and "omega" not in ds and "axis" not in ds.dims
 
 
-def test_interrupted_run_leaves_no_complete_looking_file(write_runfile, tmp_path, monkeypatch, capsys):
-    calls = []
-    segments = launch.Launch.segments
+def interrupt_after_one_chunk(monkeypatch) -> None:
+    """Make the next run raise KeyboardInterrupt (Ctrl-C) when its second chunk's kernel starts."""
+    segments, calls = launch.Launch.segments, []
 
     def interrupted_after_one_chunk(self, *args, **kwargs):
         if calls:
@@ -133,6 +133,10 @@ def test_interrupted_run_leaves_no_complete_looking_file(write_runfile, tmp_path
         return segments(self, *args, **kwargs)
 
     monkeypatch.setattr(launch.Launch, "segments", interrupted_after_one_chunk)
+
+
+def test_interrupted_run_leaves_no_complete_looking_file(write_runfile, tmp_path, monkeypatch, capsys):
+    interrupt_after_one_chunk(monkeypatch)
     out = tmp_path / "out.nc"
     status = cli.main(["run", str(write_runfile(top_runfile(members=300))), "-o", str(out), "--chunk", "128"])
     err = capsys.readouterr().err.strip().splitlines()[-1]  # after the bar
@@ -153,20 +157,12 @@ def test_the_command_printed_after_an_interrupted_force_run_finishes_it(write_ru
     refused ("exists; use --force"). The printed command now finishes the run."""
     runfile, out = write_runfile(top_runfile(members=300)), tmp_path / "out.nc"
     assert cli.main(["run", str(runfile), "-o", str(out), "--quiet"]) == 0
-    segments, calls = launch.Launch.segments, []
-
-    def interrupted_after_one_chunk(self, *args, **kwargs):
-        if calls:
-            raise KeyboardInterrupt
-        calls.append(1)
-        return segments(self, *args, **kwargs)
-
-    monkeypatch.setattr(launch.Launch, "segments", interrupted_after_one_chunk)
+    interrupt_after_one_chunk(monkeypatch)
     assert cli.main(["run", str(runfile), "-o", str(out), "--chunk", "128", "--force", "--quiet"]) == 130
     printed = capsys.readouterr().err.strip().splitlines()[-1]
     command = printed.split("; ")[-1].removesuffix(" finishes the run").split()
     assert command[:2] == ["ensemble", "run"] and "--resume" in command and "--force" in command
-    monkeypatch.setattr(launch.Launch, "segments", segments)
+    monkeypatch.undo()
     assert cli.main([*command[1:], "--quiet"]) == 0
     assert xr.load_dataset(out).sizes["member"] == 300 and not out.with_name("out.nc.parts").exists()
 
