@@ -6,7 +6,7 @@ Checks out OLD and NEW (default: the working tree) as compare_revisions.py does,
 own, and times every method's kernel on tops and free bodies (launch.integrate, the kernel alone after one
 untimed call that compiles it) in one process per revision and round, the revisions alternated (--only: the
 kernels whose name, "top rk4" say, contains the text). Prints each kernel's member-steps per second, median of
-the rounds, the rounds' spread, and new / old.
+the rounds, the rounds' spread, and new / old, between two runs of the C limit (limit.py).
 """
 from __future__ import annotations
 
@@ -17,6 +17,7 @@ import sys
 import tempfile
 from pathlib import Path
 
+from benchmark import c_limit, print_limit
 from compare_revisions import checked_out
 from hostinfo import host
 
@@ -69,12 +70,14 @@ def main(argv=None) -> None:
     code = TIMER.format(members=args.members, steps=args.steps, only=args.only)
     with tempfile.TemporaryDirectory() as tmp, checked_out(parser, args.old, args.new, Path(tmp)) as trees:
         rounds = {name: [] for name in trees}
+        print_limit("C limit, before", c_limit())
         for _ in range(args.repeats):
             for name, (tree, env) in trees.items():
                 done = subprocess.run([sys.executable, "-c", code], env=env, cwd=tmp, capture_output=True, text=True)
                 if done.returncode:
                     raise SystemExit(f"compare_kernels: {name}: {done.stderr.strip().splitlines()[-1]}")
                 rounds[name].append(json.loads(done.stdout))
+        print_limit("C limit, after", c_limit())
     (old_name, old), (new_name, new) = rounds.items()
     print(f"{'kernel':<18} {old_name:>14} {new_name:>14}  new / old   (member-steps/s, medians of {args.repeats}; "
           f"each revision's slowest and fastest round)")

@@ -171,7 +171,7 @@ def _run(args) -> int:
         print(f"ensemble: error: {e}; {_left_behind(out, resume)}", file=sys.stderr)
         return EXIT_FAILED
     except (OSError, RuntimeError) as e:  # netCDF4 reports HDF5 write failures as RuntimeError
-        print(f"ensemble: error: {out}: writing failed ({_cause(e, out, _result_bytes(spec))}); "
+        print(f"ensemble: error: {out}: writing failed ({_cause(e, out, spec)}); "
               f"{_left_behind(out, resume)}", file=sys.stderr)
         return EXIT_FAILED
     finally:
@@ -290,27 +290,23 @@ def _is_result(path: Path) -> bool:
 FULL = 1 << 20  # bytes: a disk with less free than this after a failed write counts as full
 
 
-def _result_bytes(spec) -> int:
+def _cause(error: Exception, out: Path, spec) -> str:
+    """Why writing `out` failed, in a few words. netCDF4 reports HDF5's failures as "NetCDF: HDF error", whatever
+    their cause: then a disk left (nearly) full, or a result of `spec` past the process's file size limit (ulimit
+    -f), is named."""
+    import resource
+
     from .store import output_bytes
 
-    return output_bytes(spec)
-
-
-def _cause(error: Exception, out: Path | None = None, size: int = 0) -> str:
-    """Why a write failed, in a few words. netCDF4 reports HDF5's failures as "NetCDF: HDF error", whatever their
-    cause: then a disk left (nearly) full, or a result of `size` bytes past the process's file size limit
-    (ulimit -f), is named."""
     if isinstance(error, OSError) and error.strerror:
         return error.strerror
-    if out is not None:
-        import resource
-
-        folder = _existing(out.parent)
-        limit = resource.getrlimit(resource.RLIMIT_FSIZE)[0]
-        if shutil.disk_usage(folder).free < FULL:
-            return f"no space left on the device of {folder}"
-        if limit != resource.RLIM_INFINITY and size > limit:
-            return f"the result of about {size / 1e6:.3g} MB is past the file size limit of {limit} bytes (ulimit -f)"
+    folder = _existing(out.parent)
+    limit = resource.getrlimit(resource.RLIMIT_FSIZE)[0]
+    if shutil.disk_usage(folder).free < FULL:
+        return f"no space left on the device of {folder}"
+    if limit != resource.RLIM_INFINITY and output_bytes(spec) > limit:
+        return (f"the result of about {output_bytes(spec) / 1e6:.3g} MB is past the file size limit of {limit} "
+                f"bytes (ulimit -f)")
     return str(error).splitlines()[0] if str(error) else type(error).__name__
 
 

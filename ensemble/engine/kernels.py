@@ -21,7 +21,7 @@ from numba import njit
 from numba.core.registry import CPUDispatcher
 
 from ..methods import Method
-from ..scenes.contract import load
+from ..scenes.contract import load, python_function
 from . import templates
 from .blocks import FAST, HELPERS, Kernel
 
@@ -38,15 +38,10 @@ def kernel_folder() -> Path:
     return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "ensemble" / "kernels"
 
 
-def physics_module(where: str) -> ModuleType:
-    """A scene's physics: a module by dotted name, or a Python file by path."""
-    return load(where)
-
-
 def physics_functions(where: str, names: tuple[str, ...]) -> tuple:
     """The compiled functions `names` of a scene's physics: its own @njit functions as they are, plain Python
     functions compiled to be inlined into the kernels (with the kernels' fast-math flags)."""
-    module = physics_module(where)
+    module = load(where)
     found = [getattr(module, name) for name in names]
     return tuple(f if isinstance(f, CPUDispatcher) else _inlined(f) for f in found)
 
@@ -58,17 +53,12 @@ def _inlined(function):
 
 def physics_file(where: str) -> Path:
     """The file a scene's physics is read from."""
-    return Path(where).resolve() if where.endswith(".py") else Path(physics_module(where).__file__)
-
-
-def python_function(f):
-    """The Python function behind a physics function (compiled or not), to call it without compiling."""
-    return getattr(f, "py_func", f)
+    return Path(where).resolve() if where.endswith(".py") else Path(load(where).__file__)
 
 
 def factor_counts(where: str, pieces: tuple[str, ...], parameters: int) -> dict[str, int]:
     """For each piece with a `<piece>_factors(tau, *p)` function, how many values it returns (called in Python)."""
-    module = physics_module(where)
+    module = load(where)
     counts = {}
     for piece in pieces:
         factors = getattr(module, f"{piece}_factors", None)
@@ -107,7 +97,7 @@ def _generated(name: str, where: str, pieces: tuple[str, ...], method: Method, D
     elif method.tableau is not None:
         family, (body, rows), used = "runge_kutta", templates.runge_kutta(method, D, P), ("rhs",)
     else:
-        module = physics_module(where)
+        module = load(where)
         factors = factor_counts(where, pieces, P)
         coordinates = hasattr(module, "to_pieces")
         family = "splitting"

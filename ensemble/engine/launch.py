@@ -220,10 +220,11 @@ def prepare(scene, method: Method, constants: dict) -> None:
     try:
         _call_once(scene, method, constants)
     except numba.core.errors.NumbaError as error:
-        raise SceneError(f"{scene.PHYSICS}: the {method.name} kernel does not compile: {_cause(str(error))}") from None
+        cause = _numba_cause(str(error))
+        raise SceneError(f"{scene.PHYSICS}: the {method.name} kernel does not compile: {cause}") from None
 
 
-def _cause(message: str) -> str:
+def _numba_cause(message: str) -> str:
     """The informative line of a Numba error message (its first lines name the compiler pass that failed)."""
     skip = ("Failed in", "During:", "File ", "<source", "^", "No implementation of function", "There are")
     lines = [line.strip() for line in message.splitlines()]

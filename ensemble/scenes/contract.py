@@ -85,14 +85,18 @@ def _line_of(error: BaseException, where: str) -> str:
     return f" (line {frames[-1].lineno})" if frames else ""
 
 
+def python_function(f):
+    """The Python function behind a scene's function, compiled (@njit) or not, to call it without compiling."""
+    return getattr(f, "py_func", f)
+
+
 def _parameters_of(function) -> list[str]:
-    return list(inspect.signature(getattr(function, "py_func", function)).parameters)
+    return list(inspect.signature(python_function(function)).parameters)
 
 
 class UserScene:
     """A scene written to the short contract, with everything else the engine and the store ask of a scene."""
 
-    BLOCK = 128
     STABILITY_AXES: tuple[str, ...] = ()
 
     def __init__(self, module: ModuleType, where: str):
@@ -214,7 +218,7 @@ def _returns(where: str, function, name: str, arguments: list[float], size: int 
     """Call `function` in Python on sample values: it must return `size` numbers (any number if None)."""
     try:
         with np.errstate(all="ignore"):
-            result = getattr(function, "py_func", function)(*arguments)
+            result = python_function(function)(*arguments)
     except Exception as error:  # noqa: BLE001 (reported in one line)
         raise SceneError(f"{where}: {name}({', '.join(map(str, arguments))}) raised {type(error).__name__}: "
                          f"{error}") from None
