@@ -107,10 +107,10 @@ def _generated(name: str, where: str, pieces: tuple[str, ...], method: Method, D
                       f"{', '.join(used)}, = physics_functions({where!r}, {used!r})")
     source = templates.header(family, name, method, physics_import,
                               hashlib.sha256(physics_file(where).read_bytes()).hexdigest(), HELPERS, D, P, B) + body
-    return Kernel(_load(source, f"{name}_{method.name}").kernel, rows)
+    return Kernel(load_source(source, f"{name}_{method.name}").kernel, rows)
 
 
-def _load(source: str, label: str) -> ModuleType:
+def load_source(source: str, label: str) -> ModuleType:
     """Import generated `source` from its file in kernel_folder(), writing the file first if it is not there."""
     name = f"ensemble_kernel_{label}_{hashlib.sha256(source.encode()).hexdigest()[:16]}"
     if name in sys.modules:

@@ -50,7 +50,8 @@ def block_size(scene, constants: dict, method: Method) -> int:
 
 def integrate(scene, method: Method, values: dict[str, np.ndarray], constants: dict, *, n_save: int,
               save_dt: float, dt=None, rtol=None, atol=None,
-              blowup_factor: float = DEFAULT_BLOWUP_FACTOR, watch=None) -> Outcome:
+              blowup_factor: float = DEFAULT_BLOWUP_FACTOR, watch=None, device: str = "cpu",
+              precision: str = "float64") -> Outcome:
     """Integrate the members described by `values` with `method`, saving n_save samples every save_dt (s).
 
     Fixed-step methods take the step dt (s, one value; save_dt a whole multiple
@@ -64,7 +65,7 @@ def integrate(scene, method: Method, values: dict[str, np.ndarray], constants: d
     the chunking or the thread count. watch(fraction done) is called every WATCH_SECONDS while the kernel runs.
     """
     call = Launch(scene, method, values, constants, n_save=n_save, save_dt=save_dt, dt=dt, rtol=rtol, atol=atol,
-                  blowup_factor=blowup_factor)
+                  blowup_factor=blowup_factor, device=device, precision=precision)
     call.run(watch=watch)
     return call.outcome()
 
@@ -72,11 +73,20 @@ def integrate(scene, method: Method, values: dict[str, np.ndarray], constants: d
 class Launch:
     """`integrate` in parts: the constructor lays out the inputs in the kernel's blocks; `segments` runs the kernel
     on them (anew each time), `segment` samples per kernel call, and yields each call's samples; `run` keeps them
-    all; `outcome` returns what the last run did."""
+    all; `outcome` returns what the last run did. With device="cuda" it is an ensemble.engine.gpu.GpuLaunch,
+    which does the same on a GPU (in `precision`, "float64" or "float32")."""
+
+    def __new__(cls, *args, device: str = "cpu", **kwargs):
+        if device == "cuda" and not args[1].closed_form:  # a closed form is evaluated with NumPy, on the CPU
+            from .gpu import GpuLaunch
+
+            return GpuLaunch(*args, **kwargs)
+        kwargs.pop("precision", None)
+        return super().__new__(cls)
 
     def __init__(self, scene, method: Method, values: dict[str, np.ndarray], constants: dict, *, n_save: int,
                  save_dt: float, dt=None, rtol=None, atol=None, blowup_factor: float = DEFAULT_BLOWUP_FACTOR,
-                 segment: int | None = None):
+                 segment: int | None = None, device: str = "cpu", precision: str = "float64"):
         self.scene, self.method, self.n_save, self.save_dt, self.dt = scene, method, n_save, save_dt, dt
         self.segment = max(1, min(segment or n_save, n_save))
         self.members = len(next(iter(values.values())))
@@ -212,14 +222,22 @@ def _fixed_counts(method: Method, scene, failure_time: np.ndarray, dt: float, st
                      taken * method.evaluations_per_step(scene.EVALUATING_PIECES)]).astype(np.int64)
 
 
-def prepare(scene, method: Method, constants: dict) -> None:
-    """Compile (or load from Numba's disk cache) the kernel of a stepping method, on one empty block. A scene whose
-    functions Numba cannot compile raises SceneError, one line saying why."""
+def prepare(scene, method: Method, constants: dict, device: str = "cpu", precision: str = "float64",
+            values: dict | None = None) -> None:
+    """Compile (or load from Numba's disk cache) the kernel of a stepping method, on one empty block (on a GPU, on
+    the first member of `values`, saving only its start). A scene whose functions Numba cannot compile raises
+    SceneError, one line saying why."""
     if method.closed_form:
         return
     try:
+        if device == "cuda":
+            Launch(scene, method, values, constants, n_save=1, save_dt=1.0, dt=values["dt"] if method.adaptive
+                   else 1.0, rtol=values["rtol"], atol=values["atol"], device=device, precision=precision).run()
+            return
         _call_once(scene, method, constants)
-    except numba.core.errors.NumbaError as error:
+    except Exception as error:  # Numba's errors (numba-cuda has classes of its own)
+        if not type(error).__module__.startswith("numba"):
+            raise
         cause = _numba_cause(str(error))
         raise SceneError(f"{scene.PHYSICS}: the {method.name} kernel does not compile: {cause}") from None
 

@@ -18,6 +18,7 @@ from ...parameter import Mode, Parameter, ParameterError
 
 NAME = "chain"
 KERNELS = "ensemble.scenes.chain.kernels"  # its kernels, written by hand: force sweeps, tiles and ring halos
+SITES = "ensemble.scenes.chain.kernels"  # on a GPU: a field of sites, `acceleration` of a mass between neighbours
 PIECES = KICK_DRIFT  # splitting methods: kick (v += tau a(x)) and drift (x += tau v)
 EVALUATING_PIECES = ("kick",)  # a kick evaluates the forces
 BOUNDARIES = ("fixed", "free", "periodic")
