@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import os
 import shutil
 import sys
@@ -28,6 +29,9 @@ def _parser() -> argparse.ArgumentParser:
     run.add_argument("--force", action="store_true", help="replace an existing output file")
     run.add_argument("--chunk", type=int, help="members per chunk held in memory (default: about 32 MB of output)")
     run.add_argument("--quiet", action="store_true", help="no progress bar")
+    run.add_argument("--device", choices=("cpu", "cuda"),
+                     help="where the kernels run: this machine's cores, or an NVIDIA GPU (default: the run file's "
+                          "device, else cpu); see docs/gpu.md")
     run.add_argument("--resume", action="store_true",
                      help="finish a run that stopped midway: keep the parts it finished (OUTPUT.parts/), compute "
                           "the rest")
@@ -121,6 +125,22 @@ def _quiet_numpy() -> None:
     np.seterr(all="ignore")
 
 
+def _on_device(args, spec):
+    """(the spec on --device's device, or None) and why the run cannot start there (None if it can)."""
+    if args.device:
+        spec = dataclasses.replace(spec, device=args.device)
+    if spec.precision == "float32" and spec.device != "cuda":
+        return spec, f"{args.runfile}: precision: float32 runs on a GPU only (--device cuda)"
+    if spec.device == "cuda":
+        from .engine.gpu import GpuUnavailable, require_gpu
+
+        try:
+            require_gpu()
+        except GpuUnavailable as e:
+            return spec, f"{args.runfile}: {e}"
+    return spec, None
+
+
 def _run(args) -> int:
     _skip_numba_blas_probe()
     _quiet_numpy()
@@ -137,10 +157,9 @@ def _run(args) -> int:
     except KeyboardInterrupt:  # drawing members (mode starts solve eigenproblems) can take a while
         print("ensemble: interrupted while reading the run file; nothing was written", file=sys.stderr)
         return EXIT_INTERRUPTED
-    if args.chunk is not None and args.chunk < 1:
-        return _error(f"--chunk: must be >= 1, got {args.chunk}")
     out = args.output or Path("results") / f"{args.runfile.stem}.nc"
-    refusal = _refusal(args, spec, out)
+    spec, refusal = _on_device(args, spec)
+    refusal = refusal or _refusal(args, spec, out)
     if refusal:
         return _error(refusal)
     # the command that finishes an interrupted run: a run that replaces an earlier result needs --force again
@@ -185,6 +204,8 @@ def _run(args) -> int:
 
 def _refusal(args, spec, out: Path) -> str | None:
     """Why the run is refused before it starts, in one line naming the run file or the output; None if it is not."""
+    if args.chunk is not None and args.chunk < 1:
+        return f"--chunk: must be >= 1, got {args.chunk}"
     problem = _memory_problem(spec)
     if problem:
         return f"{args.runfile}: {problem}"

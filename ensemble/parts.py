@@ -54,10 +54,11 @@ def folder_of(out: Path) -> Path:
 
 
 def fingerprint(spec: Spec) -> dict[str, str]:
-    """What a part's bits depend on besides the member range: the run file's text and the versions of the
-    packages that compute and store them."""
+    """What a part's bits depend on besides the member range: the run file's text, the device (--device may
+    change the run file's; each rounds differently) and the versions of the packages that compute and store them."""
     return {"run_file_sha256": hashlib.sha256(spec.text.encode()).hexdigest(), "ensemble": __version__,
-            "numba": version("numba"), "numpy": np.__version__, "netCDF4": netCDF4.__version__}
+            "numba": version("numba"), "numpy": np.__version__, "netCDF4": netCDF4.__version__,
+            "device": f"{spec.device} {spec.precision}"}
 
 
 class PartsError(EnsembleError):

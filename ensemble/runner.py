@@ -27,8 +27,15 @@ from .store import Writer
 
 CHUNK_BYTES = 32 * 2**20  # saved data held in memory per chunk
 CHUNK_MEMBER_STEPS = 2e9  # work per chunk: about two seconds at this project's kernel speeds
-PIPELINE_CHUNKS = 4  # a run of fewer chunks is cut into this many, each at least PIPELINE_CHUNK_BYTES
-PIPELINE_CHUNK_BYTES = CHUNK_BYTES // 8
+PIPELINE_CHUNKS = 4  # a run of fewer chunks is cut into this many, each at least an eighth of a chunk's bytes
+# On a GPU a chunk is larger: it needs 10^5 to 10^6 members at once to fill the card (one thread each), and runs
+# about a hundred times the work in the same seconds.
+GPU_CHUNK_BYTES, GPU_CHUNK_MEMBER_STEPS = 2**30, 2e11
+
+
+def chunk_budget(spec: Spec) -> tuple[int, float]:
+    """(bytes of saved data, member-steps of work) per chunk on the run's device."""
+    return (GPU_CHUNK_BYTES, GPU_CHUNK_MEMBER_STEPS) if spec.device == "cuda" else (CHUNK_BYTES, CHUNK_MEMBER_STEPS)
 
 
 @dataclass(frozen=True)
@@ -82,7 +89,7 @@ def segment_samples(spec: Spec) -> int:
     CHUNK_BYTES; then the record runs in segments of this many samples (each call continues the last)."""
     per_sample, _ = _record_bytes(spec)
     block = run_block(spec)
-    return int(max(1, min(spec.n_save, CHUNK_BYTES // (per_sample * block))))
+    return int(max(1, min(spec.n_save, chunk_budget(spec)[0] // (per_sample * block))))
 
 
 def member_bytes(spec: Spec) -> int:
@@ -109,17 +116,19 @@ def steps_per_member(spec: Spec) -> float:
 def default_chunk(spec: Spec) -> int:
     """Members per chunk: a multiple of the kernel block that keeps a chunk within CHUNK_BYTES of memory
     (member_bytes) and CHUNK_MEMBER_STEPS of work (so chunks end, and finished members reach the file, every few
-    seconds). A run that would make fewer than PIPELINE_CHUNKS chunks makes that many, if each still holds
-    PIPELINE_CHUNK_BYTES: a chunk is observed and written while the next one's kernel runs, and the last one's
+    seconds); on a GPU within GPU_CHUNK_BYTES and GPU_CHUNK_MEMBER_STEPS. A run that would make fewer than
+    PIPELINE_CHUNKS chunks makes that many, if each still holds
+    an eighth of CHUNK_BYTES: a chunk is observed and written while the next one's kernel runs, and the last one's
     finishing waits for nothing else, so it should be short. Whole `ensemble run` processes of 10^4 tops
     (analysis/README.md) took 0.81 of their time in four chunks instead of two; 10^3 ran fastest in one."""
     block = run_block(spec)
-    chunk = CHUNK_BYTES // member_bytes(spec) // block * block
+    chunk_bytes, chunk_steps = chunk_budget(spec)
+    chunk = chunk_bytes // member_bytes(spec) // block * block
     steps = steps_per_member(spec)
     if steps > 0:
-        chunk = min(chunk, int(CHUNK_MEMBER_STEPS // steps) // block * block)
+        chunk = min(chunk, int(chunk_steps // steps) // block * block)
     chunk = min(max(chunk, block), spec.n_members)  # at least one kernel block
-    pieces = min(PIPELINE_CHUNKS, spec.n_members * member_bytes(spec) // PIPELINE_CHUNK_BYTES)
+    pieces = min(PIPELINE_CHUNKS, spec.n_members * member_bytes(spec) // (chunk_bytes // 8))
     if pieces > 1 and spec.n_members < pieces * chunk:
         share = -(-spec.n_members // pieces)
         chunk = min(chunk, max(block, -(-share // block) * block))
@@ -141,7 +150,7 @@ def _settings(spec: Spec, method: Method, values: dict[str, np.ndarray]) -> dict
     """A launch's settings for members that share one method and dt."""
     dt = values["dt"] if method.adaptive else float(values["dt"][0])
     return dict(n_save=spec.n_save, save_dt=spec.save_dt, dt=dt, rtol=values["rtol"], atol=values["atol"],
-                blowup_factor=spec.blowup_factor)
+                blowup_factor=spec.blowup_factor, device=spec.device, precision=spec.precision)
 
 
 def integrate(spec: Spec, method: Method, values: dict[str, np.ndarray], repeats: int = 0,
@@ -490,7 +499,8 @@ def prepare_kernels(spec: Spec, announce: bool = True) -> float:
     start = time.perf_counter()
     try:
         for name in spec.methods:
-            launch.prepare(scene, METHODS[name], spec.constants)
+            launch.prepare(scene, METHODS[name], spec.constants, device=spec.device, precision=spec.precision,
+                           values=members_table(spec, 0, 1))
         one = np.zeros((1, 1, scene.kernel_rows(spec.constants)[0])).transpose(1, 2, 0)  # as a kernel's samples
         scene.observe(one, tuple(scene.OBSERVABLES), members_table(spec, 0, 1), spec.constants)  # what observing
         if spec.measure["growth"]:  # and the growth fit compile, too

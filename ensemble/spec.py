@@ -47,8 +47,10 @@ class SpecError(EnsembleError, ValueError):
 TOP_LEVEL = {
     "scene": str, "method": str, "dt": float, "rtol": float, "atol": float, "t_end": float, "save_dt": float,
     "members": int, "seed": int, "save": list, "parameters": dict, "sweep": (dict, list), "observe": dict,
-    "measure": dict, "blowup_factor": float,
+    "measure": dict, "blowup_factor": float, "device": str, "precision": str,
 }
+DEVICES = ("cpu", "cuda")  # where the kernels run: this machine's cores, or an NVIDIA GPU (ensemble.engine.gpu)
+PRECISIONS = ("float64", "float32")  # float32 on a GPU only
 OBSERVE_KEYS = ("noise",)
 MEASURE_KEYS = {"error": bool, "timing": bool, "repeats": int, "growth": bool}
 REQUIRED = ("scene", "t_end", "save_dt", "members", "seed")
@@ -110,6 +112,8 @@ class Spec:
     atol: float | None = None
     measure: dict[str, object] = field(default_factory=dict)  # [measure]: error, timing, repeats, growth
     blowup_factor: float = DEFAULT_BLOWUP_FACTOR  # a member fails when its state outgrows its start this much
+    device: str = "cpu"  # one of DEVICES
+    precision: str = "float64"  # one of PRECISIONS
     table: dict[str, np.ndarray] | None = field(default=None, repr=False, compare=False)  # see members_table
 
     @property
@@ -293,6 +297,7 @@ def parse(text: str, path: str = "<string>") -> Spec:
     if not blowup_factor > 1:
         raise SpecError("blowup_factor", f"must be > 1 (a member fails when its state grows this many times its "
                                          f"size at the start), got {blowup_factor!r}")
+    device, precision = _device(values.get("device", "cpu"), values.get("precision", "float64"))
     noise = _noise(values.get("observe", {}), save, module)
     measure = _measure(values.get("measure", {}), module)
 
@@ -306,7 +311,7 @@ def parse(text: str, path: str = "<string>") -> Spec:
                 t_end=t_end, save_dt=save_dt, members=values["members"], seed=values["seed"], save=save,
                 parameters=parameters, grids=tuple(grids), constants=constants, noise=noise,
                 declared=declared, rtol=settings.get("rtol"), atol=settings.get("atol"), measure=measure,
-                blowup_factor=blowup_factor)
+                blowup_factor=blowup_factor, device=device, precision=precision)
     sizes = module.sizes(constants)
     need = 8 * spec.n_members * (sum(sizes[p.per] if p.per else 1 for p in declared.values()) + len(SETTINGS) + 1)
     if need > MAX_TABLE_BYTES:
@@ -315,6 +320,18 @@ def parse(text: str, path: str = "<string>") -> Spec:
                                    f"{MAX_TABLE_BYTES / 1e9:.3g} GB")
     # Drawing every member's values checks them; keep them, as mode starts may cost an eigensolve each.
     return replace(spec, table=_build_table(spec))
+
+
+def _device(device: str, precision: str) -> tuple[str, str]:
+    """The run file's device and precision, checked (not whether this machine has the device: see
+    ensemble.engine.gpu.require_gpu)."""
+    if device not in DEVICES:
+        raise SpecError("device", f"must be one of {', '.join(map(repr, DEVICES))}, got {device!r}")
+    if precision not in PRECISIONS:
+        raise SpecError("precision", f"must be one of {', '.join(map(repr, PRECISIONS))}, got {precision!r}")
+    if precision == "float32" and device != "cuda":
+        raise SpecError("precision", 'float32 runs on a GPU only (device = "cuda"); the CPU kernels are float64')
+    return device, precision
 
 
 def _check_bounds(seed: int, t_end: float, steps: list[tuple[float, ...]]) -> None:

@@ -83,6 +83,15 @@ SETTING_UNITS = {"dt": ("s", "integration step", "for adaptive methods: the firs
                                                      "variable")}
 
 
+def device_name(device: str) -> str:
+    """"cpu", or "cuda: <the GPU's name>"."""
+    if device != "cuda":
+        return device
+    from .engine.gpu import require_gpu
+
+    return f"cuda: {require_gpu()}"
+
+
 def global_attributes(spec: Spec, table: dict[str, np.ndarray], command: str | None = None) -> dict[str, object]:
     """The run's provenance; a setting (method, dt, rtol, atol) is an attribute when every member shares it.
     `command` is the command line that made the run (default: `ensemble run <run file>`)."""
@@ -109,6 +118,8 @@ def global_attributes(spec: Spec, table: dict[str, np.ndarray], command: str | N
         "t_end": spec.t_end,
         "seed": spec.seed,
         "blowup_factor": spec.blowup_factor,
+        "device": device_name(spec.device),  # where the kernels ran, the GPU's name included
+        "precision": spec.precision,
         "members_per_sweep_point": spec.members,
         "sweep_axes": " ".join(spec.sweep),
         "members_written": spec.n_members,  # always every member: the file appears only when complete
