@@ -1,7 +1,13 @@
-"""Shared helpers: run-file text from Python values."""
+"""Shared helpers: run-file text from Python values. The CUDA kernels run under numba-cuda's simulator unless
+ENSEMBLE_TEST_GPU=1 (set on a machine with a GPU to test them there)."""
 from __future__ import annotations
 
+import os
+
 import pytest
+
+if os.environ.get("ENSEMBLE_TEST_GPU") != "1":
+    os.environ.setdefault("NUMBA_ENABLE_CUDASIM", "1")
 
 
 def _toml_value(value) -> str:

@@ -1,0 +1,192 @@
+"""The CUDA kernels (ensemble.engine.gpu) against the CPU kernels, under numba-cuda's simulator (conftest sets
+NUMBA_ENABLE_CUDASIM=1 unless ENSEMBLE_TEST_GPU=1 asks for the real GPU): every method family on every scene,
+failing members, segments, chunks and resume, and the errors of --device cuda.
+
+Arithmetic differs between the two (the CPU kernels are compiled with fast-math and fused multiply-adds where LLVM
+chooses; the simulator runs Python floats; a GPU fuses where NVVM chooses), so results agree to rounding rather than
+bitwise; a GPU run agrees with itself bitwise however it is cut into segments and chunks.
+"""
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from ensemble import cli, runner
+from ensemble.engine import launch
+from ensemble.methods import METHODS
+from ensemble.results import Status
+from ensemble.spec import SpecError, load
+
+from .conftest import top_runfile
+from .test_resume import _interrupted, same_bits
+
+pytest.importorskip("numba.cuda")
+EXAMPLE = Path(__file__).parents[1] / "examples" / "driven_oscillator.py"
+
+TOP = dict(scene="top", dt=0.01, t_end=0.2, save_dt=0.05, members=3, seed=3,
+           parameters="lambda1 = 1.0e-3\nlambda3 = 2.0e-3\nc = 1e-4\nspin0 = 60.0\n"
+                      "tilt0 = { uniform = [0.02, 0.2] }\nazimuth0 = 0.3")
+BODY = dict(scene="body", dt=0.01, t_end=0.2, save_dt=0.05, members=3, seed=3,
+            parameters="lambda1 = 1.0\nlambda2 = 2.0\nlambda3 = 3.0\nc = 0.05\nspin0 = 2.0\nspin_axis = 2\n"
+                       "tilt0 = { uniform = [0.01, 0.1] }\nazimuth0 = 0.5")
+CHAIN = dict(scene="chain", dt=0.02, t_end=0.2, save_dt=0.1, members=3, seed=3,
+             parameters="n = 3\nboundary = \"fixed\"\nm = 1.0\nk = { uniform = [0.5, 1.5] }\n"
+                        "x0 = { normal = [0.0, 0.1] }")
+RING = {**CHAIN, "parameters": CHAIN["parameters"].replace('"fixed"', '"periodic"')}
+USER = dict(scene=str(EXAMPLE), dt=0.02, t_end=0.4, save_dt=0.1, members=3, seed=3,
+            parameters="omega0 = 1.0\ngamma = 0.1\nF = 0.5\nOmega = { uniform = [0.5, 1.5] }\nx0 = 0.2")
+
+def loads(text: str):
+    """The Spec of a run file's text."""
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as folder:
+        path = Path(folder) / "run.toml"
+        path.write_text(text)
+        return load(path)
+
+
+CASES = [(TOP, ("rk4", "split4", "dopri5")), (BODY, ("rk4", "rotations4", "dopri5")),
+         (CHAIN, ("verlet", "yoshida4", "rk4", "dopri5")), (RING, ("verlet", "dopri5")), (USER, ("rk4", "dopri5"))]
+
+
+def spec_of(case: dict, method: str, **extra):
+    case = {**case, **extra}
+    head = "\n".join(f"{k} = {v!r}" if not isinstance(v, str) else f'{k} = "{v}"'
+                     for k, v in case.items() if k != "parameters")
+    tolerances = "rtol = 1e-7\natol = 1e-9\n" if METHODS[method].adaptive else ""
+    return loads(f'{head}\nmethod = "{method}"\n{tolerances}[parameters]\n{case["parameters"]}\n')
+
+
+def both(spec, **settings):
+    """(CPU outcome, GPU outcome) of a spec's members."""
+    values = runner.members_table(spec, 0, spec.n_members)
+    method = METHODS[spec.method]
+    base = {**runner._settings(spec, method, values), **settings, "device": "cpu"}
+    return (launch.integrate(spec.model, method, values, spec.constants, **base),
+            launch.integrate(spec.model, method, values, spec.constants, **{**base, "device": "cuda"}))
+
+
+@pytest.mark.parametrize("case, method", [(case, m) for case, methods in CASES for m in methods],
+                         ids=[f"{c['scene'].split('/')[-1]}-{m}" for c, ms in CASES for m in ms])
+def test_every_family_on_every_scene_gives_the_cpus_results(case, method):
+    """Within 1e-12 of the CPU's samples (relative to each member's largest state component); dopri5 within
+    1e-10: the CPU's step control computes its step factors with vectorized log2 and exp2 (1e-13 relative), so
+    the step sizes differ in their last bits. Status, failure times and step counts are the CPU's."""
+    cpu, gpu = both(spec_of(case, method))
+    scale = np.abs(cpu.samples).max(axis=(0, 1))
+    error = np.abs(gpu.samples - cpu.samples).max(axis=(0, 1)) / scale
+    assert error.max() < (1e-10 if METHODS[method].adaptive else 1e-12), error
+    assert np.array_equal(cpu.status, gpu.status) and np.array_equal(cpu.counts, gpu.counts)
+    assert np.isfinite(cpu.samples).all() and np.all(cpu.samples[-1] != cpu.samples[0])  # they moved, none failed
+
+
+def test_failing_members_are_flagged_as_on_the_cpu():
+    """A chain whose stiff members are beyond verlet's stability limit (h omega > 2) blows up on both, at the same
+    saved time; the stable members run on. An adaptive member whose tolerance cannot be met underflows on both."""
+    spec = spec_of({**CHAIN, "dt": 1.0, "t_end": 40.0, "save_dt": 1.0,
+                    "parameters": CHAIN["parameters"].replace("[0.5, 1.5]", "[0.1, 3.0]")}, "verlet",
+                   members=6)
+    cpu, gpu = both(spec)
+    assert set(cpu.status) == {Status.OK, Status.BLEW_UP}
+    assert np.array_equal(cpu.status, gpu.status)
+    assert np.array_equal(cpu.failure_time, gpu.failure_time, equal_nan=True)
+    assert np.array_equal(np.isnan(cpu.samples), np.isnan(gpu.samples))
+    cpu, gpu = both(spec_of(TOP, "dopri5"), rtol=np.full(3, 1e-30), atol=np.full(3, 1e-300))
+    assert set(cpu.status) == {Status.STEP_SIZE_UNDERFLOW} and np.array_equal(cpu.status, gpu.status)
+    # where each gives up depends on the last bits of its step factors (see above): before the first saved time
+    assert np.all(cpu.failure_time < 0.05) and np.all(gpu.failure_time < 0.05)
+    assert np.isnan(gpu.samples[1:]).all() and np.isnan(cpu.samples[1:]).all()
+
+
+@pytest.mark.parametrize("method", ["rk4", "dopri5", "verlet", "chain dopri5"])
+def test_a_run_in_segments_gives_the_bits_of_one_call(method):
+    case = CHAIN if method.startswith("chain") or method == "verlet" else TOP
+    method = method.split()[-1]
+    spec = spec_of(case, method)
+    values = runner.members_table(spec, 0, spec.n_members)
+    settings = {**runner._settings(spec, METHODS[method], values), "device": "cuda"}
+    whole = launch.Launch(spec.model, METHODS[method], values, spec.constants, **settings)
+    whole.run()
+    parts = launch.Launch(spec.model, METHODS[method], values, spec.constants, **settings, segment=1)
+    parts.run()
+    assert whole.samples.tobytes() == parts.samples.tobytes()
+    assert whole.outcome().counts.tobytes() == parts.outcome().counts.tobytes()
+
+
+def test_chunks_and_resume_on_the_gpu_give_the_bits_of_one_run(tmp_path, monkeypatch):
+    """device = "cuda" in the run file: a run in chunks of 1, and one interrupted after two chunks of 7 and
+    resumed, give the bits of one run; the result names its device."""
+    text = top_runfile(members=16, device="cuda", t_end=0.2, dt=0.01, save_dt=0.05)
+    path = tmp_path / "run.toml"
+    path.write_text(text)
+    whole, chunked = tmp_path / "whole.nc", tmp_path / "chunked.nc"
+    assert cli.main(["run", str(path), "-o", str(whole), "--quiet"]) == 0
+    assert cli.main(["run", str(path), "-o", str(chunked), "--quiet", "--chunk", "1"]) == 0
+    same_bits(whole, chunked)
+    resumed = tmp_path / "resumed.nc"
+    _interrupted(load(path), resumed, after=2, monkeypatch=monkeypatch)
+    assert cli.main(["run", str(path), "-o", str(resumed), "--quiet", "--resume"]) == 0
+    same_bits(whole, resumed)
+    import xarray as xr
+
+    with xr.open_dataset(whole) as ds:
+        assert ds.attrs["device"].startswith("cuda: ") and ds.attrs["precision"] == "float64"
+        cpu = runner.simulate(loads(text.replace('device = "cuda"', 'device = "cpu"')))
+        assert cpu.attrs["device"] == "cpu"
+        assert np.allclose(ds.omega, cpu.omega, rtol=1e-12, atol=0)
+
+
+def test_float32_on_the_gpu_agrees_with_float64_to_single_precision():
+    spec = spec_of(TOP, "rk4")
+    values = runner.members_table(spec, 0, spec.n_members)
+    settings = {**runner._settings(spec, METHODS["rk4"], values), "device": "cuda"}
+    double = launch.integrate(spec.model, METHODS["rk4"], values, spec.constants, **settings)
+    single = launch.integrate(spec.model, METHODS["rk4"], values, spec.constants,
+                              **{**settings, "precision": "float32"})
+    error = np.abs(single.samples - double.samples).max() / np.abs(double.samples).max()
+    assert 1e-12 < error < 1e-5  # single precision: not float64's result, but within float32's rounding
+
+
+@pytest.mark.parametrize("key, value, problem", [
+    ("device", '"tpu"', "device: must be one of 'cpu', 'cuda', got 'tpu'"),
+    ("precision", '"float16"', "precision: must be one of 'float64', 'float32', got 'float16'"),
+    ("precision", '"float32"', 'precision: float32 runs on a GPU only (device = "cuda"); the CPU kernels are '
+                               'float64')])
+def test_a_bad_device_or_precision_is_refused(key, value, problem):
+    with pytest.raises(SpecError) as error:
+        loads(top_runfile().replace("[parameters]", f"{key} = {value}\n[parameters]"))
+    assert str(error.value) == problem
+
+
+@pytest.mark.skipif(os.environ.get("ENSEMBLE_TEST_GPU") == "1", reason="this machine has a GPU")
+def test_device_cuda_without_a_gpu_is_one_line_and_exit_2_with_nothing_written(tmp_path):
+    """With the simulator off and no GPU (as on the test machines) --device cuda names what is missing."""
+    path = tmp_path / "run.toml"
+    path.write_text(top_runfile())
+    out = tmp_path / "out.nc"
+    done = subprocess.run([sys.executable, "-m", "ensemble", "run", str(path), "-o", str(out), "--device", "cuda"],
+                          capture_output=True, text=True, env={**os.environ, "NUMBA_ENABLE_CUDASIM": "0"})
+    assert done.returncode == 2, done.stderr
+    assert done.stderr.startswith(f"ensemble: error: {path}: device cuda: ") and done.stderr.count("\n") == 1
+    assert not list(tmp_path.glob("out.nc*"))
+
+
+def test_a_run_is_resumed_only_on_the_device_it_started_on(tmp_path, monkeypatch, capsys):
+    """A CPU run interrupted after two chunks is not finished on the GPU, which rounds differently: one line,
+    exit 2, before any member runs, the parts kept; on the CPU it finishes."""
+    path = tmp_path / "run.toml"
+    path.write_text(top_runfile(members=16))
+    out = tmp_path / "out.nc"
+    _interrupted(load(path), out, after=2, monkeypatch=monkeypatch)
+    capsys.readouterr()
+    assert cli.main(["run", str(path), "-o", str(out), "--quiet", "--resume", "--device", "cuda"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "was made by another run (device differs)" in err
+    assert not out.exists() and list(tmp_path.glob("out.nc.parts/members-*"))
+    assert cli.main(["run", str(path), "-o", str(out), "--quiet", "--resume"]) == 0
