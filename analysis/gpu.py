@@ -1,0 +1,229 @@
+"""The GPU's figures (issue 42, docs/gpu.md): the CUDA kernels' rates, the crossover with the CPU kernels, a whole
+run against its kernel, and float32's error beside float64's. Every figure names the GPU and the host; rates are
+medians of --repeats timed launches after a first (compiling) one, each launch's inputs already on the GPU and its
+end state copied back (n_save = 2).
+
+    python analysis/gpu.py --json gpu.json            # on a machine with an NVIDIA GPU and numba-cuda
+    python analysis/gpu.py --quick                    # a smaller set (a few minutes of GPU time)
+
+Top: the aerobie's tops (runs/aerobie.toml). Chain: disordered chains of N masses between walls.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import re
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).parent))
+from hostinfo import host  # noqa: E402
+
+from ensemble.engine import launch  # noqa: E402
+from ensemble.engine.gpu import require_gpu  # noqa: E402
+from ensemble.methods import METHODS  # noqa: E402
+from ensemble.runner import members_table  # noqa: E402
+from ensemble.scenes import resolve  # noqa: E402
+from ensemble.spec import load  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+TOP_DT = 2.5e-4  # s, runs/aerobie.toml's
+CHAIN_DT = 0.05  # s: h omega_max about 0.1 for the disordered chains below
+TARGET_SECONDS = 0.4  # a timed launch's length, once calibrated
+STEPS = (1e-2, 4e-3, 2e-3, 1e-3, 5e-4, 2.5e-4, 1e-4)  # s: float32's error against float64's, over 1 s
+CROSSOVER = (10**2, 10**3, 10**4, 10**5, 10**6)
+SIZES = {  # members per workload; --quick and --smoke (a check of this script under the simulator) use fewer
+    "full": dict(top=(10**4, 10**5, 10**6, 10**7), chain=((16, (10**4, 10**5, 10**6)), (128, (10**4, 10**5)),
+                                                           (1024, (10**3, 10**4, 10**5))),
+                 crossover=CROSSOVER, float32=10**4, dts=STEPS),
+    "quick": dict(top=(10**4, 10**5, 10**6), chain=((16, (10**4, 10**5, 10**6)), (128, (10**4, 10**5)),
+                                                     (1024, (10**3, 10**4))),
+                  crossover=CROSSOVER, float32=10**4, dts=STEPS),
+    "smoke": dict(top=(2,), chain=((3, (2,)),), crossover=(1,), float32=1, dts=(1e-2,)),
+}
+
+
+def synchronize():
+    from numba import cuda
+    cuda.synchronize()
+
+
+def top_values(members: int) -> dict[str, np.ndarray]:
+    """`members` aerobie tops: runs/aerobie.toml's first 10^4 draws, repeated."""
+    with tempfile.TemporaryDirectory() as folder:
+        path = Path(folder) / "run.toml"
+        path.write_text((ROOT / "runs" / "aerobie.toml").read_text().replace("members = 200", "members = 10000")
+                        .replace("c = [5e-5, 1e-4, 2e-4]", "c = [1e-4]"))
+        table = members_table(load(path), 0, 10_000)
+    return {name: np.resize(np.asarray(v), (members,) + np.shape(v)[1:]) for name, v in table.items()}
+
+
+def chain_values(n: int, members: int) -> dict[str, np.ndarray]:
+    rng = np.random.default_rng(7)
+    base = {"m": rng.uniform(0.5, 2, (1000, n)), "k": rng.uniform(0.5, 2, (1000, n + 1)),
+            "x0": rng.normal(0, 0.1, (1000, n)), "v0": np.zeros((1000, n))}
+    return {name: np.resize(v, (members, v.shape[1])) for name, v in base.items()}
+
+
+def timed(scene, method, values, constants, *, dt, t_end, device, repeats, **tolerances) -> tuple[float, object]:
+    """(median seconds of a launch over t_end, its outcome); inputs are laid out once, outside the timing."""
+    call = launch.Launch(scene, method, values, constants, n_save=2, save_dt=t_end, dt=dt, device=device,
+                         **tolerances)
+    call.run()  # compiles
+    seconds = []
+    for _ in range(repeats):
+        synchronize() if device == "cuda" else None
+        start = time.perf_counter()
+        call.run()
+        seconds.append(time.perf_counter() - start)
+    return float(np.median(seconds)), call.outcome()
+
+
+def calibrated(scene, method, values, constants, *, dt, probe_steps, device, repeats, **tolerances):
+    """Member-steps/s of a launch long enough to time (at least TARGET_SECONDS / 2): the steps double from
+    probe_steps until it is, then grow to about TARGET_SECONDS."""
+    steps = probe_steps
+    while True:
+        seconds, _ = timed(scene, method, values, constants, dt=dt, t_end=steps * dt, device=device, repeats=1,
+                           **tolerances)
+        if seconds >= TARGET_SECONDS / 2 or steps >= 10**7:
+            break
+        steps = int(steps * min(8.0, max(2.0, TARGET_SECONDS / max(seconds, 1e-6))))
+    steps = int(min(10**7, max(probe_steps, steps * TARGET_SECONDS / seconds)))
+    seconds, outcome = timed(scene, method, values, constants, dt=dt, t_end=steps * dt, device=device,
+                             repeats=repeats, **tolerances)
+    taken = float(outcome.counts[0].sum() + outcome.counts[1].sum())
+    return taken / seconds, steps, seconds
+
+
+def kernel_rates(sizes: dict, repeats: int) -> list[dict]:
+    rows = []
+    top, chain = resolve("top"), resolve("chain")
+    for members in sizes["top"]:
+        values = top_values(members)
+        for name, extra in (("rk4", {}), ("dopri5", {"rtol": 1e-8, "atol": 1e-10})):
+            probe = 200 if name == "rk4" else 20
+            rate, steps, seconds = calibrated(top, METHODS[name], values, {}, dt=TOP_DT, probe_steps=probe,
+                                              device="cuda", repeats=repeats, **extra)
+            rows.append(dict(scene="top", method=name, members=members, steps=steps, seconds=seconds,
+                             rate=rate, unit="member-steps/s"))
+            print(f"top {name:7s} members {members:>9,d}: {rate:.3g} member-steps/s ({steps} steps, {seconds:.3f} s)",
+                  flush=True)
+    for n, chains in sizes["chain"]:
+        for members in chains:
+            values = chain_values(n, members)
+            for name in ("verlet", "yoshida4"):
+                rate, steps, seconds = calibrated(chain, METHODS[name], values, {"n": n, "boundary": "fixed"},
+                                                  dt=CHAIN_DT, probe_steps=20, device="cuda", repeats=repeats)
+                rows.append(dict(scene=f"chain N={n}", method=name, members=members, steps=steps, seconds=seconds,
+                                 rate=rate * n, unit="mass-steps/s"))
+                print(f"chain N={n:<5d} {name:8s} members {members:>9,d}: {rate * n:.3g} mass-steps/s ({steps} steps, "
+                      f"{seconds:.3f} s)", flush=True)
+    return rows
+
+
+def crossover(sizes: dict, repeats: int) -> list[dict]:
+    """Whole launches (inputs to the GPU and samples back included) of top rk4, 1000 steps saving 11 samples, on
+    the CPU's threads and on the GPU, from 10^2 to 10^6 members."""
+    rows, top = [], resolve("top")
+    for members in sizes["crossover"]:
+        values = top_values(members)
+        seconds = {}
+        for device in ("cpu", "cuda"):
+            def once():
+                launch.integrate(top, METHODS["rk4"], values, {}, n_save=11, save_dt=100 * TOP_DT, dt=TOP_DT,
+                                 device=device)
+            once()
+            times = []
+            for _ in range(repeats):
+                start = time.perf_counter()
+                once()
+                times.append(time.perf_counter() - start)
+            seconds[device] = float(np.median(times))
+        rows.append(dict(members=members, cpu_seconds=seconds["cpu"], gpu_seconds=seconds["cuda"],
+                         gpu_over_cpu_speed=seconds["cpu"] / seconds["cuda"]))
+        print(f"crossover top rk4 members {members:>9,d}: cpu {seconds['cpu']:.4f} s, gpu {seconds['cuda']:.4f} s, "
+              f"gpu {seconds['cpu'] / seconds['cuda']:.3g}x", flush=True)
+    return rows
+
+
+def float32_error(sizes: dict) -> list[dict]:
+    """Top rk4's largest relative error against the closed form, float64 and float32, over 1 s at several dt."""
+    rows, top = [], resolve("top")
+    values = top_values(sizes["float32"])
+    exact = top.exact(values, {}, np.array([0.0, 1.0]))[-1]
+    for dt in sizes["dts"]:
+        row = dict(dt=dt)
+        for precision in ("float64", "float32"):
+            start = time.perf_counter()
+            outcome = launch.integrate(top, METHODS["rk4"], values, {}, n_save=2, save_dt=1.0, dt=dt, device="cuda",
+                                       precision=precision)
+            row[f"{precision}_seconds"] = time.perf_counter() - start
+            row[precision] = float(np.max(np.abs(outcome.samples[-1] - exact) / np.abs(exact).max(axis=0)))
+        rows.append(row)
+        print(f"float32 vs float64, top rk4 over 1 s at dt {dt:g}: error {row['float64']:.2e} (float64), "
+              f"{row['float32']:.2e} (float32)", flush=True)
+    return rows
+
+
+def whole_run(members: int, kernel_rate: float | None, dt: float = TOP_DT) -> dict:
+    """`ensemble run --device cuda` of `members` aerobie tops over 10 s in steps dt, saving 101 samples of omega
+    and tilt, against the kernel's rate."""
+    text = (ROOT / "runs" / "aerobie.toml").read_text().replace("members = 200", f"members = {members}")
+    text = text.replace("dt = 2.5e-4", f"dt = {dt!r}")
+    text = text.replace("c = [5e-5, 1e-4, 2e-4]", "c = [1e-4]").replace("t_end = 30.0", "t_end = 10.0")
+    text = text.replace('seed = 2026', 'seed = 2026\nsave = ["omega", "tilt"]')
+    with tempfile.TemporaryDirectory(dir=ROOT) as folder:
+        path = Path(folder) / "run.toml"
+        path.write_text(text)
+        start = time.perf_counter()
+        done = subprocess.run([sys.executable, "-m", "ensemble", "run", str(path), "-o", str(Path(folder) / "out.nc"),
+                               "--device", "cuda", "--quiet"], capture_output=True, text=True)
+        seconds = time.perf_counter() - start
+        size = (Path(folder) / "out.nc").stat().st_size if done.returncode == 0 else 0
+    steps = members * round(10.0 / dt)
+    said = re.search(r" in ([0-9.e+-]+) s:", done.stdout + done.stderr)  # the run's own time, start-up excluded
+    run_seconds = float(said.group(1)) if said else float("nan")
+    row = dict(members=members, dt=dt, seconds=seconds, run_seconds=run_seconds, rate=steps / run_seconds, bytes=size,
+               returncode=done.returncode, output=(done.stdout + done.stderr)[-600:], kernel_rate=kernel_rate,
+               share_of_kernel=(steps / run_seconds) / kernel_rate if kernel_rate else None)
+    print(f"whole run, {members:,d} tops, {round(10.0 / dt)} steps each, x 101 samples of omega and tilt "
+          f"({size / 1e9:.2f} GB): {seconds:.1f} s in all, {run_seconds:.2f} s its own, "
+          f"{steps / run_seconds:.3g} member-steps/s"
+          + (f", {row['share_of_kernel']:.2f} of the kernel's {kernel_rate:.3g}" if kernel_rate else ""), flush=True)
+    print(row["output"].strip(), flush=True)
+    return row
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--quick", action="store_true", help="fewer sizes")
+    parser.add_argument("--smoke", action="store_true", help="tiny sizes: checks this script (simulator)")
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--json", type=Path, help="write the figures here")
+    parser.add_argument("--whole-members", type=int, default=10**6, help="tops in the whole run (0: none)")
+    args = parser.parse_args()
+    figures = {"gpu": require_gpu(), "host": host(), "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())}
+    print(f"gpu: {figures['gpu']}\n{figures['host']}", flush=True)
+    sizes = SIZES["smoke" if args.smoke else "quick" if args.quick else "full"]
+    if args.smoke:
+        global TARGET_SECONDS
+        TARGET_SECONDS = 1e-3
+    figures["kernels"] = kernel_rates(sizes, args.repeats)
+    figures["crossover"] = crossover(sizes, args.repeats)
+    figures["float32"] = float32_error(sizes)
+    if args.whole_members:
+        rk4 = [r["rate"] for r in figures["kernels"] if r["scene"] == "top" and r["method"] == "rk4"]
+        figures["whole_run"] = [whole_run(args.whole_members, max(rk4) if rk4 else None, dt)
+                                for dt in (TOP_DT, TOP_DT / 100)]  # writing-bound, then integration-bound
+    if args.json:
+        args.json.write_text(json.dumps(figures, indent=1))
+
+
+if __name__ == "__main__":
+    main()
