@@ -13,11 +13,17 @@ import pytest
 from .test_analysis import run_small
 
 ROOT = Path(__file__).resolve().parent.parent
-DOCS = [ROOT / "README.md", ROOT / "analysis" / "README.md"]
+DOCS = [ROOT / "README.md", ROOT / "analysis" / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
+
+
+# The reference pages the README points to, whose examples open the README's run files' results
+REFERENCE = [ROOT / "docs" / name for name in ("running.md", "runfiles.md", "dataset.md", "physics.md", "methods.md")]
 
 
 def python_examples() -> list[str]:
-    return re.findall(r"^```python\n(.*?)^```", (ROOT / "README.md").read_text(), re.S | re.M)
+    """The Python examples of the README and of its reference pages."""
+    return [example for doc in (ROOT / "README.md", *REFERENCE)
+            for example in re.findall(r"^```python\n(.*?)^```", doc.read_text(), re.S | re.M)]
 
 
 def commands(text: str) -> list[str]:
@@ -81,7 +87,7 @@ def test_every_command_in_the_docs_names_what_exists(doc):
         for word in words:
             if word.startswith("runs/"):
                 assert (ROOT / word).is_file(), f"{doc.name}: {command}: no {word}"
-    assert any(key[0] == "-m" for key in options) or doc.parent.name == "analysis", given
+    assert any(key[0] == "-m" for key in options) or doc.parent.name in ("analysis", "docs"), given
     for (key, wanted), text in zip(options.items(), help_texts(list(options))):
         listed = set(re.findall(r"--[a-z][a-z0-9-]*", text))
         assert wanted <= listed, f"{doc.name}: {' '.join(key)} has no {sorted(wanted - listed)}"
