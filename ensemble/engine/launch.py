@@ -76,12 +76,11 @@ class Launch:
     all; `outcome` returns what the last run did. With device="cuda" it is an ensemble.engine.gpu.GpuLaunch,
     which does the same on a GPU (in `precision`, "float64" or "float32")."""
 
-    def __new__(cls, *args, device: str = "cpu", **kwargs):
-        if device == "cuda" and not args[1].closed_form:  # a closed form is evaluated with NumPy, on the CPU
+    def __new__(cls, scene, method: Method, *args, device: str = "cpu", **kwargs):
+        if device == "cuda" and not method.closed_form:  # a closed form is evaluated with NumPy, on the CPU
             from .gpu import GpuLaunch
 
-            return GpuLaunch(*args, **kwargs)
-        kwargs.pop("precision", None)
+            return GpuLaunch(scene, method, *args, **kwargs)
         return super().__new__(cls)
 
     def __init__(self, scene, method: Method, values: dict[str, np.ndarray], constants: dict, *, n_save: int,
