@@ -435,7 +435,7 @@ class GpuLaunch:
     def segments(self, threads: int | None = None, watch=None):
         """As launch.Launch.segments (threads is ignored): yields (first, samples) per kernel call, samples()
         returning (count, state rows, members) float64 in host memory. Segment k + 1 integrates while the caller
-        handles segment k."""
+        handles segment k, whose samples are overwritten by segment k + 2: the caller copies what it keeps."""
         from numba import cuda
 
         n = self.members
@@ -457,7 +457,7 @@ class GpuLaunch:
             integrated = cuda.event()
             integrated.record(compute)
             integrated.wait(copy)
-            host = self._buffer(("host", k, shape), lambda: cuda.pinned_array(shape, dtype=self.real))
+            host = self._buffer(("host", k % 2, shape), lambda: cuda.pinned_array(shape, dtype=self.real))
             samples.copy_to_host(host, stream=copy)
             copied[k] = cuda.event()
             copied[k].record(copy)
@@ -469,8 +469,9 @@ class GpuLaunch:
         cuda.synchronize()
 
     def _buffer(self, key, make):
-        """A buffer kept for later runs of this launch: allocating pinned memory costs about as much as copying
-        into it (0.3 s for 512 MB), and a run's segments are handed on before the next run starts."""
+        """A buffer kept for later segments and runs of this launch: allocating pinned memory costs about as much
+        as copying into it (0.3 s for 512 MB). Segments alternate between two: segment k's samples are handed on
+        (the caller is done with them) before segment k + 2 is copied into the same buffer."""
         buffers = self.__dict__.setdefault("buffers", {})
         if key not in buffers:
             buffers[key] = make()
@@ -484,7 +485,8 @@ class GpuLaunch:
         return first, lambda: host if host.dtype == np.float64 else host.astype(np.float64)
 
     def run(self, threads: int | None = None, watch=None) -> None:
-        parts = [samples() for _, samples in self.segments(threads, watch)]
+        keep = np.array if self.segment < self.n_save else np.asarray  # segments share two buffers: copies
+        parts = [keep(samples()) for _, samples in self.segments(threads, watch)]
         self.samples = parts[0] if len(parts) == 1 else np.concatenate(parts)
 
     def outcome(self) -> Outcome:
