@@ -14,7 +14,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 from . import __version__
 from .arguments import OneLineParser, positive_int
-from .errors import EXIT_BAD_INPUT, EXIT_FAILED, EXIT_INTERRUPTED, EnsembleError
+from .errors import EXIT_BAD_INPUT, EXIT_FAILED, EXIT_INTERRUPTED, DeviceUnavailable, EnsembleError
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -132,11 +132,11 @@ def _on_device(args, spec):
     if spec.precision == "float32" and spec.device != "cuda":
         return spec, f"{args.runfile}: precision: float32 runs on a GPU only (--device cuda)"
     if spec.device == "cuda":
-        from .engine.gpu import GpuUnavailable, require_gpu
+        from .engine.gpu import require_gpu
 
         try:
             require_gpu()
-        except GpuUnavailable as e:
+        except DeviceUnavailable as e:
             return spec, f"{args.runfile}: {e}"
     return spec, None
 
@@ -179,7 +179,7 @@ def _run(args) -> int:
                           resume=args.resume, command=args.command_line, client=client)
     except OutputLocked:
         return _error(f"{out}: another run is writing it now; wait for it or choose another output")
-    except PartsError as e:
+    except (PartsError, DeviceUnavailable) as e:  # a GPU that went away after the check
         return _error(str(e))
     except SceneError as e:  # a user's scene whose functions do not compile: found before any chunk ran
         return _error(f"{args.runfile}: scene: {e}")

@@ -36,3 +36,7 @@ class Incomplete(EnsembleError):
         self.ranges, self.cause = ranges, cause
         members = ", ".join(f"{a}..{b - 1}" if b - a > 1 else str(a) for a, b in ranges)
         super().__init__(f"members {members} were not computed ({cause})")
+
+
+class DeviceUnavailable(EnsembleError):
+    """A run asks for a device this machine lacks (device = "cuda" without a GPU or without numba-cuda)."""

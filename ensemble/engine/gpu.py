@@ -21,9 +21,10 @@ from typing import NamedTuple
 
 import numpy as np
 
+from ..errors import DeviceUnavailable
 from ..methods import Method
 from ..results import DEFAULT_BLOWUP_FACTOR, Outcome, Status
-from ..scenes.contract import SceneError, load
+from ..scenes.contract import load
 from .blocks import FIRST_LOG2_ERR_PREVIOUS, adaptive_constants, method_constants
 from .kernels import factor_counts, load_source, physics_file
 from .launch import _fixed_counts, _limits
@@ -37,24 +38,20 @@ PRECISIONS = {"float64": np.float64, "float32": np.float32}
 OK, BLEW_UP, UNDERFLOW = int(Status.OK), int(Status.BLEW_UP), int(Status.STEP_SIZE_UNDERFLOW)
 
 
-class GpuUnavailable(SceneError):
-    """--device cuda where numba-cuda or a GPU is missing (one line, exit 2)."""
-
-
 def require_gpu() -> str:
-    """The GPU's name, or GpuUnavailable saying what is missing. The simulator counts as a GPU."""
+    """The GPU's name, or DeviceUnavailable saying what is missing. The simulator counts as a GPU."""
     try:
         from numba import cuda
     except ImportError:  # pragma: no cover (numba-cuda is a test dependency)
-        raise GpuUnavailable("device cuda needs numba-cuda: pip install 'ensemble[cuda]'") from None
+        raise DeviceUnavailable("device cuda needs numba-cuda: pip install 'ensemble[cuda]'") from None
     if simulated():
         return "numba-cuda simulator"
     try:
         available = cuda.is_available()
     except Exception as error:  # noqa: BLE001 (the driver's own words)
-        raise GpuUnavailable(f"device cuda: no usable GPU ({str(error).splitlines()[0][:200]})") from None
+        raise DeviceUnavailable(f"device cuda: no usable GPU ({str(error).splitlines()[0][:200]})") from None
     if not available:
-        raise GpuUnavailable("device cuda: no CUDA GPU or driver found on this machine (numba.cuda.is_available() "
+        raise DeviceUnavailable("device cuda: no CUDA GPU or driver found on this machine (numba.cuda.is_available() "
                              "is False)")
     name = cuda.get_current_device().name
     return name.decode() if isinstance(name, bytes) else str(name)
