@@ -20,6 +20,7 @@ from __future__ import annotations
 import difflib
 import itertools
 import math
+import re
 import tomllib
 import zlib
 from dataclasses import dataclass, field, replace
@@ -62,6 +63,8 @@ _STEP_RTOL = 1e-9  # how close save_dt / dt and t_end / save_dt must be to whole
 MAY_BE_INFINITE = ("blowup_factor",)  # inf: only a non-finite state fails a member
 # What a run file may ask for, refused before anything is allocated:
 MAX_RUN_FILE_BYTES = 1_000_000  # a run file is a short text
+MAX_NESTING = 32  # levels of arrays, inline tables and dotted keys: deeper, tomllib recurses past Python's limit
+# or (dotted keys) takes time that grows with the square of the depth
 MAX_STEPS = 10**12  # steps per member (t_end / dt), and saved samples per member (t_end / save_dt)
 MAX_SEED = 2**63 - 1  # the seed is stored as a 64-bit integer
 MAX_TABLE_BYTES = 2**31  # every member's parameters, held in memory for the whole run
@@ -233,8 +236,29 @@ def _parameter(key: str, value, parameter: Parameter):
     return _expect(key, value, float)
 
 
+def _nesting_problem(text: str) -> str | None:
+    """Why the run file nests too deeply to be parsed (None if it does not), found before parsing: arrays and
+    inline tables over MAX_NESTING deep, or a key of more than MAX_NESTING dotted parts. Strings and comments
+    are left out of the count."""
+    bare = re.sub(r'"""[\s\S]*?"""|\'\'\'[\s\S]*?\'\'\'|"(?:[^"\\\n]|\\.)*"|\'[^\'\n]*\'|#[^\n]*', '""', text)
+    depth = deepest = 0
+    for bracket in re.findall(r"[\[\]{}]", bare):
+        depth += 1 if bracket in "[{" else -1
+        deepest = max(deepest, depth)
+    if deepest > MAX_NESTING + 1:  # a table header's brackets count once, an array of tables' twice
+        return f"arrays and tables nest {deepest} deep; at most {MAX_NESTING}"
+    for line in bare.splitlines():  # keys: before an =, or a table's header; not the values of a long array
+        key = line.split("=", 1)[0] if "=" in line else line.strip().strip("[]")
+        if key.count(".") >= MAX_NESTING and re.fullmatch(r'[\w.\-\s"]+', key):
+            return f"a key of {key.count('.') + 1} dotted parts; at most {MAX_NESTING}"
+    return None
+
+
 def _top_level(text: str) -> dict:
     """The run file's top-level keys, each of its expected type."""
+    problem = _nesting_problem(text)
+    if problem:
+        raise SpecError("TOML syntax", problem)
     try:
         raw = tomllib.loads(text)
     except tomllib.TOMLDecodeError as e:
