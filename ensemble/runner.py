@@ -107,10 +107,10 @@ def smallest_chunk(spec: Spec) -> int:
 
 def steps_per_member(spec: Spec) -> float:
     """The most steps a member of the run takes with a fixed step, t_end / dt (adaptive members: t_end over
-    their first trial step, a guess; 0 when every member is in closed form)."""
+    their first trial step, a guess, at least one; 0 when every member is in closed form)."""
     dt = members_table(spec)["dt"]
     dt = dt[np.isfinite(dt) & (dt > 0)]
-    return spec.t_end / float(dt.min()) if dt.size else 0.0
+    return max(1.0, spec.t_end / float(dt.min())) if dt.size else 0.0
 
 
 def default_chunk(spec: Spec) -> int:

@@ -210,6 +210,8 @@ def _distribution(key: str, value: dict) -> Distribution:
         raise SpecError(f"{key}.normal", f"standard deviation must be >= 0, got {hi!r}")
     if kind != "normal" and lo > hi:
         raise SpecError(f"{key}.{kind}", f"lower bound {lo!r} is above upper bound {hi!r}")
+    if kind == "uniform" and not math.isfinite(hi - lo):
+        raise SpecError(f"{key}.uniform", f"the range {lo!r} to {hi!r} is wider than a float64 can hold")
     if kind == "loguniform" and lo <= 0:
         raise SpecError(f"{key}.loguniform", f"bounds must be > 0, got {lo!r}")
     return Distribution(kind, (lo, hi))

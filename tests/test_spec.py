@@ -9,6 +9,8 @@ from tests.conftest import refused, top_runfile
 
 BAD_INPUTS = {
     "toml syntax": ("scene = 'top'\ndt = = 1\n", "TOML syntax"),
+    "uniform wider than a float": (top_runfile(parameters={"tilt0": {"uniform": [-1e308, 1e308]}}),
+                                   "parameters.tilt0.uniform"),
     "unknown parameter": (top_runfile(parameters={"lamda1": 1e-3}), "parameters.lamda1"),
     "unknown top-level key": (top_runfile(tend=3.0), "tend"),
     "wrong type": (top_runfile(dt="fast"), "dt"),
@@ -255,3 +257,16 @@ def test_deep_but_allowed_nesting_and_long_arrays_parse():
     assert spec_module._nesting_problem(".".join(["a"] * 32) + " = 1") is None
     assert spec_module._nesting_problem("k = [\n" + ", ".join(["1.5"] * 40) + ",\n]\n") is None
     assert spec_module._nesting_problem('note = "' + "." * 100 + '"  # ' + "[" * 100) is None
+
+
+def test_a_first_trial_step_longer_than_the_run_still_runs(write_runfile, tmp_path):
+    """dopri5 with dt (its first trial step) = 1e300 s: the chunking's guess of its steps is at least one, and the
+    control shrinks the step; the members end near the rk4 result."""
+    out = tmp_path / "out.nc"
+    assert cli.main(["run", str(write_runfile(top_runfile(method="dopri5", dt=1e300, rtol=1e-10, atol=1e-12))), "-o",
+                     str(out), "--quiet"]) == 0
+    reference = runner.simulate(parse(top_runfile(method="rk4", dt=1e-4)))
+    import xarray as xr
+
+    with xr.open_dataset(out) as ds:
+        assert np.allclose(ds.omega, reference.omega, rtol=1e-6, atol=1e-6)
