@@ -704,15 +704,20 @@ def _from_shape(spec: Spec, source: str, table: dict[str, np.ndarray]) -> dict[s
     """The parameters that shape parameter `source` derives, for every member."""
     name = spec.constants[f"{source}_shape"]
     try:
-        if name == POLYGON:
-            vertices = [[float(x) for x in pair.split(",")] for pair in spec.constants[f"{source}_vertices"].split()]
-            body = polygon(table[f"{source}_mass"], vertices)
-        else:
-            shape = SHAPES[name]
-            body = shape.build(**{dim: table[f"{source}_{dim}"] for dim in ("mass", *shape.lengths)})
+        with np.errstate(over="ignore", invalid="ignore"):  # moments past a float64 are refused below
+            if name == POLYGON:
+                vertices = [[float(x) for x in pair.split(",")]
+                            for pair in spec.constants[f"{source}_vertices"].split()]
+                body = polygon(table[f"{source}_mass"], vertices)
+            else:
+                shape = SHAPES[name]
+                body = shape.build(**{dim: table[f"{source}_{dim}"] for dim in ("mass", *shape.lengths)})
     except ParameterError as e:
         where = "sweep" if f"{source}_{e.name}" in spec.sweep else "parameters"
         raise SpecError(f"{where}.{source}.{e.name}", e.problem) from None
+    if not np.all(np.isfinite(body.inertia)):
+        raise SpecError(f"parameters.{source}", "its moments of inertia (mass times length squared) are beyond a "
+                                                "float64's range (1.8e308 kg m2)")
     try:
         return spec.model.from_body(body, source)
     except ParameterError as e:

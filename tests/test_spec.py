@@ -9,6 +9,8 @@ from tests.conftest import refused, top_runfile
 
 BAD_INPUTS = {
     "toml syntax": ("scene = 'top'\ndt = = 1\n", "TOML syntax"),
+    "moments beyond a float": (top_runfile(parameters={"lambda1": None, "lambda3": None, "body": {
+        "shape": "box", "mass": 1e300, "width": 1e300, "height": 2e300, "depth": 3e300}}), "parameters.body"),
     "uniform wider than a float": (top_runfile(parameters={"tilt0": {"uniform": [-1e308, 1e308]}}),
                                    "parameters.tilt0.uniform"),
     "unknown parameter": (top_runfile(parameters={"lamda1": 1e-3}), "parameters.lamda1"),
