@@ -68,6 +68,7 @@ MAX_NESTING = 32  # levels of arrays, inline tables and dotted keys: deeper, tom
 MAX_STEPS = 10**12  # steps per member (t_end / dt), and saved samples per member (t_end / save_dt)
 MAX_SEED = 2**63 - 1  # the seed is stored as a 64-bit integer
 MAX_TABLE_BYTES = 2**31  # every member's parameters, held in memory for the whole run
+EIGENPROBLEM_ARRAYS = 3  # n x n arrays per member while mode starts are solved: stiffness, shapes, LAPACK's work
 MAX_REPEATS = 100  # [measure] repeats: timed kernel calls per chunk
 MAX_NOISE = 1e150  # observation noise's stddev: far below it a Gaussian draw (at most ~40 sd) stays finite
 POLYGON = "polygon"  # a shape given by its mass and its vertices (a run constant), not by lengths
@@ -669,6 +670,11 @@ def _build_table(spec: Spec, start: int = 0, stop: int | None = None) -> dict[st
     for name, mode in modes.items():
         if not 1 <= mode.number <= sizes["site"]:
             raise SpecError(f"parameters.{name}.mode", f"must be in 1..{sizes['site']}, got {mode.number}")
+        need = EIGENPROBLEM_ARRAYS * 8 * sizes["site"] ** 2 * n
+        if need > MAX_TABLE_BYTES:
+            raise SpecError(f"parameters.{name}", f"a mode start solves each member's {sizes['site']} x "
+                                                  f"{sizes['site']} eigenproblem at once: {n} member(s) need "
+                                                  f"{need / 1e9:.3g} GB; at most {MAX_TABLE_BYTES / 1e9:.3g} GB")
         table[name] = scene.mode_start(mode, table["m"], table["k"], spec.constants["boundary"])
     return table
 

@@ -11,6 +11,9 @@ BAD_INPUTS = {
     "toml syntax": ("scene = 'top'\ndt = = 1\n", "TOML syntax"),
     "moments beyond a float": (top_runfile(parameters={"lambda1": None, "lambda3": None, "body": {
         "shape": "box", "mass": 1e300, "width": 1e300, "height": 2e300, "depth": 3e300}}), "parameters.body"),
+    "mode start past memory": ('scene = "chain"\nmethod = "verlet"\ndt = 0.01\nt_end = 1.0\nsave_dt = 0.1\n'
+                               'members = 1\nseed = 1\n[parameters]\nn = 100000\nm = 1.0\nk = 1.0\n'
+                               'x0 = { mode = 1, amplitude = 0.1 }\n', "parameters.x0"),
     "uniform wider than a float": (top_runfile(parameters={"tilt0": {"uniform": [-1e308, 1e308]}}),
                                    "parameters.tilt0.uniform"),
     "unknown parameter": (top_runfile(parameters={"lamda1": 1e-3}), "parameters.lamda1"),
