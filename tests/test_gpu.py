@@ -23,7 +23,7 @@ from ensemble.results import Status
 from ensemble.spec import SpecError, load
 
 from .conftest import top_runfile
-from .test_resume import _interrupted, same_bits
+from .test_resume import _interrupted, chunked_and_resumed_match_one_run
 
 pytest.importorskip("numba.cuda")
 EXAMPLE = Path(__file__).parents[1] / "examples" / "driven_oscillator.py"
@@ -125,14 +125,7 @@ def test_chunks_and_resume_on_the_gpu_give_the_bits_of_one_run(tmp_path, monkeyp
     text = top_runfile(members=16, device="cuda", t_end=0.2, dt=0.01, save_dt=0.05)
     path = tmp_path / "run.toml"
     path.write_text(text)
-    whole, chunked = tmp_path / "whole.nc", tmp_path / "chunked.nc"
-    assert cli.main(["run", str(path), "-o", str(whole), "--quiet"]) == 0
-    assert cli.main(["run", str(path), "-o", str(chunked), "--quiet", "--chunk", "1"]) == 0
-    same_bits(whole, chunked)
-    resumed = tmp_path / "resumed.nc"
-    _interrupted(load(path), resumed, after=2, monkeypatch=monkeypatch)
-    assert cli.main(["run", str(path), "-o", str(resumed), "--quiet", "--resume"]) == 0
-    same_bits(whole, resumed)
+    whole = chunked_and_resumed_match_one_run(path, tmp_path, monkeypatch)
     import xarray as xr
 
     with xr.open_dataset(whole) as ds:

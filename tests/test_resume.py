@@ -33,6 +33,19 @@ def same_bits(a: Path, b: Path) -> None:
             k: v for k, v in y.attrs.items() if k != "history"}
 
 
+def chunked_and_resumed_match_one_run(path: Path, folder: Path, monkeypatch) -> Path:
+    """Run the run file `path` whole, in chunks of 1, and interrupted after two chunks of 7 then resumed: the last
+    two give the bits of the first. Returns the whole run's result."""
+    whole, chunked, resumed = folder / "whole.nc", folder / "chunked.nc", folder / "resumed.nc"
+    assert cli.main(["run", str(path), "-o", str(whole), "--quiet"]) == 0
+    assert cli.main(["run", str(path), "-o", str(chunked), "--quiet", "--chunk", "1"]) == 0
+    same_bits(chunked, whole)
+    _interrupted(load(path), resumed, after=2, monkeypatch=monkeypatch)
+    assert cli.main(["run", str(path), "-o", str(resumed), "--quiet", "--resume"]) == 0
+    same_bits(resumed, whole)
+    return whole
+
+
 @pytest.fixture
 def reference(tmp_path, write_runfile):
     """(run file, the result of one uninterrupted run of it)."""

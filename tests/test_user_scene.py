@@ -153,10 +153,10 @@ def test_the_reserved_names_are_every_name_a_result_gives_each_member():
 def test_a_user_scene_chunks_resumes_runs_on_dask_and_measures_its_error_like_a_built_in_one(tmp_path, monkeypatch):
     """The example swept over methods with [measure] error: chunks of 1, a run interrupted and resumed, and two
     Dask workers all give the bits of one uninterrupted run, and its work-precision table has every method."""
-    from ensemble import cli, fit, runner
+    from ensemble import fit, runner
     from ensemble.spec import load
 
-    from .test_resume import _interrupted, same_bits
+    from .test_resume import chunked_and_resumed_match_one_run, same_bits
 
     text = (f'scene = "{EXAMPLE}"\nt_end = 4.0\nsave_dt = 0.5\nmembers = 3\nseed = 5\n[parameters]\n'
             'gamma = { uniform = [0.05, 0.5] }\nomega0 = 1.0\nF = 0.5\nOmega = 0.9\nx0 = { normal = [0.0, 1.0] }\n'
@@ -164,15 +164,7 @@ def test_a_user_scene_chunks_resumes_runs_on_dask_and_measures_its_error_like_a_
             '[[sweep]]\nmethod = ["dopri5"]\nrtol = [1e-6, 1e-9]\n[[sweep]]\nmethod = ["exact"]\n')
     path = tmp_path / "sweep.toml"
     path.write_text(text)
-    whole = tmp_path / "whole.nc"
-    assert cli.main(["run", str(path), "-o", str(whole), "--quiet"]) == 0
-    chunked = tmp_path / "chunked.nc"
-    assert cli.main(["run", str(path), "-o", str(chunked), "--quiet", "--chunk", "1"]) == 0
-    same_bits(chunked, whole)
-    resumed = tmp_path / "resumed.nc"
-    _interrupted(load(path), resumed, after=2, monkeypatch=monkeypatch)
-    assert cli.main(["run", str(path), "-o", str(resumed), "--quiet", "--resume"]) == 0
-    same_bits(resumed, whole)
+    whole = chunked_and_resumed_match_one_run(path, tmp_path, monkeypatch)
     table = fit.work_precision(xr.load_dataset(whole))
     assert set(table["method"].values) == {"euler", "rk4", "dopri5", "exact"}
     errors = {(m, dt if m != "dopri5" else rtol): e for m, dt, rtol, e in

@@ -13,7 +13,6 @@ Without a GPU the kernels run under numba-cuda's simulator (NUMBA_ENABLE_CUDASIM
 """
 from __future__ import annotations
 
-import hashlib
 import math
 import types
 from functools import cache
@@ -26,12 +25,8 @@ from ..methods import Method
 from ..results import DEFAULT_BLOWUP_FACTOR, Outcome, Status
 from ..scenes.contract import load
 from .blocks import FIRST_LOG2_ERR_PREVIOUS, adaptive_constants, method_constants
-from .kernels import factor_counts, load_source, physics_file
-from .launch import _fixed_counts, _limits
-
-
-def physics_hash(where: str) -> str:
-    return hashlib.sha256(physics_file(where).read_bytes()).hexdigest()
+from .kernels import factor_counts, load_source, physics_hash
+from .launch import _fixed_counts, _limits, adaptive_control
 
 THREADS = 128  # threads per CUDA block
 PRECISIONS = {"float64": np.float64, "float32": np.float32}
@@ -51,8 +46,8 @@ def require_gpu() -> str:
     except Exception as error:  # noqa: BLE001 (the driver's own words)
         raise DeviceUnavailable(f"device cuda: no usable GPU ({str(error).splitlines()[0][:200]})") from None
     if not available:
-        raise DeviceUnavailable("device cuda: no CUDA GPU or driver found on this machine (numba.cuda.is_available() "
-                             "is False)")
+        raise DeviceUnavailable("device cuda: no CUDA GPU or driver found on this machine "
+                                "(numba.cuda.is_available() is False)")
     name = cuda.get_current_device().name
     return name.decode() if isinstance(name, bytes) else str(name)
 
@@ -116,7 +111,7 @@ from numba import cuda, float32, float64, int8
 
 from ensemble.engine.gpu import device_functions, device_helpers
 
-next_step, landed_time = device_helpers()
+next_step, = device_helpers()
 
 {physics_import}
 
@@ -125,15 +120,18 @@ D, P = {D}, {P}  # state rows, parameter rows
 NAN = REAL(math.nan)
 '''
 
-# Every fixed-step kernel: a thread's member, its start (or where the last call left it), its save intervals.
-FIXED_STEP = '''
+# Every fixed-step kernel's start: a thread's member. FIXED_STEP goes on with its start (or where the last call
+# left it) and its save intervals.
+FIXED_HEAD = '''
 @cuda.jit(fastmath=False)
 def kernel(state0, rate, h, steps_per_save, limit, samples, status, failure_time, works, start, members):
     m = cuda.grid(1)
     if m >= members:
         return
     h = REAL(h)
-{load_p}
+'''
+
+FIXED_STEP = FIXED_HEAD + '''{load_p}
     first = 0
     if start == 0:
 {load_start}
@@ -160,15 +158,14 @@ def kernel(state0, rate, h, steps_per_save, limit, samples, status, failure_time
 
 # Every adaptive kernel's step control, after a trial step's error sum (`estimate`) over its D values.
 CONTROL_STEP = '''            err = math.sqrt(estimate / D)
-            accepted, h, log2_previous, underflowed = next_step(err, step, h, log2_previous, rejected_last, time,
-                                                                target, ALPHA, BETA, SAFETY, MIN_FACTOR,
-                                                                MAX_FACTOR)
+            accepted, h, log2_previous, underflowed, time = next_step(err, step, h, log2_previous, rejected_last,
+                                                                      time, target, ALPHA, BETA, SAFETY,
+                                                                      MIN_FACTOR, MAX_FACTOR)
             rejected_last = not accepted
             accepted_count += accepted
             rejected_count += not accepted
             evaluations += S - 1
             if accepted:
-                time = landed_time(time, step, target)
 '''
 
 # Every adaptive kernel's start: the pair's constants, a thread's member.
@@ -228,15 +225,16 @@ ADAPTIVE = ADAPTIVE_HEAD + '''{load_p}
 
 @cache
 def device_helpers() -> tuple:
-    """next_step and landed_time as device functions (the generated kernels import them)."""
+    """next_step as a device function (the generated kernels import it)."""
     from numba import cuda
-    return cuda.jit(device=True)(next_step), cuda.jit(device=True)(landed_time)
+    return (cuda.jit(device=True)(next_step),)
 
 
 def next_step(err, step, h, log2_previous, rejected_last, time, target, alpha, beta, safety, min_factor,
               max_factor):
-    """One member's step control after a trial step of size `step` (blocks.control_step, unvectorized): returns
-    (accepted, next h, the error's log2 to remember, whether the step underflowed)."""
+    """One member's step control after a trial step of size `step` from `time` towards the saved time `target`
+    (blocks.control_step for one member, in branches where that one is in selects over a block): returns
+    (accepted, next h, the error's log2 to remember, whether the step underflowed, the member's time after it)."""
     finite = not (math.isnan(err) or math.isinf(err))
     usable = err if finite else 1.0e300
     accepted = usable <= 1.0
@@ -244,16 +242,12 @@ def next_step(err, step, h, log2_previous, rejected_last, time, target, alpha, b
     factor = safety * 2.0 ** (-alpha * log2_err + (beta * log2_previous if accepted else 0.0))
     if accepted:
         factor = min(max_factor, max(min_factor, min(factor, 1.0) if rejected_last else factor))
-        landed = step >= target - time
-        return True, max(step * factor, h if landed else 0.0), max(log2_err, FIRST_LOG2_ERR_PREVIOUS), False
+        landed = step >= target - time  # a step clipped to land on the saved time does not shrink the next
+        return (True, max(step * factor, h if landed else 0.0), max(log2_err, FIRST_LOG2_ERR_PREVIOUS), False,
+                target if landed else time + step)
     rejected_h = step * (max(min_factor, factor) if finite else min_factor)
     underflowed = rejected_h <= 1e-14 * target
-    return False, 0.0 if underflowed else rejected_h, log2_previous, underflowed
-
-
-def landed_time(time, step, target):
-    """A member's time after an accepted step: the saved time it was heading for if the step reached it."""
-    return target if step >= target - time else time + step
+    return False, 0.0 if underflowed else rejected_h, log2_previous, underflowed, time
 
 
 def _names(prefix: str, count: int) -> str:
@@ -264,14 +258,12 @@ def _block(lines, indent: int) -> str:
     return "\n".join(" " * indent + line for line in lines) or " " * indent + "pass"
 
 
-def _stage_lines(S: int, a: tuple, nodes: tuple, D: int, P: int, h: str, t: str, first_slopes: str | None):
-    """Stages of one explicit Runge-Kutta step written out: stage s's slopes in k{s}_{c}. first_slopes names the
-    stage-0 slopes already known (FSAL), else stage 0 is evaluated too. Coefficients that are zero are left out."""
+def _stage_lines(S: int, a: tuple, nodes: tuple, D: int, P: int, h: str, t: str, first: int):
+    """Stages first .. S - 1 of one explicit Runge-Kutta step written out: stage s's slopes in k{s}_{c} (an FSAL
+    pair starts at 1: stage 0's are the last step's last). Coefficients that are zero are left out."""
     p = _names("p", P)
     lines = []
-    for s in range(S):
-        if s == 0 and first_slopes:
-            continue
+    for s in range(first, S):
         for c in range(D):
             terms = "".join(f" + ({h} * REAL({a[s * S + r]!r})) * k{r}_{c}" for r in range(s) if a[s * S + r])
             lines.append(f"z{c} = y{c}{terms}")
@@ -284,7 +276,7 @@ def runge_kutta(method: Method, D: int, P: int) -> dict:
     _, S, a, b, _, _, _ = method_constants(method)
     nodes = tuple(float(x) for x in method.tableau.c)
     lines = ["t = ((start + i - 1) * steps_per_save + step) * h"]
-    lines += _stage_lines(S, a, nodes, D, P, "h", "t", None)
+    lines += _stage_lines(S, a, nodes, D, P, "h", "t", 0)
     for c in range(D):
         sums = " + ".join(f"REAL({b[s]!r}) * k{s}_{c}" for s in range(S) if b[s])
         lines.append(f"y{c} = y{c} + h * ({sums})")
@@ -348,7 +340,7 @@ def _common(D: int, P: int, adaptive: bool) -> dict:
 def adaptive(method: Method, D: int, P: int) -> dict:
     S, a, e, alpha, beta, safety, min_factor, max_factor = adaptive_constants(method)
     nodes = tuple(float(x) for x in method.tableau.c)
-    stages = _stage_lines(S, a, nodes, D, P, "step", "time", "k0")
+    stages = _stage_lines(S, a, nodes, D, P, "step", "time", 1)
     error = [f"q = step * ({' + '.join(f'REAL({e[s]!r}) * k{s}_{c}' for s in range(S) if e[s])}) / "
              f"(atol + rtol * max(abs(y{c}), abs(z{c})))\nestimate += q * q" for c in range(D)]
     accept = [f"y{c}, k0_{c} = z{c}, k{S - 1}_{c}" for c in range(D)]
@@ -409,11 +401,12 @@ class GpuLaunch:
                  segment: int | None = None, precision: str = "float64"):
         from numba import cuda
 
-        self.device_name = require_gpu()
+        require_gpu()
         self.scene, self.method, self.n_save, self.save_dt, self.dt = scene, method, n_save, save_dt, dt
         self.segment = max(1, min(segment or n_save, n_save))
         self.members = len(next(iter(values.values())))
         self.real = PRECISIONS[precision]
+        self.buffers = {}  # see _buffer
         state0, rate = scene.inputs(values, constants)
         self.state_rows = state0.shape[0]
         self.kernel = kernel(scene, method, constants, precision)
@@ -421,9 +414,7 @@ class GpuLaunch:
         self.state0 = cuda.to_device(np.ascontiguousarray(state0, dtype=self.real))
         self.rate = cuda.to_device(np.ascontiguousarray(rate, dtype=self.real))
         if method.adaptive:
-            control = np.stack([np.nan_to_num(np.broadcast_to(np.asarray(x, dtype=float), (self.members,)), nan=0.0)
-                                for x in (np.nan if dt is None else dt, rtol, atol)])
-            self.control = cuda.to_device(control)
+            self.control = cuda.to_device(adaptive_control(dt, rtol, atol, self.members))
             self.head = (self.state0, self.rate, self.control, float(save_dt), self.limit)
         else:
             self.steps_per_save = round(save_dt / dt)
@@ -469,10 +460,9 @@ class GpuLaunch:
         """A buffer kept for later segments and runs of this launch: allocating pinned memory costs about as much
         as copying into it (0.3 s for 512 MB). Segments alternate between two: segment k's samples are handed on
         (the caller is done with them) before segment k + 2 is copied into the same buffer."""
-        buffers = self.__dict__.setdefault("buffers", {})
-        if key not in buffers:
-            buffers[key] = make()
-        return buffers[key]
+        if key not in self.buffers:
+            self.buffers[key] = make()
+        return self.buffers[key]
 
     def _handed(self, waiting, watch):
         first, count, host, event = waiting
@@ -487,14 +477,13 @@ class GpuLaunch:
         self.samples = parts[0] if len(parts) == 1 else np.concatenate(parts)
 
     def outcome(self) -> Outcome:
-        n = self.members
         status, failure_time = self.status.copy_to_host(), self.failure_time.copy_to_host()
         if self.method.adaptive:
             counts = self.counts.copy_to_host().astype(np.int64)
         else:
             counts = _fixed_counts(self.method, self.scene, failure_time, self.dt,
                                    self.steps_per_save * (self.n_save - 1))
-        return Outcome(getattr(self, "samples", None), counts, status[:n].astype(np.int8), failure_time[:n])
+        return Outcome(getattr(self, "samples", None), counts, status, failure_time)
 
 
 # ---------------------------------------------------------------- fields of sites: the chain
@@ -546,13 +535,7 @@ def drift(tau, x, v, cl, cr):
 
 '''
 
-SITES_FIXED = '''
-@cuda.jit(fastmath=False)
-def kernel(state0, rate, h, steps_per_save, limit, samples, status, failure_time, works, start, members):
-    m = cuda.grid(1)
-    if m >= members:
-        return
-    h = REAL(h)
+SITES_FIXED = FIXED_HEAD + '''
     x = cuda.local.array({N2}, REAL)  # sizes written as numbers: cuda.local.array takes constants only
     v = cuda.local.array({N}, REAL)
     cl = cuda.local.array({N}, REAL)

@@ -56,6 +56,11 @@ def physics_file(where: str) -> Path:
     return Path(where).resolve() if where.endswith(".py") else Path(load(where).__file__)
 
 
+def physics_hash(where: str) -> str:
+    """SHA-256 of a scene's physics file: generated kernel files hold it, so an edited scene compiles anew."""
+    return hashlib.sha256(physics_file(where).read_bytes()).hexdigest()
+
+
 def factor_counts(where: str, pieces: tuple[str, ...], parameters: int) -> dict[str, int]:
     """For each piece with a `<piece>_factors(tau, *p)` function, how many values it returns (called in Python)."""
     module = load(where)
@@ -106,7 +111,7 @@ def _generated(name: str, where: str, pieces: tuple[str, ...], method: Method, D
     physics_import = (f"from ensemble.engine.kernels import physics_functions\n\n"
                       f"{', '.join(used)}, = physics_functions({where!r}, {used!r})")
     source = templates.header(family, name, method, physics_import,
-                              hashlib.sha256(physics_file(where).read_bytes()).hexdigest(), HELPERS, D, P, B) + body
+                              physics_hash(where), HELPERS, D, P, B) + body
     return Kernel(load_source(source, f"{name}_{method.name}").kernel, rows)
 
 

@@ -99,8 +99,7 @@ class Launch:
         self.kernel = kernels.kernel(scene, method, constants)
         limit = _limits(state0, blowup_factor)
         if method.adaptive:
-            control = np.stack([np.nan_to_num(np.broadcast_to(np.asarray(x, dtype=float), (self.members,)), nan=0.0)
-                                for x in (np.nan if dt is None else dt, rtol, atol)])
+            control = adaptive_control(dt, rtol, atol, self.members)
             state0, rate, control, limit = _padded((state0, rate, control, limit[None]), block)
             self.control = control
         else:
@@ -262,6 +261,13 @@ def _call_once(scene, method: Method, constants: dict) -> None:
                         failure_time, progress, works, 0, 0, 1)
     else:
         kernel.function(state0, rate, 1.0, 1, limit, samples, status, failure_time, progress, works, 0, 0, 1)
+
+
+def adaptive_control(dt, rtol, atol, members: int) -> np.ndarray:
+    """An adaptive kernel's per-member control (3, members): first trial step (s; 0: estimate it), rtol, atol, each
+    one value or one per member (dt None or NaN: estimated)."""
+    return np.stack([np.nan_to_num(np.broadcast_to(np.asarray(x, dtype=float), (members,)), nan=0.0)
+                     for x in (np.nan if dt is None else dt, rtol, atol)])
 
 
 def _limits(state0: np.ndarray, blowup_factor: float) -> np.ndarray:
