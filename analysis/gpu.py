@@ -117,9 +117,11 @@ def kernel_rates(sizes: dict, repeats: int) -> list[dict]:
     for n, chains in sizes["chain"]:
         for members in chains:
             values = chain_values(n, members)
-            for name in ("verlet", "yoshida4"):
+            for name in ("verlet", "yoshida4", *(("dopri5",) if n == 16 else ())):
+                tolerances = {"rtol": 1e-8, "atol": 1e-10} if METHODS[name].adaptive else {}
                 rate, steps, seconds = calibrated(chain, METHODS[name], values, {"n": n, "boundary": "fixed"},
-                                                  dt=CHAIN_DT, probe_steps=20, device="cuda", repeats=repeats)
+                                                  dt=CHAIN_DT, probe_steps=20, device="cuda", repeats=repeats,
+                                                  **tolerances)
                 rows.append(dict(scene=f"chain N={n}", method=name, members=members, steps=steps, seconds=seconds,
                                  rate=rate * n, unit="mass-steps/s"))
                 print(f"chain N={n:<5d} {name:8s} members {members:>9,d}: {rate * n:.3g} mass-steps/s ({steps} steps, "
