@@ -1,4 +1,10 @@
-"""ensemble: Numba ensembles of classical-mechanics scenes, stored as NetCDF."""
+"""ensemble: Numba ensembles of classical-mechanics scenes (tops, spring chains, free rigid bodies, scenes of your
+own), stored as NetCDF, and their fits against theory.
+
+    import ensemble
+    ds = ensemble.run("runs/aerobie.toml")   # an xarray.Dataset
+    fits = ensemble.fit(ds)                  # fitted rates against c (1/lambda1 - 1/lambda3)
+"""
 from importlib.metadata import PackageNotFoundError, version
 
 try:
@@ -9,4 +15,14 @@ except PackageNotFoundError:  # running from a source tree that is not installed
 from .errors import EnsembleError  # noqa: E402 (the root of every error ensemble raises)
 from .parameter import Parameter, ParameterError  # noqa: E402 (what a scene file of your own imports)
 
-__all__ = ["EnsembleError", "Parameter", "ParameterError", "__version__"]
+__all__ = ["EnsembleError", "Parameter", "ParameterError", "__version__", "fit", "open", "run"]
+
+
+def __getattr__(name: str):
+    """ensemble.run, ensemble.open and ensemble.fit (ensemble.api), imported when first used: a command-line run
+    does not load xarray before it needs it."""
+    if name in ("run", "open", "fit"):
+        from . import api
+
+        return getattr(api, name)
+    raise AttributeError(f"module 'ensemble' has no attribute {name!r}")

@@ -1,4 +1,4 @@
-"""The command line's conventions, shared by `ensemble` and the analysis scripts: one-line errors, exit statuses."""
+"""The command line's conventions, shared by `ensemble` and the benchmark tools: one-line errors, exit statuses."""
 from __future__ import annotations
 
 import argparse

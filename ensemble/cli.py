@@ -2,9 +2,7 @@
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import os
-import shutil
 import sys
 from pathlib import Path
 
@@ -14,12 +12,13 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 from . import __version__
 from .arguments import OneLineParser, positive_int
-from .errors import EXIT_BAD_INPUT, EXIT_FAILED, EXIT_INTERRUPTED, DeviceUnavailable, EnsembleError
+from .errors import EXIT_BAD_INPUT, EXIT_FAILED, EXIT_INTERRUPTED, DeviceUnavailable
 
 
 def _parser() -> argparse.ArgumentParser:
     parser = OneLineParser(
-        prog="ensemble", description="Integrate ensembles of tops and spring chains; write NetCDF.")
+        prog="ensemble", description="Integrate ensembles of tops, spring chains and free rigid bodies (or scenes of "
+                                     "your own), write NetCDF, and fit the results against theory.")
     parser.add_argument("--version", action="version", version=f"ensemble {__version__}")
     commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     run = commands.add_parser("run", help="integrate a run file and write its dataset",
@@ -42,8 +41,49 @@ def _parser() -> argparse.ArgumentParser:
                        help="compute on N Dask worker processes started here (needs the dask extra)")
     commands.add_parser("methods", help="list the integration methods",
                         description="List each method: order, symplectic or not, and the scenes it applies to.")
+    _analysis_parsers(commands)
     _inertia_parser(commands)
     return parser
+
+
+def _analysis_parsers(commands) -> None:
+    fit = commands.add_parser(
+        "fit", help="fit a result and test it against theory",
+        description="Fit every member of a result with its scene's fit (a top: tilt decay rate; a chain: normal-mode "
+                    "frequencies; a body: growth rate, wobble frequency, flip period), print per sweep point the "
+                    "mean against theory with z, and write the fits as RESULT_<fit>.nc beside the result.")
+    fit.add_argument("--against", choices=("theory", "method"), default="theory",
+                     help="compare with the physics (default) or with what the run's method shows at its step")
+    fit.add_argument("--members", type=_indices, metavar="I,J,...",
+                     help="members drawn in the per-member charts (default: six spread over the result; a chain's "
+                          "spectrum: the first given, else member 0)")
+    stability = commands.add_parser(
+        "stability", help="where each method fails: measured growth per step against theory",
+        description="From a stability scan (runs/stability_*.toml): per method and dimensionless step axis, the "
+                    "theoretical limit beside the measured one; writes the map as RESULT_stability.nc.")
+    stability.add_argument("--drift-step", type=float, default=0.5,
+                           help="dimensionless step of the members in the energy-drift chart (default 0.5)")
+    work = commands.add_parser(
+        "work-precision", help="what each digit of accuracy costs, per method",
+        description="From a run with [measure] error = true (and timing = true for the cost): per method its points "
+                    "and measured convergence order; writes the table as RESULT_work_precision.nc.")
+    for sub, passes in ((fit, "a fitted sweep point disagrees with its reference"),
+                        (stability, "a measured limit disagrees with theory (the table's `agree` column)")):
+        sub.add_argument("--check", action="store_true", help=f"exit 1 when {passes}")
+    for sub in (fit, stability, work):
+        sub.add_argument("result", type=Path, help="a result file written by `ensemble run`")
+        sub.add_argument("--charts", type=Path, metavar="DIR",
+                         help="draw the charts as PNG files in DIR (needs the plot extra)")
+
+
+def _indices(text: str) -> list[int]:
+    try:
+        found = [int(item) for item in text.split(",")]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected member numbers I,J,..., got {text!r}") from None
+    if min(found) < 0:
+        raise argparse.ArgumentTypeError(f"member numbers are >= 0, got {min(found)}")
+    return found
 
 
 def _inertia_parser(commands) -> None:
@@ -125,25 +165,10 @@ def _quiet_numpy() -> None:
     np.seterr(all="ignore")
 
 
-def _on_device(args, spec):
-    """(the spec on --device's device, or None) and why the run cannot start there (None if it can)."""
-    if args.device:
-        spec = dataclasses.replace(spec, device=args.device)
-    if spec.precision == "float32" and spec.device != "cuda":
-        return spec, f"{args.runfile}: precision: float32 runs on a GPU only (--device cuda)"
-    if spec.device == "cuda":
-        from .engine.gpu import require_gpu
-
-        try:
-            require_gpu()
-        except DeviceUnavailable as e:
-            return spec, f"{args.runfile}: {e}"
-    return spec, None
-
-
 def _run(args) -> int:
     _skip_numba_blas_probe()
     _quiet_numpy()
+    from . import preflight
     from .errors import Incomplete
     from .parts import PartsError
     from .runner import run
@@ -158,8 +183,8 @@ def _run(args) -> int:
         print("ensemble: interrupted while reading the run file; nothing was written", file=sys.stderr)
         return EXIT_INTERRUPTED
     out = args.output or Path("results") / f"{args.runfile.stem}.nc"
-    spec, refusal = _on_device(args, spec)
-    refusal = refusal or _refusal(args, spec, out)
+    spec, refusal = preflight.check(spec, out, args.runfile, device=args.device, chunk=args.chunk, force=args.force,
+                                    resume=args.resume, chunk_option="--chunk")
     if refusal:
         return _error(refusal)
     # the command that finishes an interrupted run: a run that replaces an earlier result needs --force again
@@ -174,24 +199,24 @@ def _run(args) -> int:
             except ClusterError as e:
                 return _error(str(e))
         out.parent.mkdir(parents=True, exist_ok=True)
-        with OutputLock(out):
+        with preflight.OutputLock(out):
             summary = run(spec, out, chunk=args.chunk, progress=not args.quiet, force=args.force,
                           resume=args.resume, command=args.command_line, client=client)
-    except OutputLocked:
+    except preflight.OutputLocked:
         return _error(f"{out}: another run is writing it now; wait for it or choose another output")
     except (PartsError, DeviceUnavailable) as e:  # a GPU that went away after the check
         return _error(str(e))
     except SceneError as e:  # a user's scene whose functions do not compile: found before any chunk ran
         return _error(f"{args.runfile}: scene: {e}")
     except KeyboardInterrupt:
-        print(f"ensemble: interrupted; {_left_behind(out, resume)}", file=sys.stderr)
+        print(f"ensemble: interrupted; {preflight.left_behind(out, resume)}", file=sys.stderr)
         return EXIT_INTERRUPTED
     except Incomplete as e:
-        print(f"ensemble: error: {e}; {_left_behind(out, resume)}", file=sys.stderr)
+        print(f"ensemble: error: {e}; {preflight.left_behind(out, resume)}", file=sys.stderr)
         return EXIT_FAILED
     except (OSError, RuntimeError) as e:  # netCDF4 reports HDF5 write failures as RuntimeError
-        print(f"ensemble: error: {out}: writing failed ({_cause(e, out, spec)}); "
-              f"{_left_behind(out, resume)}", file=sys.stderr)
+        print(f"ensemble: error: {out}: writing failed ({preflight.cause(e, out, spec)}); "
+              f"{preflight.left_behind(out, resume)}", file=sys.stderr)
         return EXIT_FAILED
     finally:
         if client is not None:
@@ -200,180 +225,6 @@ def _run(args) -> int:
             close(client)
     print(f"wrote {out}: {summary}")
     return 0
-
-
-def _refusal(args, spec, out: Path) -> str | None:
-    """Why the run is refused before it starts, in one line naming the run file or the output; None if it is not."""
-    if args.chunk is not None and args.chunk < 1:
-        return f"--chunk: must be >= 1, got {args.chunk}"
-    problem = _memory_problem(spec)
-    if problem:
-        return f"{args.runfile}: {problem}"
-    problem = _output_problem(out, args.runfile, args.force) or _space_problem(out, spec, args.resume)
-    return f"{out}: {problem}" if problem else None
-
-
-def _scratch_problem(out: Path, runfile: Path) -> str | None:
-    """Why a run of `out` would destroy the run file (None if it would not): the run file is one of the
-    output's scratch paths (OUT.tmp, OUT.lock) or lies in its parts folder, which a run writes, replaces and
-    deletes."""
-    from .parts import folder_of
-    from .store import temporary_path
-
-    if not runfile.exists():
-        return None
-    runfile = runfile.resolve()
-    for scratch in (temporary_path(out), OutputLock.path_of(out)):
-        if scratch.resolve() == runfile:
-            return f"its scratch file {scratch} is the run file, which the run would overwrite; choose another output"
-    if folder_of(out).resolve() in runfile.parents:
-        return f"the run file lies in {folder_of(out)}, the folder a run of it writes and deletes; move the run file"
-    return None
-
-
-def _output_problem(out: Path, runfile: Path, force: bool) -> str | None:
-    """Why `out` cannot be written (None if it can): the run file itself, a folder, an existing file without
-    --force or not written by ensemble, a folder that cannot be made or written."""
-    if out.exists() and runfile.exists() and out.resolve() == runfile.resolve():
-        return "is the run file itself; choose another output"
-    problem = _scratch_problem(out, runfile)
-    if problem:
-        return problem
-    if out.is_dir():
-        return "is a folder; give the output file's name"
-    if out.exists() and not force:
-        return "exists; use --force to replace it"
-    if out.exists() and not _is_result(out):
-        return "exists and is not a result written by ensemble; not replacing it, even with --force"
-    existing = _existing(out.parent)
-    if not existing.is_dir():
-        return f"cannot create the folder {out.parent} ({existing} is not a folder)"
-    if not os.access(existing, os.W_OK):
-        what = "write in" if existing == out.parent else "create"
-        return f"cannot {what} the folder {out.parent} (permission denied in {existing})"
-    return None
-
-
-def _existing(folder: Path) -> Path:
-    """The folder itself if it exists, else its nearest ancestor that does (nothing is created before a run
-    starts)."""
-    while not folder.exists() and folder != folder.parent:
-        folder = folder.parent
-    return folder
-
-
-def _memory_problem(spec) -> str | None:
-    """The smallest chunk's memory against what this machine has available (Linux; no check elsewhere)."""
-    from .runner import member_bytes, smallest_chunk
-
-    try:
-        available = os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
-    except (ValueError, OSError, AttributeError):
-        return None
-    members = smallest_chunk(spec)
-    need = members * member_bytes(spec)
-    if need > available:
-        growth = ", or measure no growth" if spec.measure["growth"] else ""  # its fit holds the whole record
-        return (f"{members} members holding {spec.n_save} saved times each need {need / 1e9:.3g} GB "
-                f"of memory and {available / 1e9:.3g} GB is available; save less often (save_dt) or fewer "
-                f"variables{growth}")
-    return None
-
-
-def _space_problem(out: Path, spec, resume: bool = False) -> str | None:
-    """The disk's free space against what the run will take: the result, and its parts (a copy of the per-member
-    records) until they are deleted (a full disk midway costs the run). A resumed run counts only what is still
-    to come: OUT.tmp took its whole space when it was made, and the parts kept hold their records."""
-    from .parts import folder_of
-    from .store import output_bytes, record_names, temporary_path
-
-    need = output_bytes(spec) + 8 * len(record_names(spec)) * spec.n_members
-    if resume:
-        made = [temporary_path(out), *(folder_of(out).iterdir() if folder_of(out).is_dir() else ())]
-        need = max(0, need - sum(path.stat().st_size for path in made if path.is_file()))
-    free = shutil.disk_usage(_existing(out.parent)).free
-    if need > free:
-        return f"the result needs about {need / 1e6:.4g} MB and {out.parent} has {free / 1e6:.4g} MB free"
-    return None
-
-
-def _is_result(path: Path) -> bool:
-    """A NetCDF file whose `source` attribute says ensemble wrote it."""
-    import netCDF4
-
-    try:
-        with netCDF4.Dataset(path) as nc:
-            return str(getattr(nc, "source", "")).startswith("ensemble")
-    except OSError:
-        return False
-
-
-FULL = 1 << 20  # bytes: a disk with less free than this after a failed write counts as full
-
-
-def _cause(error: Exception, out: Path, spec) -> str:
-    """Why writing `out` failed, in a few words. netCDF4 reports HDF5's failures as "NetCDF: HDF error", whatever
-    their cause: then a disk left (nearly) full, or a result of `spec` past the process's file size limit (ulimit
-    -f), is named."""
-    import resource
-
-    from .store import output_bytes
-
-    if isinstance(error, OSError) and error.strerror:
-        return error.strerror
-    folder = _existing(out.parent)
-    limit = resource.getrlimit(resource.RLIMIT_FSIZE)[0]
-    if shutil.disk_usage(folder).free < FULL:
-        return f"no space left on the device of {folder}"
-    if limit != resource.RLIM_INFINITY and output_bytes(spec) > limit:
-        return (f"the result of about {output_bytes(spec) / 1e6:.3g} MB is past the file size limit of {limit} "
-                f"bytes (ulimit -f)")
-    return str(error).splitlines()[0] if str(error) else type(error).__name__
-
-
-def _left_behind(out: Path, resume: str) -> str:
-    """What an interrupted or failed run leaves, and how to finish it."""
-    from .parts import folder_of
-    from .store import temporary_path
-
-    folder = folder_of(out)
-    finished = len(list(folder.glob("members-*.nc"))) if folder.exists() else 0
-    if not finished:
-        return "no chunk had finished; nothing was kept"
-    return (f"the {finished} chunk(s) finished so far are kept in {temporary_path(out)} and {folder}; {resume} "
-            f"finishes the run")
-
-
-class OutputLocked(EnsembleError):
-    """Another process holds the output's lock."""
-
-
-class OutputLock:
-    """An exclusive lock on OUT (the file OUT.lock, locked with flock: the lock ends with its process, so a
-    killed run leaves no stale lock), so that two runs never write the same output at once."""
-
-    def __init__(self, out: Path):
-        self.path = self.path_of(out)
-
-    @staticmethod
-    def path_of(out: Path) -> Path:
-        return out.with_name(out.name + ".lock")
-
-    def __enter__(self):
-        import fcntl
-
-        self.file = open(self.path, "w")
-        try:
-            fcntl.flock(self.file, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError:
-            self.file.close()
-            raise OutputLocked from None
-        return self
-
-    def __exit__(self, *exc):
-        self.path.unlink(missing_ok=True)
-        self.file.close()
-        return False
 
 
 def _methods() -> int:
@@ -443,4 +294,10 @@ def main(argv: list[str] | None = None) -> int:
         return _run(args)
     if args.command == "inertia":
         return _inertia(args)
+    if args.command in ("fit", "stability", "work-precision"):
+        from . import report
+
+        _quiet_numpy()
+        return {"fit": report.fit_command, "stability": report.stability_command,
+                "work-precision": report.work_precision_command}[args.command](args)
     return _methods()

@@ -1,7 +1,7 @@
 """The one root of ensemble's errors and the one table of exit statuses.
 
 Every error ensemble raises about its input or its run derives from EnsembleError and says in one line what is
-wrong and where; its `exit_status` is the status `ensemble` and the analysis scripts exit with for it.
+wrong and where; its `exit_status` is the status `ensemble` exits with for it.
 
 | status | meaning |
 |---|---|

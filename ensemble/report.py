@@ -1,10 +1,10 @@
-"""What the analysis scripts share: the command line, per-sweep-point tables against theory, charts.
+"""The analysis commands (`ensemble fit`, `ensemble stability`, `ensemble work-precision`): per-sweep-point tables
+against theory, the fits written beside the result, the charts (ensemble.charts) on request.
 
-Plotting needs matplotlib (the `plot` extra); the tables do not.
+The tables and --check need only the core install; the charts need matplotlib (the `plot` extra).
 """
 from __future__ import annotations
 
-import argparse
 import sys
 from dataclasses import dataclass
 from pathlib import Path
@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import xarray as xr
 
-from .arguments import OneLineParser
+from .api import not_a_result
 from .errors import EXIT_BAD_INPUT, EXIT_CHECK_FAILED, EXIT_OK
 
 Z_TOLERANCE = 5.0  # a sweep point passes when its mean is within this many standard errors of theory...
@@ -130,195 +130,176 @@ def print_table(title: str, rows_: list[Row], units: str) -> None:
           f"pass: |z| <= {Z_TOLERANCE:g} or |miss| <= {RTOL:g} relative. Units: {units}")
 
 
-def outputs(result: Path, fit: str) -> tuple[Path, Path]:
-    """Where a script writes its fits (NetCDF) and the stem of its charts, next to the result."""
+def fitted_values(fits: xr.Dataset) -> list[str]:
+    """The fitted quantities of a fit dataset: variables with a _theory and a _stderr beside them."""
+    return [name for name in fits.data_vars if f"{name}_theory" in fits and f"{name}_stderr" in fits]
+
+
+def label(sel, point, mode) -> str:
+    """A table row's name: its sweep point (and mode), or "all members"."""
+    where = point_label(sel) if point is not None else ""
+    if mode is not None:
+        return f"{where}, mode {mode}" if where else f"mode {mode}"
+    return where or "all members"
+
+
+def outputs(result: Path, name: str, charts: Path | None = None) -> tuple[Path, Path]:
+    """Where a command writes its table (NetCDF, beside the result) and the stem of its charts (in `charts`,
+    default beside the result): RESULT_<name>.nc and RESULT_<name>_<chart>.png."""
     stem = result.with_suffix("")
-    return stem.with_name(f"{stem.name}_{fit}.nc"), stem.with_name(f"{stem.name}_{fit}")
-
-
-def parser(doc: str) -> argparse.ArgumentParser:
-    """The options every analysis script takes: RESULT, --check and --against."""
-    out = OneLineParser(description=doc, formatter_class=argparse.RawDescriptionHelpFormatter)
-    out.add_argument("result", type=Path, help="a result file written by `ensemble run`")
-    out.add_argument("--check", action="store_true", help="exit 1 when a fitted sweep point disagrees")
-    out.add_argument("--against", choices=("theory", "method"), default="theory",
-                     help="compare with the physics (default) or with what the run's method shows")
-    return out
-
-
-def run_script(args, fit_function, *, name: str, value, units: str, title: str, label, draw,
-               validate=None) -> int:
-    """Fit a result, print the table, write the fits and charts; the exit status of a script.
-
-    value: the fitted variable, or several (value, units, title) triples, each
-    tabled at the sweep points where it has a theory (one without
-    `<value>_method` is compared with theory only). draw(plt, ds, fits, rows, stem) returns the paths of the
-    script's own charts; the z histogram is added here. Bad input prints one
-    line and returns 2.
-    """
-    loaded = load_result(args.result, fit_function, validate)
-    if loaded is None:
-        return EXIT_BAD_INPUT
-    ds, fits = loaded
-    for axis in ds.attrs.get("sweep_axes", "").split():
-        fits[axis] = ds[axis]
-    step = f"dt = {ds.attrs['dt']} s" if "dt" in ds.attrs else "dt per member"
-    several = not isinstance(value, str)
-    table = []
-    for variable, variable_units, variable_title in value if several else [(value, units, title)]:
-        if several and not np.isfinite(fits[variable].values).any():
-            continue
-        against = args.against if f"{variable}_method" in fits else "theory"
-        found = rows(fits, variable, label, against)
-        if several:  # leave out sweep points where this quantity does not apply
-            found = [r for r in found if np.isfinite(r.theory)]
-        table += found
-        print_table(f"{variable_title} of {args.result} ({ds.attrs['method']}, {step})", found, variable_units)
-    if fits.attrs.get("members_not_ok"):
-        print(f"{fits.attrs['members_not_ok']} members did not run to the end (their status is not ok) and are left "
-              f"out")
-    if fits.attrs["members_failed"]:
-        print(f"{fits.attrs['members_failed']} members could not be fitted and are left out")
-    if not table:
-        print("no member could be fitted: nothing to compare with the theory")
-    out, stem = outputs(args.result, name)
-    try:
-        fits.to_netcdf(out)
-        print(f"fits: {out}")
-        plt = pyplot()
-        if plt is not None:
-            paths = draw(plt, ds, fits, table, stem)
-            paths.append(draw_misses(plt, fits, stem, args.against, title))
-            print("charts:", *paths)
-    except OSError as e:
-        cannot_write(out.parent, e)
-    return EXIT_CHECK_FAILED if args.check and not (table and all(r.checked for r in table)) else EXIT_OK
+    return (stem.with_name(f"{stem.name}_{name}.nc"),
+            (charts or result.parent) / f"{stem.name}_{name}")
 
 
 def cannot_write(folder: Path, error: OSError) -> None:
-    """One line on stderr: the fits and charts could not be written (the table printed above stands)."""
-    print(f"error: cannot write the fits and charts in {folder} ({error.strerror or error}); the table above "
-          f"stands", file=sys.stderr)
+    """One line on stderr: a table or chart could not be written (the table printed above stands)."""
+    print(f"error: cannot write in {folder} ({error.strerror or error}); the table above stands", file=sys.stderr)
 
 
-def load_result(path: Path, fit_function, validate=None):
+def load_result(path: Path, fit_function):
     """(dataset, fit_function(dataset)) of a result file; None after one line on stderr for bad input: a file
     that is not NetCDF or not a result of `ensemble run`, a result without members, or one that lacks a variable
     its scene's results have (a `scene` attribute that does not say what the file holds)."""
     try:
         ds = xr.load_dataset(path, engine="netcdf4")
-        problem = _not_a_result(ds)
+        problem = not_a_result(ds)
         if problem:
             raise ValueError(problem)
-        if validate:
-            validate(ds)
         return ds, fit_function(ds)
     except KeyError as e:
         print(f"error: {path}: the result has no variable {e}, which a {ds.attrs.get('scene')} result has",
               file=sys.stderr)
         return None
-    except (OSError, ValueError) as e:
+    except (OSError, ValueError) as e:  # FitError is a ValueError
         print(f"error: {path}: {str(e).splitlines()[0]}", file=sys.stderr)
         return None
 
 
-def _not_a_result(ds: xr.Dataset) -> str | None:
-    if not str(ds.attrs.get("source", "")).startswith("ensemble") or "member" not in ds.dims:
-        return "is not a result of `ensemble run` (no `source` attribute of ensemble's, or no member dimension)"
-    if ds.sizes["member"] == 0:
-        return "has no members to fit"
-    return None
+def fit_command(args) -> int:
+    """`ensemble fit`: fit a result, print a table per fitted quantity, write the fits beside the result and, with
+    --charts, the charts; the exit status (1: --check failed; 2: bad input, one line)."""
+    from .api import fit
+
+    loaded = load_result(args.result, fit)
+    if loaded is None:
+        return EXIT_BAD_INPUT
+    ds, fits = loaded
+    if args.members and max(args.members) >= ds.sizes["member"]:
+        print(f"error: --members: {max(args.members)} is not in 0..{ds.sizes['member'] - 1}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    step = f"dt = {ds.attrs['dt']} s" if "dt" in ds.attrs else "dt per member"
+    table = []
+    for name in fitted_values(fits):
+        if not np.isfinite(fits[name].values).any() and not np.isfinite(fits[f"{name}_theory"].values).any():
+            continue  # a quantity this result does not have (a body's wobble, when every member is spun to grow)
+        against = args.against if f"{name}_method" in fits else "theory"
+        found = [r for r in rows(fits, name, label, against) if np.isfinite(r.theory)]
+        table += found
+        what = fits[name].attrs.get("long_name", name)
+        print_table(f"{what} [{name}], {args.result} ({ds.attrs['method']}, {step})", found,
+                    fits[name].attrs.get("units", ""))
+    if fits.attrs.get("members_not_ok"):
+        print(f"{fits.attrs['members_not_ok']} members did not run to the end (their status is not ok) and are left "
+              f"out")
+    if fits.attrs.get("members_failed"):
+        print(f"{fits.attrs['members_failed']} members could not be fitted and are left out")
+    if not table:
+        print("no member could be fitted: nothing to compare with the theory")
+    _write(args, fits, fits.attrs.get("fit", "fit"), "fits",
+           lambda plt, stem: _fit_charts(plt, ds, fits, table, stem, args))
+    return EXIT_CHECK_FAILED if args.check and not (table and all(r.checked for r in table)) else EXIT_OK
 
 
-def pyplot():
-    """matplotlib.pyplot, drawing to files; None, after one line on stderr, without the `plot` extra (the tables
-    and --check need no matplotlib)."""
+def _fit_charts(plt, ds, fits, table, stem, args) -> list[Path]:
+    from . import charts
+    from .scenes import of_result
+
+    scene = of_result(ds.attrs)
+    paths = scene.charts(plt, ds, fits, table, stem, args.members) if hasattr(scene, "charts") else []
+    return [*paths, charts.draw_misses(plt, fits, stem, args.against, fits.attrs.get("fit", "fit"))]
+
+
+def _write(args, table: xr.Dataset, name: str, what: str, draw) -> None:
+    """Write `table` beside the result as RESULT_<name>.nc and, with --charts DIR, draw(plt, stem) there."""
+    out, stem = outputs(args.result, name, args.charts)
     try:
-        import matplotlib
-    except ImportError:
-        print('no charts: they need matplotlib (pip install "ensemble[plot]"); the table above stands',
-              file=sys.stderr)
+        table.to_netcdf(out)
+    except OSError as e:
+        return cannot_write(out.parent, e)
+    print(f"{what}: {out}")
+    if args.charts is None:
         return None
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from .charts import pyplot
 
-    return plt
-
-
-def save(plt, fig, stem: Path, chart: str = "") -> Path:
-    """Write a chart as STEM_CHART.png (STEM.png without a chart name) and close it."""
-    path = stem.with_name(f"{stem.name}_{chart}.png" if chart else f"{stem.name}.png")
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return path
+    plt = pyplot()
+    try:
+        if plt is not None:
+            args.charts.mkdir(parents=True, exist_ok=True)
+            print("charts:", *[path for path in draw(plt, stem) if path is not None])
+    except OSError as e:
+        cannot_write(args.charts, e)
 
 
-def save_against_theory(plt, stem: Path, chart: str, draw_fits, span, theory_label: str, xlabel: str, ylabel: str,
-                        title: str) -> Path:
-    """A chart of fitted values against theory: draw_fits(ax) draws the fits, then the line y = x over span."""
-    fig, ax = plt.subplots(figsize=(5.5, 4.5), layout="constrained")
-    draw_fits(ax)
-    low, high = float(np.min(span)), float(np.max(span))
-    if high - low <= 1e-6 * max(abs(low), abs(high)):  # one sweep point: give y = x a length around it
-        pad = 0.05 * max(abs(low), abs(high)) or 1.0
-        span = [low - pad, high + pad]
-        ax.set_xlim(span)
-        ax.set_ylim(span)
-    ax.ticklabel_format(useOffset=False)  # an offset label makes a 1e-13 difference look like a gap
-    ax.plot(span, span, "k--", lw=1, label=theory_label)
-    ax.set(xlabel=xlabel, ylabel=ylabel, title=title)
-    ax.legend()
-    return save(plt, fig, stem, chart)
+def stability_command(args) -> int:
+    """`ensemble stability`: theoretical and measured limits per method and axis, the map beside the result, the
+    charts with --charts; 1 with --check when a measured limit misses theory by more than LIMIT_RTOL."""
+    from . import stability
+
+    loaded = load_result(args.result, stability.stability_map)
+    if loaded is None:
+        return EXIT_BAD_INPUT
+    ds, points = loaded
+    limits = stability.stability_limits(points)
+    print(f"stability of {args.result} ({ds.attrs['scene']}, {ds.sizes['t'] - 1} saved intervals)")
+    stability.print_limits(limits, points)
+
+    def draw(plt, stem):
+        from . import charts
+
+        return [charts.stability_map(plt, points, limits, stem),
+                charts.energy_drift(plt, ds, points, args.drift_step, stem)]
+
+    _write(args, points, "stability", "map", draw)
+    return EXIT_CHECK_FAILED if args.check and not all(stability.limit_agrees(r) for r in limits) else EXIT_OK
 
 
-def draw_misses(plt, fits: xr.Dataset, stem: Path, against: str, title: str) -> Path:
-    """The chart of how fits miss their reference, RESULT_<fit>_z.png: z against N(0, 1) when the result has
-    observation noise; without noise z has no distribution to follow (its error bar is the fit's own residual),
-    so the relative miss (fitted / reference - 1) per member is drawn instead."""
-    fig, ax = plt.subplots(figsize=(5.5, 4.5), layout="constrained")
-    what = "theory" if against == "theory" else "what the method shows"
-    if fits.attrs.get("observation_noise_stddev", 0.0) > 0:
-        z_histogram(ax, fits["z" if against == "theory" else "z_method"].values.ravel(), "fits", what)
-        ax.set_title(f"{title}: fitted against {what}")
-    else:
-        misses = [_relative_miss(fits, row_value, against) for row_value in _fitted_values(fits)]
-        for (name, miss), marker in zip(misses, "ox^"):
-            ax.plot(np.arange(miss.size), miss, marker, ms=3, mfc="none", label=name.replace("_", " "))
-        ax.axhline(0.0, color="k", lw=0.5)
-        ax.axhspan(-RTOL, RTOL, color="g", alpha=0.15, label=f"the check's {RTOL:g}")
-        ax.set_xlabel("member (and mode)")
-        ax.set_ylabel(f"fitted / {what} - 1")
-        ax.set_title(f"{title}: relative miss (noise-free: no z)", fontsize=9)
-        ax.legend(fontsize=8)
-    return save(plt, fig, stem, "z")
+def work_precision_command(args) -> int:
+    """`ensemble work-precision`: per method, its points and measured convergence order; the table beside the
+    result, the chart with --charts."""
+    from . import fitting
+
+    loaded = load_result(args.result, fitting.work_precision)
+    if loaded is None:
+        return EXIT_BAD_INPUT
+    ds, table = loaded
+    print(f"work against precision in {args.result} ({ds.attrs['scene']}, t_end = {ds.attrs['t_end']} s)")
+    print_work_precision(table)
+    if "seconds_per_step" not in ds:
+        print("no timing in this result ([measure] timing = true): the cost panel is empty")
+
+    def draw(plt, stem):
+        from . import charts
+
+        return [charts.work_precision(plt, table, stem, f"{ds.attrs['scene']}: {ds.attrs.get('title', '')}")]
+
+    _write(args, table, "work_precision", "table", draw)
+    return EXIT_OK
 
 
-def _fitted_values(fits: xr.Dataset) -> list[str]:
-    """The fitted quantities of a fit dataset: variables with a _theory beside them."""
-    return [name for name in fits.data_vars if f"{name}_theory" in fits and f"{name}_stderr" in fits]
+def print_work_precision(table: xr.Dataset) -> None:
+    """Per method: its nominal and measured order, and its points' dt, rtol, error, steps, rhs evaluations and
+    kernel seconds per member."""
+    from .fitting import convergence_order
+    from .methods import METHODS
 
-
-def _relative_miss(fits: xr.Dataset, name: str, against: str) -> tuple[str, np.ndarray]:
-    reference = fits[f"{name}_method" if against == "method" and f"{name}_method" in fits else f"{name}_theory"]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        miss = (fits[name].values / reference.values - 1).ravel()
-    return name, miss[np.isfinite(miss)]
-
-
-Z_SPAN = 50.0  # z histograms show |z| up to this; larger values are counted at the edge, and the legend says so
-
-
-def z_histogram(ax, z: np.ndarray, label: str, reference: str = "theory") -> None:
-    """Histogram of z values as a density, with the N(0, 1) density over it."""
-    z = z[np.isfinite(z)]
-    span = min(max(4.0, float(np.nanmax(np.abs(z))) if z.size else 4.0), Z_SPAN)
-    outside = int(np.sum(np.abs(z) > span))
-    clipped = f", {outside} beyond +-{span:g} drawn at the edges" if outside else ""
-    ax.hist(np.clip(z, -span, span), bins=40, range=(-span, span), density=True, alpha=0.6,
-            label=f"{label} ({z.size}{clipped})")
-    grid = np.linspace(-span, span, 400)
-    ax.plot(grid, np.exp(-grid**2 / 2) / np.sqrt(2 * np.pi), "k-", label="N(0, 1)")
-    ax.set_xlabel(f"z = (fitted - {reference}) / standard error")
-    ax.set_ylabel("density")
-    ax.legend(fontsize=8)
-
+    for method in dict.fromkeys(table["method"].values):
+        m = METHODS[method]
+        order, used = convergence_order(table, method)
+        against = "mean step" if m.adaptive else "dt"
+        print(f"{method}: nominal order {m.order}, measured {order:.3f} "
+              f"(slope of log error on log {against} over {used} points in the asymptotic range)")
+        print(f"  {'dt (s)':>10} {'rtol':>9} {'error':>10} {'steps':>10} {'rhs evals':>10} {'s/member':>10}")
+        for i in np.flatnonzero(table["method"].values == method):
+            row = {name: table[name].values[i] for name in ("dt", "rtol", "error", "steps", "rhs_evals", "seconds")}
+            print(f"  {row['dt']:>10.3g} {row['rtol']:>9.2g} {row['error']:>10.3g} {row['steps']:>10.0f} "
+                  f"{row['rhs_evals']:>10.0f} {row['seconds']:>10.3g}")

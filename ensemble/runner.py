@@ -9,13 +9,13 @@ import sys
 import tempfile
 import threading
 import time
+import warnings
 import zlib
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-from tqdm import tqdm
 
 from .engine import launch
 from .methods import METHODS, Method
@@ -24,6 +24,10 @@ from .records import error_records, growth_per_step, measured_growth, relative_e
 from .results import COUNTS, Outcome, Status
 from .spec import Spec, members_table
 from .store import Writer
+
+with warnings.catch_warnings():
+    warnings.simplefilter("ignore")  # tqdm's note that, in Jupyter, it chose the notebook's widget bar
+    from tqdm.autonotebook import tqdm
 
 CHUNK_BYTES = 32 * 2**20  # saved data held in memory per chunk
 CHUNK_MEMBER_STEPS = 2e9  # work per chunk: about two seconds at this project's kernel speeds
@@ -120,7 +124,7 @@ def default_chunk(spec: Spec) -> int:
     PIPELINE_CHUNKS chunks makes that many, if each still holds
     an eighth of CHUNK_BYTES: a chunk is observed and written while the next one's kernel runs, and the last one's
     finishing waits for nothing else, so it should be short. Whole `ensemble run` processes of 10^4 tops
-    (analysis/README.md) took 0.81 of their time in four chunks instead of two; 10^3 ran fastest in one."""
+    (analysis/bench/README.md) took 0.81 of their time in four chunks instead of two; 10^3 ran fastest in one."""
     block = run_block(spec)
     chunk_bytes, chunk_steps = chunk_budget(spec)
     chunk = chunk_bytes // member_bytes(spec) // block * block
@@ -452,9 +456,9 @@ def dask_chunk(spec: Spec, threads: int) -> int:
 
 
 class Bar(tqdm):
-    """A run's progress bar: tqdm with a thread lock of its own. tqdm's default lock also guards bars of other
-    processes, and importing multiprocessing for it took 2.5 ms before a run's first kernel; a run's bar moves
-    on its own process's threads only."""
+    """A run's progress bar: tqdm (a widget in Jupyter with ipywidgets, text elsewhere) with a thread lock of its
+    own. tqdm's default lock also guards bars of other processes, and importing multiprocessing for it took
+    2.5 ms before a run's first kernel; a run's bar moves on its own process's threads only."""
     _lock = threading.RLock()
 
 

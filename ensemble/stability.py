@@ -13,7 +13,7 @@ import numpy as np
 import xarray as xr
 from scipy.optimize import brentq
 
-from . import fit
+from . import fitting
 from .methods import METHODS
 from .results import Status
 from .scenes import of_result
@@ -71,7 +71,7 @@ def measured_limit(x: np.ndarray, growth: np.ndarray, failed: np.ndarray) -> tup
 def member_steps(ds: xr.Dataset) -> np.ndarray:
     """The step h (s) of each member: dt for fixed-step methods, the mean accepted step for adaptive ones
     (time reached / steps accepted), NaN for the closed form."""
-    methods, dt = fit.member_settings(ds)
+    methods, dt = fitting.member_settings(ds)
     reached = np.where(np.isnan(ds["failure_time"].values), float(ds.attrs["t_end"]), ds["failure_time"].values)
     with np.errstate(invalid="ignore", divide="ignore"):
         mean_step = reached / ds["steps_accepted"].values
@@ -92,11 +92,11 @@ def stability_map(ds: xr.Dataset) -> xr.Dataset:
     """
     scene = of_result(ds.attrs)
     if scene is None:
-        raise fit.FitError("stability_map needs a result of `ensemble run`")
+        raise fitting.FitError("stability_map needs a result of `ensemble run`")
     if "growth_per_step" not in ds:
-        raise fit.FitError("stability_map: the result has no growth_per_step; add `[measure] growth = true` to "
+        raise fitting.FitError("stability_map: the result has no growth_per_step; add `[measure] growth = true` to "
                            "its run file and run it again")
-    methods, _ = fit.member_settings(ds)
+    methods, _ = fitting.member_settings(ds)
     h = member_steps(ds)
     keep = np.isfinite(h)
     values = {name: ds[name].values[keep] for name in scene.PARAMETERS if name in ds}
@@ -154,12 +154,44 @@ def energy_drift(ds: xr.Dataset) -> xr.DataArray:
     (see the scene's conserved_energy: a chain's saved energy, a top's kinetic energy without drag)."""
     scene = of_result(ds.attrs)
     if scene is None:
-        raise fit.FitError("energy_drift needs a result of `ensemble run`")
+        raise fitting.FitError("energy_drift needs a result of `ensemble run`")
     try:
         energy = scene.conserved_energy(ds)
     except KeyError as e:
-        raise fit.FitError(f"energy_drift: the result lacks {e.args[0]} (save it in the run file)") from None
+        raise fitting.FitError(f"energy_drift: the result lacks {e.args[0]} (save it in the run file)") from None
     with np.errstate(invalid="ignore", divide="ignore"):
         drift = np.abs(energy / energy[:, :1] - 1)
     return xr.DataArray(drift, dims=("member", "t"), coords={"member": ds["member"], "t": ds["t"]},
                         attrs={"units": "1", "long_name": "relative energy error |E / E(0) - 1|"})
+
+
+LIMIT_RTOL = 0.02  # --check: measured limits within this of theory
+
+
+def limit_agrees(row: dict) -> bool:
+    """Measured and theoretical limit agree: both none, both zero, or within LIMIT_RTOL. A limit with no theory on
+    its axis alone (a body's splitting: the limit depends on the moments) is not judged; the map's per-member
+    growth_theory covers it."""
+    measured, theory = row["measured"], row["theory"]
+    if np.isnan(theory):
+        return True
+    if np.isinf(theory) or theory == 0:
+        return measured == theory
+    return abs(measured / theory - 1) <= LIMIT_RTOL
+
+
+def print_limits(rows: list[dict], points: xr.Dataset) -> None:
+    print(f"{'method':<17} {'axis':<12} {'theory':>8} {'measured':>9} {'stable..growing':>16} {'miss':>7} "
+          f"{'members':>7}  agree")
+    for r in rows:
+        bracket = f"{r['last_stable']:.3g}..{r['first_growing']:.3g}"
+        miss = (f"{r['measured'] / r['theory'] - 1:+.1%}" if np.isfinite(r["theory"]) and r["theory"] > 0
+                else "")
+        print(f"{r['method']:<17} {r['axis']:<12} {r['theory']:>8.4g} {r['measured']:>9.4g} {bracket:>16} "
+              f"{miss:>7} {r['members']:>7}  {'n/a' if np.isnan(r['theory']) else 'yes' if limit_agrees(r) else 'NO'}")
+    print(f"limit: the smallest dimensionless step at which growth per step exceeds 1 (measured: 1 + "
+          f"{GROWTH_TOLERANCE:g}); inf: none, 0: grows at every step")
+    for method in dict.fromkeys(points["method"].values):
+        status = points["status"].values[points["method"].values == method]
+        print(f"{method}: {np.sum(status == Status.BLEW_UP)} of {status.size} members blew up, "
+              f"{np.sum(status == Status.STEP_SIZE_UNDERFLOW)} step size underflows")

@@ -33,7 +33,7 @@ def fsync_path(path: Path, release: bool = False) -> None:
     """Flush a file's (or a folder's: its entries') bytes to the disk; with `release`, then let the system drop
     the file's pages from its page cache (they are on the disk). A run's later chunks then write into pages just
     freed: on a virtual machine whose host takes back freed memory, new pages cost several times the copy
-    (analysis/fresh_pages.py)."""
+    (analysis/bench/fresh_pages.py)."""
     descriptor = os.open(path, os.O_RDONLY)
     try:
         os.fsync(descriptor)

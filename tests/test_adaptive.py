@@ -5,7 +5,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from ensemble import fit, runner
+from ensemble import fitting, runner
 from ensemble.engine import launch
 from ensemble.methods import DOPRI5, METHODS
 from ensemble.records import measured_error
@@ -126,14 +126,14 @@ def test_work_precision_runs_show_each_fixed_step_methods_order(name, method):
     """Each method of a work-precision run file (one test each, so the kernels compile on every worker): at least
     2.7 decades of error, a fixed-step method's order within 0.15, and dopri5's tolerances spanning 8 decades."""
     ds = runner.simulate(parse(_one_method(name, method), name))
-    table = fit.work_precision(ds)
+    table = fitting.work_precision(ds)
     assert set(table["method"].values) == {method}
     errors = table["error"].values
     assert errors.max() / errors.min() > 500  # at least 2.7 decades each
     if METHODS[method].adaptive:
         assert np.log10(errors.max() / errors.min()) >= 8
         return
-    order, used = fit.convergence_order(table, method)
+    order, used = fitting.convergence_order(table, method)
     assert used >= 4 and order == pytest.approx(METHODS[method].order, abs=0.15), (method, order)
 
 
@@ -179,20 +179,20 @@ def test_measuring_errors_needs_an_exact_solution(monkeypatch):
         parse(top_runfile() + "[measure]\nerror = true\n")
 
 
-def test_work_precision_script_prints_orders_and_draws(tmp_path):
+def test_work_precision_command_prints_orders_and_draws(tmp_path):
     import subprocess
     import sys
 
     out = tmp_path / "wp.nc"
     text = (RUNS / "work_precision_top.toml").read_text().replace("timing = true", "timing = true\nrepeats = 1")
     runner.run(parse(text, "wp.toml"), out, progress=False)
-    done = subprocess.run([sys.executable, str(RUNS.parent / "analysis" / "work_precision.py"), str(out)],
+    done = subprocess.run([sys.executable, "-m", "ensemble", "work-precision", str(out), "--charts", str(tmp_path)],
                           capture_output=True, text=True)
     assert done.returncode == 0, done.stderr
     assert re.search(r"^rk4: nominal order 4, measured 3\.9\d|^rk4: nominal order 4, measured 4\.0\d", done.stdout,
                      flags=re.M), done.stdout
     assert (tmp_path / "wp_work_precision.png").stat().st_size > 20_000
-    bad = subprocess.run([sys.executable, str(RUNS.parent / "analysis" / "work_precision.py"), str(tmp_path / "x.nc")],
+    bad = subprocess.run([sys.executable, "-m", "ensemble", "work-precision", str(tmp_path / "x.nc")],
                          capture_output=True, text=True)
     assert bad.returncode == 2 and len(bad.stderr.strip().splitlines()) == 1
 
@@ -344,3 +344,4 @@ def test_control_step_chooses_the_steps_of_its_formula_for_every_kind_of_member(
                                        err_msg=f"trial {trial}, member {j}")
             np.testing.assert_array_equal(counts[:, j], want[5])
             assert (status[j] == 2) == want[6] and (failure_time[j] == time[j]) == want[6]
+

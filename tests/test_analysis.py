@@ -1,4 +1,5 @@
-"""The analysis scripts users run on results: tables, fits files, charts, --check and bad input."""
+"""The analysis commands users run on results (`ensemble fit`, `stability`, `work-precision`): tables, fits files,
+charts, --check and bad input; and the benchmark tools' options."""
 from __future__ import annotations
 
 import os
@@ -32,8 +33,15 @@ def run_small(name: str, folder: Path, members: int, **replace) -> Path:
     return out
 
 
+def command(*args) -> subprocess.CompletedProcess:
+    """`ensemble ARGS...` in a process of its own."""
+    return subprocess.run([sys.executable, "-m", "ensemble", *map(str, args)], capture_output=True, text=True,
+                          cwd=ROOT)
+
+
 def script(name: str, *args) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, str(ROOT / "analysis" / name), *map(str, args)],
+    """A benchmark tool, `python analysis/bench/NAME ARGS...`."""
+    return subprocess.run([sys.executable, str(ROOT / "analysis" / "bench" / name), *map(str, args)],
                           capture_output=True, text=True, cwd=ROOT)
 
 
@@ -42,29 +50,29 @@ RK4_SHIFT = {"dt = 2.5e-4 ": "dt = 1e-3 "}  # rk4 at 1e-3 s shifts the aerobie's
 
 def test_the_aerobie_passes_its_check_against_the_physics(tmp_path):
     result = run_small("aerobie.toml", tmp_path, 4)
-    done = script("tilt_decay.py", result, "--check")
+    done = command("fit", result, "--check")
     assert done.returncode == 0 and len(re.findall(r"^c = .* pass$", done.stdout, flags=re.M)) == 3, done.stdout
 
 
 def test_tilt_decay_script_shows_rk4s_own_shift(tmp_path):
     result = run_small("aerobie.toml", tmp_path, 4, **RK4_SHIFT)
-    done = script("tilt_decay.py", result, "--check", "--against", "method")
+    done = command("fit", result, "--check", "--against", "method", "--charts", tmp_path / "charts")
     assert done.returncode == 0, done.stderr
     assert len(re.findall(r"^c = .* pass$", done.stdout, flags=re.M)) == 3 and "FAIL" not in done.stdout
     # rk4 at W h = 0.06 shifts the slowest rate by 1.8e-6 relative: beyond 1e-6 of the physics.
-    against_theory = script("tilt_decay.py", result, "--check")
+    against_theory = command("fit", result, "--check")
     assert against_theory.returncode == 1
     assert re.search(r"^c = 5e-05 .* FAIL$", against_theory.stdout, flags=re.M)
     fits = xr.load_dataset(tmp_path / "aerobie_tilt_decay.nc")
     assert set(fits.data_vars) >= {"rate", "rate_stderr", "rate_theory", "rate_method", "z"}
     for chart in ("tilt", "rates", "z"):
-        assert (tmp_path / f"aerobie_tilt_decay_{chart}.png").stat().st_size > 10_000
+        assert (tmp_path / "charts" / f"aerobie_tilt_decay_{chart}.png").stat().st_size > 10_000
 
 
 def test_normal_modes_script_on_the_two_mass_chain(tmp_path):
     """The course's chain rings in both modes (w^2 = k/m and 3k/m), and both pass against the physics."""
     result = run_small("two_mass.toml", tmp_path, 2)
-    done = script("normal_modes.py", result, "--check")
+    done = command("fit", result, "--check")
     assert done.returncode == 0, done.stderr
     assert re.search(r"^mode 1 +1 .* 2  pass$", done.stdout, flags=re.M), done.stdout
     assert re.search(r"^mode 2 +1.73205.* 2  pass$", done.stdout, flags=re.M), done.stdout
@@ -75,45 +83,40 @@ def test_a_mode_nobody_fits_fails_the_check_unless_it_was_not_excited(tmp_path):
     only 3 periods of mode 1 (a fit needs 4), mode 1 is excited and unfitted, and the check fails."""
     started = run_small("two_mass.toml", tmp_path, 2,
                         **{"x0 = { normal = [0.0, 0.1] }": "x0 = { mode = 2, amplitude = 0.1 }"})
-    done = script("normal_modes.py", started, "--check")
+    done = command("fit", started, "--check")
     assert done.returncode == 0 and re.search(r"^mode 1 .* not excited", done.stdout, flags=re.M), done.stdout
     short = run_small("two_mass.toml", tmp_path / "short", 2, **{"t_end = 100.0": "t_end = 20.0"})
-    done = script("normal_modes.py", short, "--check")
+    done = command("fit", short, "--check", "--charts", tmp_path / "charts")
     assert done.returncode == 1 and re.search(r"^mode 1 .* none fitted: FAIL", done.stdout, flags=re.M), done.stdout
     for chart in ("spectrum", "frequencies", "z"):
-        assert (tmp_path / f"two_mass_normal_modes_{chart}.png").stat().st_size > 10_000
+        assert (tmp_path / "charts" / f"two_mass_mode_frequencies_{chart}.png").stat().st_size > 10_000
 
 
 def test_check_fails_when_the_method_moves_the_frequency(tmp_path):
     # Verlet at w h = 0.5: the fitted frequency (2/h) asin(w h / 2) is 1% above the physics.
     result = run_small("two_mass.toml", tmp_path, 2,
                        **{"dt = 1e-3": "dt = 0.1", "k = 1.0 ": "k = 0.08333333333333333 "})
-    done = script("normal_modes.py", result, "--check")
+    done = command("fit", result, "--check")
     assert done.returncode == 1 and "FAIL" in done.stdout
 
 
-@pytest.mark.parametrize("name", ["tilt_decay.py", "normal_modes.py"])
-def test_bad_input_is_one_line_and_exit_2(tmp_path, name):
-    missing = script(name, tmp_path / "nothing.nc")
-    assert missing.returncode == 2 and len(missing.stderr.strip().splitlines()) == 1
-    wrong = run_small("two_mass.toml" if name == "tilt_decay.py" else "prolate.toml", tmp_path, 1)
-    refused = script(name, wrong)
-    assert refused.returncode == 2
-    assert re.fullmatch(r"error: .*needs a (top|chain) result.*\n", refused.stderr)
+@pytest.mark.parametrize("name", ["fit", "stability", "work-precision"])
+def test_a_missing_result_is_one_line_and_exit_2(tmp_path, name):
+    missing = command(name, tmp_path / "nothing.nc")
+    assert missing.returncode == 2 and len(missing.stderr.strip().splitlines()) == 1, missing.stderr
 
 
 def test_bad_options_are_one_line_and_exit_2(tmp_path):
     result = run_small("two_mass.toml", tmp_path, 1)
-    member = script("normal_modes.py", result, "--member", "5")
-    assert member.returncode == 2 and member.stderr.strip().splitlines() == [
-        f"error: {result}: --member 5 is not in 0..0"]
-    assert not (tmp_path / "two_mass_normal_modes.nc").exists()
-    sample = script("tilt_decay.py", result, "--sample", "0")
-    assert sample.returncode == 2 and "--sample: must be >= 1" in sample.stderr
-    assert len(sample.stderr.strip().splitlines()) == 1
+    member = command("fit", result, "--members", "5")
+    assert member.returncode == 2 and member.stderr.strip().splitlines() == ["error: --members: 5 is not in 0..0"]
+    assert not (tmp_path / "two_mass_mode_frequencies.nc").exists()
+    negative = command("fit", result, "--members", "1,-1")
+    assert negative.returncode == 2 and "--members: member numbers are >= 0, got -1" in negative.stderr
+    assert len(negative.stderr.strip().splitlines()) == 1
     not_netcdf = tmp_path / "notes.nc"
     not_netcdf.write_text("not a result\n")
-    refused = script("normal_modes.py", not_netcdf)
+    refused = command("fit", not_netcdf)
     assert refused.returncode == 2 and len(refused.stderr.strip().splitlines()) == 1
 
 
@@ -130,7 +133,7 @@ def test_the_c_dopri5_yardstick_steps_as_ensembles_dopri5(tmp_path, monkeypatch)
     """bench_dopri5.py's hand-written C dopri5 is a fair yardstick only if it does ensemble's job: on 128
     aerobie tops it takes ensemble's steps (accepted and rejected) to 1% (its first step is dt, not Hairer's
     guess); and loading it must not change how this process computes."""
-    monkeypatch.syspath_prepend(str(ROOT / "analysis"))
+    monkeypatch.syspath_prepend(str(ROOT / "analysis" / "bench"))
     import bench_dopri5
     table = members_table(spec.parse((ROOT / "runs" / "aerobie.toml").read_text()))
     tops = {name: values[:128] for name, values in table.items()}
@@ -148,7 +151,7 @@ def test_the_benchmark_times_the_c_beside_its_own_calls_in_a_process_apart(monke
     """benchmark.py's ratios to the C come round by round from hostinfo.CBeside: limit.py's kernels timed on
     request in a process of their own, whose -ffast-math library then sets no flush-to-zero mode here; a round's
     ratio is ensemble's work over its own seconds over the C's rate of that round."""
-    monkeypatch.syspath_prepend(str(ROOT / "analysis"))
+    monkeypatch.syspath_prepend(str(ROOT / "analysis" / "bench"))
     import benchmark
     import hostinfo
     if not hostinfo.LIMIT.exists():
@@ -172,7 +175,7 @@ def test_the_benchmark_times_the_c_beside_its_own_calls_in_a_process_apart(monke
 def test_compare_revisions_runs_each_revisions_own_code_even_from_the_checkout(tmp_path, monkeypatch):
     """A process under compare_revisions' environment for a revision imports ensemble from that revision's
     folder, also when started in the checkout (whose own ensemble Python would otherwise find first)."""
-    monkeypatch.syspath_prepend(str(ROOT / "analysis"))
+    monkeypatch.syspath_prepend(str(ROOT / "analysis" / "bench"))
     import compare_revisions
     tree = tmp_path / "revision"
     (tree / "ensemble").mkdir(parents=True)
@@ -188,23 +191,22 @@ def test_an_unwritable_output_is_one_line_and_keeps_the_verdict(tmp_path):
     one line names the folder, and --check still decides the exit status."""
     result = run_small("aerobie.toml", tmp_path, 2, **RK4_SHIFT)
     (tmp_path / "aerobie_tilt_decay.nc").mkdir()
-    passed = script("tilt_decay.py", result, "--check", "--against", "method")
-    failed = script("tilt_decay.py", result, "--check")  # rk4 misses the slowest rate by 1.8e-6: FAIL
+    passed = command("fit", result, "--check", "--against", "method")
+    failed = command("fit", result, "--check")  # rk4 misses the slowest rate by 1.8e-6: FAIL
     for done, status in ((passed, 0), (failed, 1)):
-        assert done.returncode == status and "tilt decay rates of" in done.stdout
+        assert done.returncode == status and "[rate], " in done.stdout
         lines = done.stderr.strip().splitlines()
         assert len(lines) == 1 and lines[0].endswith("); the table above stands"), lines
-        assert lines[0].startswith(f"error: cannot write the fits and charts in {tmp_path} (")
+        assert lines[0].startswith(f"error: cannot write in {tmp_path} (")
 
 
 def test_tables_and_check_need_no_matplotlib(tmp_path):
     """With the core install alone (matplotlib hidden), a script prints its table, writes its fits, says in one
     line that charts need the plot extra, and exits with the check's verdict."""
     result = run_small("aerobie.toml", tmp_path, 2)
-    hide = ("import runpy, sys; sys.modules['matplotlib'] = None; sys.argv = sys.argv[1:]; "
-            "runpy.run_path(sys.argv[0], run_name='__main__')")
-    done = subprocess.run([sys.executable, "-c", hide, str(ROOT / "analysis" / "tilt_decay.py"), str(result),
-                           "--check", "--against", "method"], capture_output=True, text=True, cwd=ROOT)
+    hide = "import sys; sys.modules['matplotlib'] = None; from ensemble.cli import main; sys.exit(main())"
+    done = subprocess.run([sys.executable, "-c", hide, "fit", str(result), "--check", "--against", "method",
+                           "--charts", str(tmp_path)], capture_output=True, text=True, cwd=ROOT)
     assert done.returncode == 0 and re.search(r"^c = .* pass$", done.stdout, flags=re.M), done.stderr
     assert done.stderr.strip().splitlines() == [
         'no charts: they need matplotlib (pip install "ensemble[plot]"); the table above stands']
@@ -227,16 +229,16 @@ def test_z_histograms_say_what_they_clip():
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from ensemble import report
+    from ensemble import charts
     fig, ax = plt.subplots()
-    report.z_histogram(ax, np.array([0.1, -0.5, 1.2, 400.0, -90.0, np.nan]), "fits")
+    charts.z_histogram(ax, np.array([0.1, -0.5, 1.2, 400.0, -90.0, np.nan]), "fits")
     labels = ax.get_legend_handles_labels()[1]
     plt.close(fig)
     assert set(labels) == {"N(0, 1)", "fits (5, 2 beyond +-50 drawn at the edges)"}
 
 
 def test_run_phases_times_every_step_of_a_run():
-    """analysis/run_phases.py wraps the run's own steps: each wrapped step ran (a renamed one would show 0 calls),
+    """analysis/bench/run_phases.py wraps the run's own steps: each wrapped step ran (a renamed one would show 0 calls),
     and the kernel calls and the finishing, each on one thread, took no longer than the run; --members,
     --save-dt and --growth replace the run file's."""
     done = script("run_phases.py", ROOT / "runs" / "aerobie.toml", "--members", 512, "--save-dt", 0.5, "--growth")
@@ -253,7 +255,7 @@ def test_run_phases_times_every_step_of_a_run():
 
 
 def test_members_that_blew_up_are_left_out_of_the_fit_and_a_check_with_none_left_fails(tmp_path):
-    """Issue 40, item 4: rigid_body.py --check said "pass" on a body result whose members had all blown up (it
+    """Issue 40, item 4: `fit --check` said "pass" on a body result whose members had all blown up (it
     fitted their records up to the failure). Now failed members are NaN in the fits, counted, and --check fails
     when no member is left."""
     unstable = {'method = "rk4"': 'method = "euler"', "dt = 1e-4": "dt = 1e-2", "seed = ": "blowup_factor = 2\nseed = ",
@@ -261,17 +263,17 @@ def test_members_that_blew_up_are_left_out_of_the_fit_and_a_check_with_none_left
     result = run_small("tennis_racket.toml", tmp_path, 3, **unstable)
     ds = xr.load_dataset(result)
     assert np.all(ds["status"].values != 0)  # forward Euler's rates grow every step, past twice their start
-    done = script("rigid_body.py", result, "--check")
+    done = command("fit", result, "--check")
     assert done.returncode == 1, done.stdout + done.stderr
     assert "did not run to the end" in done.stdout and "no member could be fitted" in done.stdout
-    fits = xr.load_dataset(result.with_name("tennis_racket_rigid_body.nc"))
+    fits = xr.load_dataset(result.with_name("tennis_racket_body_rates.nc"))
     assert fits.attrs["members_not_ok"] == ds.sizes["member"] and np.all(np.isnan(fits["z"].values))
 
 
-@pytest.mark.parametrize("name", ["work_precision.py", "stability.py", "normal_modes.py"])
+@pytest.mark.parametrize("name", ["work-precision", "stability", "fit"])
 def test_a_foreign_empty_or_mislabelled_file_is_one_line_and_exit_2(tmp_path, name):
-    """Issue 40, item 18: work_precision.py on a zero-member result raised IndexError, normal_modes.py on a
-    foreign NetCDF KeyError: 'member', stability.py on a top result labelled a chain KeyError: 'm'."""
+    """Issue 40, item 18: work-precision on a zero-member result raised IndexError, fit on a foreign NetCDF
+    KeyError: 'member', stability on a top result labelled a chain KeyError: 'm'."""
     result = run_small("stability_top.toml", tmp_path, 1)
     foreign, empty, mislabelled = tmp_path / "foreign.nc", tmp_path / "empty.nc", tmp_path / "mislabelled.nc"
     xr.Dataset({"x": ("time", np.arange(3.0))}).to_netcdf(foreign)
@@ -280,6 +282,6 @@ def test_a_foreign_empty_or_mislabelled_file_is_one_line_and_exit_2(tmp_path, na
     ds.assign_attrs(scene="chain").to_netcdf(mislabelled)
     for path, says in ((foreign, "is not a result of `ensemble run`"), (empty, "has no members"),
                        (mislabelled, "")):
-        done = script(name, path)
+        done = command(name, path)
         assert done.returncode == 2 and len(done.stderr.strip().splitlines()) == 1, (path, done.stderr)
         assert says in done.stderr and "Traceback" not in done.stderr

@@ -12,7 +12,7 @@ import pytest
 import xarray as xr
 from scipy.integrate import solve_ivp
 
-from ensemble import fit, runner
+from ensemble import fitting, runner
 from ensemble.engine import launch
 from ensemble.methods import METHODS
 from ensemble.scenes import body, top
@@ -271,7 +271,7 @@ def test_flip_period_is_the_elliptic_formula():
     np.testing.assert_allclose(np.diff(crossings), period, rtol=1e-6)
 
 
-# ---------------------------------------------------------------- fits: body_rates and analysis/rigid_body.py
+# ---------------------------------------------------------------- fits: body_rates and `ensemble fit`
 
 FIT_RUN = """
 scene = "body"
@@ -367,23 +367,24 @@ def test_body_rates_refuses_a_top_result(tmp_path):
     text = text.replace('body = { shape = "box", mass = 0.2, width = 0.02, height = 0.08, depth = 0.16 }',
                         "lambda1 = 1.0\nlambda3 = 2.0").replace("spin_axis = 2\n", "")
     runner.run(parse(text, "top.toml"), path, progress=False)
-    with pytest.raises(fit.FitError, match="body_rates needs a body result; this one is a 'top' result"):
+    with pytest.raises(fitting.FitError, match="body_rates needs a body result; this one is a 'top' result"):
         body_fit.body_rates(xr.load_dataset(path))
 
 
-def test_rigid_body_script_checks_the_course_plate(tmp_path):
+def test_fit_checks_the_course_plate(tmp_path):
     result = tmp_path / "plate.nc"
     text = (Path(__file__).parent.parent / "runs" / "triangle_plate.toml").read_text().replace("members = 100",
                                                                                            "members = 8")
     runner.run(parse(text, "triangle_plate.toml"), result, progress=False)
-    done = subprocess.run([sys.executable, "analysis/rigid_body.py", str(result), "--check"], capture_output=True,
-                          text=True, cwd=Path(__file__).parent.parent)
+    done = subprocess.run([sys.executable, "-m", "ensemble", "fit", str(result), "--check", "--charts", str(tmp_path)],
+                          capture_output=True, text=True, cwd=Path(__file__).parent.parent)
     assert done.returncode == 0, done.stdout + done.stderr
-    assert done.stdout.startswith("growth rates of small tilts") and "FAIL" not in done.stdout
+    assert done.stdout.startswith("fitted growth rate of small tilts about the spin axis [growth_rate]")
+    assert "FAIL" not in done.stdout
     rows = re.findall(r"^spin_axis = (\d) .* pass$", done.stdout, flags=re.M)
     assert rows == ["2", "1", "3", "2"]  # growth rate, wobble frequency about 1 and 3, flip period: one sweep
     for chart in ("tilt", "rates", "z"):
-        assert (tmp_path / f"plate_rigid_body_{chart}.png").stat().st_size > 10_000
+        assert (tmp_path / f"plate_body_rates_{chart}.png").stat().st_size > 10_000
 
 
 def test_growth_on_small_tilts_about_a_stable_axis_is_the_methods_one_step_map(tmp_path):

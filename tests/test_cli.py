@@ -293,7 +293,7 @@ def test_a_run_imports_no_analysis_and_parsing_no_numba(write_runfile, tmp_path)
     probe = ("import sys\nfrom ensemble import spec\nspec.load(sys.argv[1])\n"
              "assert 'numba' not in sys.modules and 'scipy' not in sys.modules\n"
              "from ensemble import cli\nassert cli.main(['run', sys.argv[1], '-o', sys.argv[2], '--quiet']) == 0\n"
-             "loaded = [m for m in ('ensemble.fit', 'ensemble.stability', 'ensemble.report', 'scipy.signal', "
+             "loaded = [m for m in ('ensemble.fitting', 'ensemble.stability', 'ensemble.report', 'scipy.signal', "
              "'scipy.stats', 'scipy.linalg', 'xarray') if m in sys.modules]\nassert not loaded, loaded\n"
              "assert 'numba' in sys.modules\n"
              "import numpy as np, scipy.linalg\nfrom numba import njit\n"

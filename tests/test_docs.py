@@ -13,11 +13,13 @@ import pytest
 from .test_analysis import run_small
 
 ROOT = Path(__file__).resolve().parent.parent
-DOCS = [ROOT / "README.md", ROOT / "analysis" / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
+DOCS = [ROOT / "README.md", ROOT / "analysis" / "README.md", ROOT / "analysis" / "bench" / "README.md",
+        *sorted((ROOT / "docs").glob("*.md"))]
 
 
 # The reference pages the README points to, whose examples open the README's run files' results
-REFERENCE = [ROOT / "docs" / name for name in ("running.md", "runfiles.md", "dataset.md", "physics.md", "methods.md")]
+REFERENCE = [ROOT / "docs" / name for name in ("running.md", "runfiles.md", "dataset.md", "physics.md", "methods.md",
+                                              "contributing.md")]
 
 
 def python_examples() -> list[str]:
@@ -37,9 +39,11 @@ def commands(text: str) -> list[str]:
 
 
 def test_every_python_example_in_the_readme_runs_and_gives_what_it_says(tmp_path, monkeypatch):
-    """The examples open results the README's run files make (here with 4 members a sweep point)."""
+    """The examples open results the README's run files make (here with 4 members a sweep point); the notebook
+    tour runs runs/aerobie.toml itself, whole, and its fit's means are the course's law."""
     for name in ("aerobie.toml", "aerobie_noisy.toml", "two_mass.toml"):
         run_small(name, tmp_path / "results", 4)
+    (tmp_path / "runs").symlink_to(ROOT / "runs")
     monkeypatch.chdir(tmp_path)
     examples = python_examples()
     assert len(examples) >= 6
@@ -50,6 +54,10 @@ def test_every_python_example_in_the_readme_runs_and_gives_what_it_says(tmp_path
         done.append(namespace)
     modes = next(n for n in done if "shapes" in n)
     assert modes["omega"] == pytest.approx([1.0, np.sqrt(3.0)])  # the comment's [1, 1.732...]
+    tour = next(n for n in done if "fits" in n and "ensemble" in n)
+    assert tour["ds"].sizes["member"] == 12  # the last line opened the result written above (4 a sweep point)
+    law = tour["fits"].c * (1 / 1.0e-3 - 1 / 2.0e-3)  # the run file's lambda1 and lambda3
+    assert tour["fits"].sizes["member"] == 600 and np.allclose(tour["fits"].rate, law, rtol=1e-8)
     outcome = next(n for n in done if "outcome" in n)["outcome"]
     assert outcome.samples.shape == (11, 3, 1)  # (n_save, state, members), as the comment says
 
@@ -87,7 +95,7 @@ def test_every_command_in_the_docs_names_what_exists(doc):
         for word in words:
             if word.startswith("runs/"):
                 assert (ROOT / word).is_file(), f"{doc.name}: {command}: no {word}"
-    assert any(key[0] == "-m" for key in options) or doc.parent.name in ("analysis", "docs"), given
+    assert any(key[0] == "-m" for key in options) or doc.parent.name in ("analysis", "bench", "docs"), given
     for (key, wanted), text in zip(options.items(), help_texts(list(options))):
         listed = set(re.findall(r"--[a-z][a-z0-9-]*", text))
         assert wanted <= listed, f"{doc.name}: {' '.join(key)} has no {sorted(wanted - listed)}"

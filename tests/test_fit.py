@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from ensemble import fit, runner, spec
+from ensemble import fitting, runner, spec
 from ensemble.methods import METHODS
 from ensemble.scenes import chain
 from ensemble.scenes.chain import fits as chain_fit
@@ -158,11 +158,11 @@ def test_noisy_chain_error_bars_are_calibrated():
 
 def test_wrong_scene_missing_variables_and_short_records_are_errors():
     top_ds = simulate(top_runfile(members=1, t_end=1.0))
-    with pytest.raises(fit.FitError, match="needs a chain result"):
+    with pytest.raises(fitting.FitError, match="needs a chain result"):
         chain_fit.mode_frequencies(top_ds)
-    with pytest.raises(fit.FitError, match="lacks tilt"):
+    with pytest.raises(fitting.FitError, match="lacks tilt"):
         top_fit.tilt_decay(top_ds.drop_vars("tilt"))
-    with pytest.raises(fit.FitError, match="at least 5"):
+    with pytest.raises(fitting.FitError, match="at least 5"):
         top_fit.tilt_decay(top_ds.isel(t=slice(0, 3)))
 
 

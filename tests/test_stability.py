@@ -7,14 +7,14 @@ import netCDF4
 import numpy as np
 import pytest
 
-from ensemble import cli, fit, records, runner, stability
+from ensemble import cli, fitting, records, runner, stability
 from ensemble.engine import launch
 from ensemble.methods import METHODS
 from ensemble.scenes import chain, top
 from ensemble.spec import load, parse
 
 from .conftest import top_runfile
-from .test_analysis import script
+from .test_analysis import command
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -227,7 +227,7 @@ def test_growth_is_measured_only_when_the_run_file_asks_and_the_map_says_how(tmp
     assert set(asked.data_vars) - set(plain.data_vars) == {"growth_per_step"}
     for name in plain.data_vars:
         np.testing.assert_array_equal(plain[name].values, asked[name].values)
-    with pytest.raises(fit.FitError, match=r"add `\[measure\] growth = true` to its run file"):
+    with pytest.raises(fitting.FitError, match=r"add `\[measure\] growth = true` to its run file"):
         stability.stability_map(plain)
 
 
@@ -296,14 +296,14 @@ def test_bad_stability_input_is_one_line_naming_the_key(tmp_path, capsys, text, 
     assert not list(tmp_path.glob("bad.nc*"))
 
 
-def test_stability_script_prints_limits_and_draws(tmp_path, chain_scan):
+def test_stability_command_prints_limits_and_draws(tmp_path, chain_scan):
     result = tmp_path / "stability_chain.nc"
     chain_scan.to_netcdf(result)
-    done = script("stability.py", result, "--check")
+    done = command("stability", result, "--check", "--charts", tmp_path)
     assert done.returncode == 0, done.stderr
     assert [line.split()[0] for line in done.stdout.splitlines() if line.endswith("yes")] == [
         "euler", "symplectic_euler", "verlet", "rk4", "yoshida4"]
     for chart in ("map", "energy"):
         assert (tmp_path / f"stability_chain_stability_{chart}.png").stat().st_size > 10_000
-    missing = script("stability.py", tmp_path / "none.nc")
+    missing = command("stability", tmp_path / "none.nc")
     assert missing.returncode == 2 and len(missing.stderr.strip().splitlines()) == 1

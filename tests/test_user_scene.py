@@ -153,7 +153,7 @@ def test_the_reserved_names_are_every_name_a_result_gives_each_member():
 def test_a_user_scene_chunks_resumes_runs_on_dask_and_measures_its_error_like_a_built_in_one(tmp_path, monkeypatch):
     """The example swept over methods with [measure] error: chunks of 1, a run interrupted and resumed, and two
     Dask workers all give the bits of one uninterrupted run, and its work-precision table has every method."""
-    from ensemble import fit, runner
+    from ensemble import fitting, runner
     from ensemble.spec import load
 
     from .test_resume import chunked_and_resumed_match_one_run, same_bits
@@ -165,7 +165,7 @@ def test_a_user_scene_chunks_resumes_runs_on_dask_and_measures_its_error_like_a_
     path = tmp_path / "sweep.toml"
     path.write_text(text)
     whole = chunked_and_resumed_match_one_run(path, tmp_path, monkeypatch)
-    table = fit.work_precision(xr.load_dataset(whole))
+    table = fitting.work_precision(xr.load_dataset(whole))
     assert set(table["method"].values) == {"euler", "rk4", "dopri5", "exact"}
     errors = {(m, dt if m != "dopri5" else rtol): e for m, dt, rtol, e in
               zip(*(table[name].values for name in ("method", "dt", "rtol", "error")))}

@@ -113,7 +113,7 @@ def stack_array(size):
     """An uninitialized float64 array of `size` values (a constant of the kernel's closure) on the stack, for
     values a member keeps only within a step, such as its stage slopes. Where every index is a constant once
     LLVM unrolls the loops, the values stay in registers: stored in work rows, each had to be written to
-    memory (without those stores a whole 262,144-top rk4 run took 0.89 of the time: analysis/README.md)."""
+    memory (without those stores a whole 262,144-top rk4 run took 0.89 of the time: analysis/bench/README.md)."""
     return carray(_stack_pointer(size), size)
 
 
@@ -336,7 +336,7 @@ def control_step(work, c0, B, target, j0, status, failure_time, new_stages, alph
     `and` compile to branches) and the function is inlined, so that B is a constant and LLVM can tell the rows
     apart: the loop vectorizes. With a branch per member and libm's pow, a top's dopri5 step cost 31.5 times
     its rk4 step; with conditional expressions 9 to 11 times; with selects 8.8 to 9 times, and 7.6 to 8.3 once
-    _count_steps counted into work rows; the same bits (analysis/bench_dopri5.py). The test for a non-finite
+    _count_steps counted into work rows; the same bits (analysis/bench/bench_dopri5.py). The test for a non-finite
     error is made on its bits (_finite).
     """
     underflows = 0

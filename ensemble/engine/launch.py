@@ -22,7 +22,7 @@ a later one continues from where `works` stands, so a run in several calls
 .. end_block - 1 on the calling thread without the GIL; `run_blocks` spreads a
 launch's blocks over threads. Kernels are not compiled with parallel=True:
 Numba's parallel lowering made compiling a kernel take twice as long
-(analysis/compile_time.py).
+(analysis/bench/compile_time.py).
 """
 from __future__ import annotations
 

@@ -91,7 +91,7 @@ RUNGE_KUTTA_STEPS = '''            for step in range(steps_per_save):
 {store_step}'''
 
 # Splittings of at most UNROLLED pieces loop over their sequence, which LLVM unrolls; longer ones are written out
-# piece by piece: the body's rotations4 (19 pieces) ran 4.8 times faster so (analysis/README.md). Written out, the
+# piece by piece: the body's rotations4 (19 pieces) ran 4.8 times faster so (analysis/bench/README.md). Written out, the
 # top's split4 (7 pieces) took other last bits than its loop gives, so shorter sequences keep the loop.
 UNROLLED = 8
 

@@ -49,6 +49,8 @@ class Scene(Protocol):
     def stability_axis(self, values: dict, constants: dict, h: np.ndarray) -> tuple[np.ndarray, np.ndarray]: ...
     def step_growth(self, method: Method, values: dict, constants: dict, h: np.ndarray) -> np.ndarray: ...
     def conserved_energy(self, ds) -> np.ndarray: ...  # (member, t), NaN where not conserved
+    def fit(self, ds): ...  # the scene's fit of a result (ensemble fit), an xarray.Dataset over members
+    def charts(self, plt, ds, fits, rows, stem, members=None) -> list: ...  # its charts of that fit, PNG paths
     # Optional: check_exact(values) raises ParameterError where the closed form does not hold (runs that use
     # `exact` or [measure] error call it); from_body(body, source) for a parameter that `derives` others.
 

@@ -17,7 +17,9 @@ Optional:
   other argument a row (1, members)), a tuple of len(STATE) arrays; it gives the `exact` method and
   [measure] error;
 - check(values): raise ensemble.ParameterError(name, problem) for a value no member can have;
-- fit(ds): the scene's fit of a result, an xarray.Dataset (its theory against what was measured).
+- fit(ds): the scene's fit of a result, an xarray.Dataset (its theory against what was measured);
+- charts(plt, ds, fits, rows, stem, members): the scene's own charts of that fit for `ensemble fit --charts`,
+  a list of the PNG files written (STEM_<name>.png).
 
 Its functions are compiled with Numba (nopython mode), so they use math and numpy, and any helper they call
 is itself decorated with numba.njit.
@@ -117,6 +119,8 @@ class UserScene:
             self.exact = self._exact
         if hasattr(module, "fit"):
             self.fit = module.fit
+        if hasattr(module, "charts"):
+            self.charts = module.charts
         _check(self)
 
     def sizes(self, constants: dict) -> dict[str, int]:

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import xarray as xr
 
-from ... import fit
-from ...fit import MIN_SAMPLES
+from ... import fitting
+from ...fitting import MIN_SAMPLES
 from . import model as body
 
 BODY_MAX_TILT = 0.1  # rad: the linear regime, where small tilts move at the linear theory's rates
@@ -33,10 +33,10 @@ def body_rates(ds: xr.Dataset, max_tilt: float = BODY_MAX_TILT) -> xr.Dataset:
     (body.step_exponents). z and z_method compare whichever of growth rate and
     wobble frequency applies. Returns a Dataset over member.
     """
-    fit.require(ds, "body", ("omega", "lambda1", "lambda2", "lambda3", "c", "spin0", "tilt0"), "body_rates")
+    fitting.require(ds, "body", ("omega", "lambda1", "lambda2", "lambda3", "c", "spin0", "tilt0"), "body_rates")
     t = ds["t"].values
     omega = ds["omega"].values  # (member, t, axis)
-    sigma = fit.noise_of(ds["omega"])
+    sigma = fitting.noise_of(ds["omega"])
     constants = {}
     values = {name: ds[name].values for name in body.PARAMETERS if name in ds}
     values.setdefault("azimuth0", np.zeros(omega.shape[0]))
@@ -51,9 +51,10 @@ def body_rates(ds: xr.Dataset, max_tilt: float = BODY_MAX_TILT) -> xr.Dataset:
                        for m in range(omega.shape[0])]).reshape(-1, 3).T
     estimate, stderr, used = fitted
     theory = _shown(body.transverse_exponents(values, constants)[0], growing)
-    method = fit.method_prediction(ds, theory, lambda m, dt, chosen: _shown(body.step_exponents(
+    method = fitting.method_prediction(ds, theory, lambda m, dt, chosen: _shown(body.step_exponents(
         m, {name: v[chosen] for name, v in values.items()}, constants, dt)[0], growing[chosen]))
-    flips = np.array([fit.crossing_period(t, omega[m, :, k[m]], sigma) for m in range(omega.shape[0])]).reshape(-1, 3).T
+    flips = np.array([fitting.crossing_period(t, omega[m, :, k[m]], sigma)
+                      for m in fitting.progress(omega.shape[0], "fitting flip periods")]).reshape(-1, 3).T
     period_theory = np.where(growing & (values["c"] == 0), body.flip_period(values, constants), np.nan)
     with np.errstate(invalid="ignore", divide="ignore"):
         z, z_method, flip_z = (estimate - theory) / stderr, (estimate - method) / stderr, \
@@ -69,7 +70,7 @@ def body_rates(ds: xr.Dataset, max_tilt: float = BODY_MAX_TILT) -> xr.Dataset:
         "flip_z": (flip_z, "1", "(flip_period - flip_period_theory) / flip_period_stderr"),
         "flips": (flips[2], "1", "recorded crossings of tilt = pi/2"),
     })
-    return fit.dataset(ds, data, "member", noise=sigma, fit="body_rates",
+    return fitting.dataset(ds, data, "member", noise=sigma, fit="body_rates",
                     estimates=("growth_rate", "wobble_frequency", "flip_period"))
 
 
@@ -101,7 +102,7 @@ def _small_tilt_fit(t, omega, k, spin0, damping, growing, sigma, max_tilt):
     max_tilt, so the choice does not bias the fit.
     """
     across, spin = omega[:, [(k + 1) % 3, (k + 2) % 3]], omega[:, k]
-    clock = fit.integral(t, spin) / spin0
+    clock = fitting.integral(t, spin) / spin0
     end = _linear_end(np.arctan2(np.hypot(across[:, 0], across[:, 1]), spin), max_tilt)
     for _ in range(3 if sigma > 0 else 1):
         if end < MIN_SAMPLES:

@@ -375,3 +375,10 @@ def fit(ds):
     from .fits import body_rates  # scipy and xarray: only when fitting
 
     return body_rates(ds)
+
+
+def charts(plt, ds, fits, rows, stem, members=None) -> list:
+    """The scene's charts of its fit, PNG files STEM_<chart>.png (ensemble.scenes.body.plots.draw)."""
+    from .plots import draw  # matplotlib: only when charting
+
+    return draw(plt, ds, fits, rows, stem, members)

@@ -5,7 +5,7 @@ import numpy as np
 import xarray as xr
 from scipy.optimize import linear_sum_assignment
 
-from ... import fit
+from ... import fitting
 from . import model as chain
 
 
@@ -25,19 +25,19 @@ def mode_frequencies(ds: xr.Dataset) -> xr.Dataset:
     where the start put energy in the mode, 0 where it did not: a chain
     started in one mode rings in no other; zero modes do not oscillate).
     """
-    fit.require(ds, "chain", ("x", "m", "k"), "mode_frequencies")
+    fitting.require(ds, "chain", ("x", "m", "k"), "mode_frequencies")
     n, boundary = int(ds.attrs["n"]), str(ds.attrs["boundary"])
     t = ds["t"].values
     x = ds["x"].values
-    sigma = fit.noise_of(ds["x"])
+    sigma = fitting.noise_of(ds["x"])
     theory, shapes = chain.normal_modes(ds["m"].values, ds["k"].values, boundary)
     amplitude, excited = _mode_amplitudes(ds, theory, shapes)
-    method = fit.method_prediction(ds, theory, lambda m, dt, chosen: np.angle(
+    method = fitting.method_prediction(ds, theory, lambda m, dt, chosen: np.angle(
         chain.step_eigenvalue(m, theory[chosen], dt)) / dt)
     frequency = np.full(theory.shape, np.nan)
     stderr = np.full(theory.shape, np.nan)
-    for i in range(x.shape[0]):
-        found, errors = fit.member_frequencies(t, x[i], sigma, n)
+    for i in fitting.progress(x.shape[0], "fitting normal modes"):
+        found, errors = fitting.member_frequencies(t, x[i], sigma, n)
         oscillating = np.flatnonzero(theory[i] > 0)
         if found.size == 0 or oscillating.size == 0:
             continue
@@ -57,7 +57,7 @@ def mode_frequencies(ds: xr.Dataset) -> xr.Dataset:
         "z_method": (z_method, "1", "(frequency - frequency_method) / frequency_stderr"),
         "mode_amplitude": (amplitude, "m", "amplitude of the start in the mode"),
     }
-    out = fit.dataset(ds, data, ("member", "mode"), noise=sigma, fit="mode_frequencies")
+    out = fitting.dataset(ds, data, ("member", "mode"), noise=sigma, fit="mode_frequencies")
     out["excited"] = (("member", "mode"), excited.astype(np.int8),
                       {"long_name": "whether the start put energy in the mode",
                        "flag_values": np.array([0, 1], np.int8), "flag_meanings": "not_excited excited"})

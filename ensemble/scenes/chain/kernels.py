@@ -70,7 +70,7 @@ def block_size(constants: dict, method: Method) -> int:
     adaptive pair's takes the same steps in every block, but its values can differ in the last places between
     blocks, so between hosts whose L1 caches or vectors differ from 3 masses on (LLVM's fast-math code
     differs). Measured with
-    `python analysis/bench_chain.py --n 16 64 128 --repeats 5 --steps 1000 --block B` (2^20 masses):
+    `python analysis/bench/bench_chain.py --n 16 64 128 --repeats 5 --steps 1000 --block B` (2^20 masses):
 
     - verlet on an AVX-512 host (AMD EPYC Zen 5, 48 KiB L1d; 2026-11-25, commit 0d9a3d3), blocks of 8, 16 and
       32: n = 16 1.37e10, 1.57e10 and 1.17e10 mass-steps/s; n = 64 1.52e10, 1.59e10 and 1.11e10; n = 128
@@ -78,10 +78,10 @@ def block_size(constants: dict, method: Method) -> int:
       blocks of 16, 32 and 64 gave 4.0e9, 9.9e9 and 1.09e10. Compiled for AVX2 on that host
       (NUMBA_CPU_NAME=znver3), blocks of 4, 8 and 16 gave 8.3e9, 1.50e10 and 1.52e10 at n = 16, and 1.15e10,
       1.66e10 and 1.21e10 at n = 128.
-    - per member-step at n = 16 on an AVX2 host (AMD EPYC Zen 3; `analysis/bench_dopri5.py`'s chains), blocks
+    - per member-step at n = 16 on an AVX2 host (AMD EPYC Zen 3; `analysis/bench/bench_dopri5.py`'s chains), blocks
       of 4, 8, 16 and 64: rk4 8.96e-8, 1.62e-7, 1.06e-7 and 6.86e-8 s; dopri5, in the same run as rk4 at 64,
       6.4, 2.3, 2.8 and 6.0 times rk4 (and 5.5 at 32). That was before a pair's accepted steps moved in selects.
-    - dopri5 over rk4 on the AVX-512 host, after that: see analysis/README.md (bench_dopri5.py --chain-block B).
+    - dopri5 over rk4 on the AVX-512 host, after that: see analysis/bench/README.md (bench_dopri5.py --chain-block B).
       Below 16 masses there, dopri5 in blocks of 64 and 16 took 8.3e-9 and 1.05e-8 s per member-step at n = 3,
       1.02e-8 and 1.17e-8 at n = 4, 1.35e-8 and 1.30e-8 at n = 5, 2.3e-8 and 1.75e-8 at n = 6, and 6.6e-8 and
       2.4e-8 at n = 12; 64 members' rows fill 0.8, 1.0, 1.2, 1.4 and 2.7 times its 48 KiB L1 cache. Compiled
@@ -296,7 +296,7 @@ def tiles(n: int, B: int) -> bool:
     when a block's 4n + 2 rows outgrow TILE_FROM_L1 times the L1 data cache, and the chain is longer than two
     tiles (so a ring is longer than its halos). On the AVX-512 host (48 KiB L1d, blocks of 8) one piece at a
     time was faster at n = 200 and 256, tiles from n = 288 on: 1.70, 1.43 and 1.12 times the C verlet against
-    1.22, 1.21 and 1.33 in tiles (analysis/README.md)."""
+    1.22, 1.21 and 1.33 in tiles (analysis/bench/README.md)."""
     return n > 2 * TILE_ROWS and (4 * n + 2) * B * 8 > TILE_FROM_L1 * l1_data_bytes()
 
 
@@ -430,8 +430,8 @@ def _fixed_kernel(method: Method, n: int, periodic: bool):
 def _chain_accept(work, X, V, ZX, ZV, KX, KV, C0, S, n, B):
     """After control_step: members whose step was accepted move to the stage state ZX, ZV (its last slopes are the
     next step's first); members whose step underflowed become NaN. In selects for blocks of 16 or more, in
-    branches for fewer: each form is the faster at its block, as AVX-512 and as AVX2 code (analysis/README.md,
-    `python analysis/bench_dopri5.py --chain-block B`)."""
+    branches for fewer: each form is the faster at its block, as AVX-512 and as AVX2 code (analysis/bench/README.md,
+    `python analysis/bench/bench_dopri5.py --chain-block B`)."""
     last = S - 1
     for i in range(n):
         for j in range(B):

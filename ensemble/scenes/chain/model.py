@@ -315,3 +315,10 @@ def fit(ds):
     from .fits import mode_frequencies  # scipy and xarray: only when fitting
 
     return mode_frequencies(ds)
+
+
+def charts(plt, ds, fits, rows, stem, members=None) -> list:
+    """The scene's charts of its fit, PNG files STEM_<chart>.png (ensemble.scenes.chain.plots.draw)."""
+    from .plots import draw  # matplotlib: only when charting
+
+    return draw(plt, ds, fits, rows, stem, members)

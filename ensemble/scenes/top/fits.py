@@ -4,8 +4,8 @@ from __future__ import annotations
 import numpy as np
 import xarray as xr
 
-from ... import fit
-from ...fit import MIN_SAMPLES
+from ... import fitting
+from ...fitting import MIN_SAMPLES
 from . import model as top
 
 TILT_FLOOR = 1e-150  # rad: noise-free tilts below this are too close to underflow to use
@@ -22,14 +22,14 @@ def tilt_decay(ds: xr.Dataset) -> xr.Dataset:
     rate_method (what the run's method shows, see top.tilt_rate_method),
     z = (rate - rate_theory) / rate_stderr, z_method likewise, and samples_used.
     """
-    fit.require(ds, "top", ("tilt", "lambda1", "lambda3", "c", "tilt0", "spin0"), "tilt_decay")
+    fitting.require(ds, "top", ("tilt", "lambda1", "lambda3", "c", "tilt0", "spin0"), "tilt_decay")
     t = ds["t"].values
     tilt = ds["tilt"].values
-    sigma = fit.noise_of(ds["tilt"])
+    sigma = fitting.noise_of(ds["tilt"])
     values = {name: ds[name].values for name in top.PARAMETERS if name in ds}
     intercept, rate, stderr, used = _tilt_fit_noisy(t, tilt, sigma) if sigma > 0 else _tilt_fit_clean(t, tilt)
     theory = values["c"] * (1 / values["lambda1"] - 1 / values["lambda3"])
-    method = fit.method_prediction(ds, theory, lambda m, dt, chosen: top.tilt_rate_method(
+    method = fitting.method_prediction(ds, theory, lambda m, dt, chosen: top.tilt_rate_method(
         m, {k: v[chosen] for k, v in values.items()}, dt, t))
     data = {
         "rate": (rate, "s-1", "fitted tilt decay rate: tan(tilt) ~ exp(-rate t)"),
@@ -41,7 +41,7 @@ def tilt_decay(ds: xr.Dataset) -> xr.Dataset:
         "log_tan_tilt0": (intercept, "1", "fitted line's log tan(tilt) at t = 0"),
         "samples_used": (used, "1", "saved times inside the fitted part of the record"),
     }
-    return fit.dataset(ds, data, "member", noise=sigma, fit="tilt_decay")
+    return fitting.dataset(ds, data, "member", noise=sigma, fit="tilt_decay")
 
 
 def _tilt_fit_clean(t, tilt):
@@ -49,7 +49,7 @@ def _tilt_fit_clean(t, tilt):
     with np.errstate(invalid="ignore", divide="ignore"):
         y = np.log(np.tan(tilt))
     mask = np.isfinite(y) & (tilt > TILT_FLOOR) & (tilt < np.pi / 2)
-    a, rate, rss, count, sxx = fit.masked_line(t, y, mask)
+    a, rate, rss, count, sxx = fitting.masked_line(t, y, mask)
     with np.errstate(invalid="ignore", divide="ignore"):
         stderr = np.sqrt(rss / (count - 2) / sxx)
     bad = count < MIN_SAMPLES
@@ -69,7 +69,7 @@ def _tilt_fit_noisy(t, tilt, sigma, iterations=12):
     lo, hi = NOISE_WINDOW * sigma, np.pi / 2 - NOISE_WINDOW * sigma
     with np.errstate(invalid="ignore", divide="ignore"):
         start = finite & (tilt > 2 * lo) & (tilt < np.pi / 2 - 2 * lo)
-        a, rate, _, _, _ = fit.masked_line(t, np.log(np.tan(tilt)), start)
+        a, rate, _, _, _ = fitting.masked_line(t, np.log(np.tan(tilt)), start)
     for _ in range(iterations):
         model = np.arctan(np.exp(a[:, None] - rate[:, None] * t))
         mask = finite & (model > lo) & (model < hi)

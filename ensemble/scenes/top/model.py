@@ -276,3 +276,10 @@ def fit(ds):
     from .fits import tilt_decay  # scipy and xarray: only when fitting
 
     return tilt_decay(ds)
+
+
+def charts(plt, ds, fits, rows, stem, members=None) -> list:
+    """The scene's charts of its fit, PNG files STEM_<chart>.png (ensemble.scenes.top.plots.draw)."""
+    from .plots import draw  # matplotlib: only when charting
+
+    return draw(plt, ds, fits, rows, stem, members)

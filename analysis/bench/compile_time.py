@@ -1,6 +1,6 @@
 """Compile time of kernels, and how soon Ctrl-C stops a run inside a kernel call.
 
-    python analysis/compile_time.py [--scene chain] [--n 4] [--methods rk4 verlet euler] [--repeats 3]
+    python analysis/bench/compile_time.py [--scene chain] [--n 4] [--methods rk4 verlet euler] [--repeats 3]
                                     [--interrupts 3] [--every]
 
 Compile time: each method's kernel is prepared (`launch.prepare`) in a fresh

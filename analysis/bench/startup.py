@@ -1,6 +1,6 @@
 """Start-up: the whole `ensemble run` process on a tiny run file, beside Numba's own floor, warm cache.
 
-    python analysis/startup.py [--repeats 5]
+    python analysis/bench/startup.py [--repeats 5]
 
 Times (wall, medians of --repeats) four processes, each once per round:
 a Python that loads one trivial cached @njit function (what any Numba program

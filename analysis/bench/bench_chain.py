@@ -1,6 +1,6 @@
 """Benchmark: chain kernels against NumPy vectorized over members, at several chain lengths.
 
-    python analysis/bench_chain.py [--masses 1048576] [--repeats 7] [--n 2 16 1024] [--steps 200]
+    python analysis/bench/bench_chain.py [--masses 1048576] [--repeats 7] [--n 2 16 1024] [--steps 200]
                                    [--method verlet] [--boundary fixed] [--block B]
 
 For each chain length n the ensemble holds about `masses` masses in all

@@ -1,6 +1,6 @@
 """The benchmark a user reads: ensemble against this machine's limit and the tools users would pick instead.
 
-    python analysis/benchmark.py [--full | --whole] [--out benchmark.nc] [--charts DIR] [--repeats 5]
+    python analysis/bench/benchmark.py [--full | --whole] [--out benchmark.nc] [--charts DIR] [--repeats 5]
 
 Every figure is a rate of work: member-steps/s for tops, mass-steps/s for
 chains, the median of --repeats timed calls on all threads. A peer that steps
@@ -68,7 +68,7 @@ from ensemble.scenes import chain, top
 from ensemble.scenes.top.physics import rhs as top_rhs
 from ensemble.spec import members_table, parse
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 PEERS = ("ensemble", "C", "numpy", "numba_naive", "solve_ivp_RK45", "solve_ivp_DOP853", "diffrax_Tsit5",
          "diffrax_Dopri8")
 _CUBE_ROOT_2 = 2.0 ** (1.0 / 3.0)

@@ -8,7 +8,7 @@ import sys
 from pathlib import Path
 
 #: The hand-written C kernels beside the checkout: the machine's limit (python ../shared/limit/limit.py).
-LIMIT = Path(__file__).resolve().parents[2] / "shared" / "limit" / "limit.py"
+LIMIT = Path(__file__).resolve().parents[3] / "shared" / "limit" / "limit.py"
 
 
 def quiet_openmp() -> None:

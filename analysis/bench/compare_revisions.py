@@ -1,6 +1,6 @@
 """Whole runs of two revisions of ensemble, alternated in the same minutes: a change's effect on a noisy host.
 
-    python analysis/compare_revisions.py OLD [NEW] [--workload tops|chains] [--members N] [--repeats 5]
+    python analysis/bench/compare_revisions.py OLD [NEW] [--workload tops|chains] [--members N] [--repeats 5]
 
 Checks out OLD and NEW (default: the working tree) into temporary git
 worktrees, each with a Numba cache of its own, runs the workload of
@@ -26,7 +26,7 @@ from hostinfo import host
 
 from ensemble.arguments import OneLineParser, positive_int
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def revision_env(tree: Path, cache: Path) -> dict[str, str]:

@@ -3,8 +3,8 @@ run against its kernel, and float32's error beside float64's. Every figure names
 medians of --repeats timed launches after a first (compiling) one, each launch's inputs already on the GPU and its
 end state copied back (n_save = 2).
 
-    python analysis/gpu.py --json gpu.json            # on a machine with an NVIDIA GPU and numba-cuda
-    python analysis/gpu.py --quick                    # a smaller set (a few minutes of GPU time)
+    python analysis/bench/gpu.py --json gpu.json            # on a machine with an NVIDIA GPU and numba-cuda
+    python analysis/bench/gpu.py --quick                    # a smaller set (a few minutes of GPU time)
 
 Top: the aerobie's tops (runs/aerobie.toml). Chain: disordered chains of N masses between walls.
 """
@@ -31,7 +31,7 @@ from ensemble.runner import members_table  # noqa: E402
 from ensemble.scenes import resolve  # noqa: E402
 from ensemble.spec import load  # noqa: E402
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 TOP_DT = 2.5e-4  # s, runs/aerobie.toml's
 CHAIN_DT = 0.05  # s: h omega_max about 0.1 for the disordered chains below
 TARGET_SECONDS = 0.4  # a timed launch's length, once calibrated

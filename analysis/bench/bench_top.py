@@ -1,6 +1,6 @@
 """Benchmark: the top's Numba kernels against NumPy vectorized over members.
 
-    python analysis/bench_top.py [--members 65536] [--steps 1000] [--repeats 7]
+    python analysis/bench/bench_top.py [--members 65536] [--steps 1000] [--repeats 7]
 
 Both run in this process, side by side; the script prints medians and their
 ratio (these machines are shared: quote ratios, not single times). Then the
@@ -31,7 +31,7 @@ from ensemble.methods import METHODS
 from ensemble.scenes import body, top
 from ensemble.scenes.top.physics import rhs
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def numpy_rk(tableau, state, rate, h, steps):

@@ -1,8 +1,8 @@
 #!/bin/bash
 # Every GPU check of issue 42 in one go, for a short stint on a machine with an NVIDIA GPU (docs/gpu.md):
-# the CUDA kernels' tests against the CPU's on the real GPU, then analysis/gpu.py's figures.
+# the CUDA kernels' tests against the CPU's on the real GPU, then analysis/bench/gpu.py's figures.
 # Run from the repository root; logs and figures go to $OUT (default gpu-out). Usage:
-#   OUT=gpu-out bash analysis/gpu_check.sh [--quick]
+#   OUT=gpu-out bash analysis/bench/gpu_check.sh [--quick]
 set -u
 OUT=${OUT:-gpu-out}
 mkdir -p "$OUT"
@@ -15,4 +15,4 @@ $PYTHON -c "import numba, numba_cuda; print('numba', numba.__version__, 'numba-c
     2>&1 | tee -a "$OUT/gpu.txt"
 ENSEMBLE_TEST_GPU=1 NUMBA_ENABLE_CUDASIM=0 timeout 200 $PYTHON -m pytest -q -n 8 -p no:cacheprovider \
     tests/test_gpu.py 2>&1 | tee "$OUT/tests.log" | tail -40
-timeout 300 $PYTHON analysis/gpu.py "$@" --json "$OUT/gpu.json" 2>&1 | tee "$OUT/bench.log"
+timeout 300 $PYTHON analysis/bench/gpu.py "$@" --json "$OUT/gpu.json" 2>&1 | tee "$OUT/bench.log"

@@ -1,6 +1,6 @@
 """Benchmark: adaptive dopri5 against fixed-step rk4, per step and at equal accuracy.
 
-    python analysis/bench_dopri5.py [--repeats 3] [--chain-block B] [--chain-n 16 ...]
+    python analysis/bench/bench_dopri5.py [--repeats 3] [--chain-block B] [--chain-n 16 ...]
 
 1. Kernel seconds per member-step of rk4 and dopri5, side by side in this
    process (medians of --repeats): 8192 aerobie tops (runs/aerobie.toml), and
@@ -8,7 +8,7 @@
    all (--chain-block B: their dopri5 in blocks of B members instead of
    block_size's choice; a member takes the same steps in every block, its
    values agree to the last few bits).
-2. The same for the tops in hand-written C (analysis/c/top_dopri5.c, compiled
+2. The same for the tops in hand-written C (analysis/bench/c/top_dopri5.c, compiled
    here with gcc; skipped without it), alternated with ensemble's kernels:
    rk4 as ../shared/limit/ens.c writes it, and dopri5 with ensemble's step
    control written the same way: the ratio C can reach on this host, and how
@@ -38,7 +38,7 @@ from ensemble.records import measured_error
 from ensemble.scenes import chain, top
 from ensemble.spec import members_table, parse
 
-RUNS = Path(__file__).resolve().parent.parent / "runs"
+RUNS = Path(__file__).resolve().parents[2] / "runs"
 C_SOURCE = Path(__file__).resolve().parent / "c" / "top_dopri5.c"
 # -fallow-store-data-races: without it gcc makes each member's "new value or old" into a masked store (vmaskmovpd,
 # slow on AMD Zen 3) where a blend and a whole store do.

@@ -1,6 +1,6 @@
 """The kernels of two revisions of ensemble, alternated in the same minutes: a change's effect on each kernel.
 
-    python analysis/compare_kernels.py OLD [NEW] [--repeats 5] [--members 16384] [--steps 10000] [--only top]
+    python analysis/bench/compare_kernels.py OLD [NEW] [--repeats 5] [--members 16384] [--steps 10000] [--only top]
 
 Checks out OLD and NEW (default: the working tree) as compare_revisions.py does, each with a Numba cache of its
 own, and times every method's kernel on tops and free bodies (launch.integrate, the kernel alone after one

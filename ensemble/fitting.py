@@ -15,6 +15,8 @@ gets NaN and is counted in the result's `members_failed` attribute.
 """
 from __future__ import annotations
 
+import sys
+
 import numpy as np
 import xarray as xr
 from scipy.interpolate import CubicSpline
@@ -33,6 +35,13 @@ MIN_PERIODS = 4  # periods a mode must complete in the record: slower ones sit i
 
 class FitError(EnsembleError, ValueError):
     """A result that cannot be fitted: wrong scene, missing variables, too few samples."""
+
+
+def progress(count: int, what: str):
+    """range(count), with a progress bar on stderr when it is a terminal: a long fit shows how far it is."""
+    from tqdm import tqdm
+
+    return tqdm(range(count), desc=what, unit="member", leave=False, disable=None, file=sys.stderr)
 
 
 def require(ds: xr.Dataset, scene: str, variables: tuple[str, ...], fit: str) -> None:
@@ -283,6 +292,7 @@ def dataset(ds: xr.Dataset, data: dict, dims, *, noise: float, fit: str,
     out.attrs = {
         "Conventions": "CF-1.9",
         "title": f"{fit} fits of {ds.attrs.get('title', 'an ensemble result')}",
+        "fit": fit,
         "source": ds.attrs.get("source", ""),
         "method": ds.attrs.get("method", ""),
         "dt": ds.attrs.get("dt", np.nan),  # NaN when dt was swept

@@ -1,6 +1,6 @@
 """Where a whole run's seconds go: one `ensemble run` in this process, its steps timed as they happen.
 
-    python analysis/run_phases.py (RUNFILE | --workload tops|chains) [--members N] [--save-dt S] [--growth]
+    python analysis/bench/run_phases.py (RUNFILE | --workload tops|chains) [--members N] [--save-dt S] [--growth]
 
 Runs RUNFILE, or one of the two whole-run workloads of benchmark.py --whole,
 (into a temporary folder) with the run's own steps wrapped in

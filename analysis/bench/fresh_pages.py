@@ -1,6 +1,6 @@
 """What writing a new file costs this host, by how recently its memory was last used.
 
-    python analysis/fresh_pages.py [--mb 680] [--pause 5] [--repeats 3]
+    python analysis/bench/fresh_pages.py [--mb 680] [--pause 5] [--repeats 3]
 
 A run writes its samples into new pages of the system's page cache. On a
 virtual machine whose host takes back the memory its guest frees (virtio-balloon

@@ -1,6 +1,6 @@
 """Resume under SIGKILL at random moments: every resumed run ends with the bits of an uninterrupted one.
 
-    python analysis/kill_resume.py [--trials 10] [--members 120000] [--seed 1]
+    python analysis/bench/kill_resume.py [--trials 10] [--members 120000] [--seed 1]
 
 Runs the tops of a run file once uninterrupted, then per trial starts the
 same run and SIGKILLs it after a random 0.6 to 2.2 s (during start-up, a

@@ -1,7 +1,7 @@
 """Fingerprints of results: a SHA-256 of every data variable of every run file's result and of its fits.
 
-    python analysis/fingerprint.py [RUNFILE ...] [--chunk 256] [-o fingerprints.json]
-    python analysis/fingerprint.py [RUNFILE ...] --compare fingerprints.json
+    python analysis/bench/fingerprint.py [RUNFILE ...] [--chunk 256] [-o fingerprints.json]
+    python analysis/bench/fingerprint.py [RUNFILE ...] --compare fingerprints.json
 
 Runs each run file (default: every file in runs/) through `ensemble run` in a
 subprocess, then fits the result as the analysis scripts do (tilt decay,
@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 import xarray as xr
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 TIMINGS = {"seconds_per_step", "seconds"}
 
 
@@ -42,17 +42,17 @@ def fingerprints(ds: xr.Dataset) -> dict[str, str]:
 
 def fits_of(ds: xr.Dataset) -> dict[str, xr.Dataset]:
     """The fits the analysis scripts write for this result."""
-    from ensemble import fit, stability
+    from ensemble import fitting, stability
     from ensemble.scenes.chain import fits as chain_fit
     from ensemble.scenes.top import fits as top_fit
 
     out = {}
-    if ds.attrs.get("scene") == "top" and "tilt" in ds and ds.sizes["t"] >= fit.MIN_SAMPLES:
+    if ds.attrs.get("scene") == "top" and "tilt" in ds and ds.sizes["t"] >= fitting.MIN_SAMPLES:
         out["tilt_decay"] = top_fit.tilt_decay(ds)
-    if ds.attrs.get("scene") == "chain" and "x" in ds and ds.sizes["t"] >= fit.MIN_SAMPLES:
+    if ds.attrs.get("scene") == "chain" and "x" in ds and ds.sizes["t"] >= fitting.MIN_SAMPLES:
         out["normal_modes"] = chain_fit.mode_frequencies(ds)
     if "error_max" in ds:
-        out["work_precision"] = fit.work_precision(ds)
+        out["work_precision"] = fitting.work_precision(ds)
     if "growth_per_step" in ds and ds.attrs.get("members_per_sweep_point") == 1:
         out["stability"] = stability.stability_map(ds)
     return out
