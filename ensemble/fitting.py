@@ -208,8 +208,7 @@ def member_frequencies(t: np.ndarray, x: np.ndarray, sigma: float, most: int):
 # ---------------------------------------------------------------- free bodies
 
 MIN_FLIPS = 3  # crossings of tilt = pi/2 a record needs for a flip-period fit
-CROSSING_SAMPLES = 10  # samples of the spin-axis rate fitted by a polynomial around each crossing
-CROSSING_DEGREE = 5
+PLATEAU = 0.9  # a crossing is fitted over the samples around it whose |w_k| stays below this share of its largest
 HYSTERESIS = 5.0  # noisy spin-axis rates count as crossed once this many stddevs past zero
 
 
@@ -231,9 +230,10 @@ def finite_end(y) -> int:
 def crossing_period(t, spin, sigma):
     """(period (s), stderr, crossings) from the zero crossings of the spin-axis rate w_k: half a period apart.
 
-    Each crossing time is the root of a polynomial fitted to the samples around
-    it; a line through the crossing times against their count gives the
-    period. NaNs with fewer than MIN_FLIPS crossings.
+    Each crossing time comes from a fit of the flip's own shape to the samples around it (_crossing); a line
+    through the crossing times against their count gives the period, weighted by each time's variance. Without
+    noise the variances are the crossing fits' residuals, and the line's scatter scales them when larger. NaNs
+    with fewer than MIN_FLIPS crossings.
     """
     spin, t = spin[:finite_end(spin)], t[:finite_end(spin)]
     sign = np.where(spin > HYSTERESIS * sigma, 1.0, np.where(spin < -HYSTERESIS * sigma, -1.0, 0.0))
@@ -242,32 +242,53 @@ def crossing_period(t, spin, sigma):
     if changes.size < MIN_FLIPS:
         return np.nan, np.nan, changes.size
     times, variances = np.array([_crossing(t, spin, i, sigma) for i in changes]).T
-    count = np.arange(changes.size)
-    design = np.stack((np.ones(changes.size), count), axis=1)
-    weights = 1 / variances if sigma > 0 else np.ones(changes.size)
+    design = np.stack((np.ones(changes.size), np.arange(changes.size)), axis=1)
+    weights = 1 / np.maximum(variances, np.finfo(float).tiny)
     normal = design.T @ (weights[:, None] * design)
     solution = np.linalg.solve(normal, design.T @ (weights * times))
-    residual = times - design @ solution
-    variance = 1.0 if sigma > 0 else np.sum(residual**2) / max(changes.size - 2, 1)
-    half_period_variance = np.linalg.inv(normal)[1, 1] * variance
+    scatter = np.sum(weights * (times - design @ solution) ** 2) / max(changes.size - 2, 1)
+    half_period_variance = np.linalg.inv(normal)[1, 1] * (1.0 if sigma > 0 else max(1.0, scatter))
     return 2 * solution[1], 2 * np.sqrt(half_period_variance), changes.size
 
 
 def _crossing(t, spin, after, sigma):
-    """(time, variance) at which a polynomial fitted to the samples around index `after` crosses zero."""
-    first = int(np.clip(after - CROSSING_SAMPLES // 2, 0, t.size - CROSSING_SAMPLES))
-    chosen = slice(first, first + CROSSING_SAMPLES)
-    origin, scale = t[after], t[1] - t[0]
-    x = (t[chosen] - origin) / scale
-    design = np.vander(x, CROSSING_DEGREE + 1)
-    coefficients = np.linalg.lstsq(design, spin[chosen], rcond=None)[0]
-    derivative = np.polyder(coefficients)
-    root = -spin[after] / (spin[after] - spin[after - 1])  # linear interpolation, in steps from `after`
-    for _ in range(20):
-        root = root - np.polyval(coefficients, root) / np.polyval(derivative, root)
-    row = np.vander([root], CROSSING_DEGREE + 1)[0]
-    value_variance = sigma**2 * row @ np.linalg.inv(design.T @ design) @ row
-    return origin + root * scale, value_variance * (scale / np.polyval(derivative, root)) ** 2
+    """(time, variance) at which w_k crosses zero between samples after - 1 and after.
+
+    Near a crossing a flipping body's w_k follows a tanh(b u + d u^3), u = t - t0: at the separatrix exactly
+    a tanh, away from it an elliptic function the cubic term bends the tanh into. Fitted to the samples around
+    the crossing whose |w_k| is below PLATEAU of its largest (at least three each side): a flip that takes
+    few samples is still resolved, where a polynomial through them missed by many standard errors (issue 39).
+    """
+    amplitude = np.max(np.abs(spin))
+    inside = np.abs(spin) < PLATEAU * amplitude
+    first, last = after - 1, after
+    while first > 0 and inside[first - 1]:
+        first -= 1
+    while last < t.size - 1 and inside[last + 1]:
+        last += 1
+    chosen = slice(max(min(first, after - 3), 0), min(max(last, after + 2), t.size - 1) + 1)
+    step = t[1] - t[0]
+    slope = (spin[after] - spin[after - 1]) / step
+    if not slope * spin[after] > 0:  # noise left the sample before on the same side: start from `after` itself
+        slope = np.copysign(amplitude / step, spin[after])
+    origin = t[after] - spin[after] / slope  # linear interpolation
+    u0 = t[chosen] - origin
+
+    def residual(p):
+        u = u0 - p[2]
+        return p[0] * np.tanh(p[1] * u + p[3] * u**3) - spin[chosen]
+
+    def jacobian(p):
+        u = u0 - p[2]
+        shape = np.tanh(p[1] * u + p[3] * u**3)
+        bend = p[0] * (1 - shape**2)
+        return np.stack((shape, bend * u, -bend * (p[1] + 3 * p[3] * u**2), bend * u**3), axis=1)
+
+    height = np.copysign(amplitude, slope)
+    fit = least_squares(residual, np.array([height, slope / height, 0.0, 0.0]), jac=jacobian, method="lm")
+    covariance = np.linalg.pinv(fit.jac.T @ fit.jac)
+    noise = sigma**2 if sigma > 0 else np.sum(fit.fun**2) / max(fit.fun.size - 4, 1)
+    return origin + fit.x[2], noise * covariance[2, 2]
 
 
 def dataset(ds: xr.Dataset, data: dict, dims, *, noise: float, fit: str,
