@@ -171,13 +171,15 @@ def integrate(spec: Spec, method: Method, values: dict[str, np.ndarray], repeats
 
 
 TIMED_MEMBER_STEPS = 4_000_000  # work in one timed kernel call, so that the call's own fixed cost is negligible
+TIMED_STEPS_PER_MEMBER = 1000  # steps each member takes in a timed call: a few steps cost more each than many
 
 
 def kernel_seconds_per_step(scene, method: Method, values: dict[str, np.ndarray], constants: dict, outcome: Outcome,
                             repeats: int, settings: dict) -> float:
     """The kernel's seconds per member-step on one thread, per-member costs excluded: the difference between the
-    best of `repeats` timed calls over the run's steps (`settings`, saving only the end state) and the best of
-    as many over half the time, over the difference in member-steps. The members are repeated until the first
+    best of `repeats` timed calls over the run's span (`settings`, saving only the end state), stretched to a
+    whole even number of spans in which each member takes about TIMED_STEPS_PER_MEMBER steps, and the best of as
+    many over half that time, over the difference in member-steps. The members are repeated until the first
     call does at least TIMED_MEMBER_STEPS member-steps. It times stepping alone: no layout, no output, and neither
     per-call nor per-member costs (dispatch, loading a block, checking and saving samples), on one thread
     whatever the point's member count, so the cost grows in proportion to the steps. A run on T threads costs
@@ -187,14 +189,15 @@ def kernel_seconds_per_step(scene, method: Method, values: dict[str, np.ndarray]
     if taken == 0:
         return np.nan
     members, block = len(outcome.status), launch.block_size(scene, constants, method)
+    stretch = 2 * max(1, math.ceil(TIMED_STEPS_PER_MEMBER * members / taken / 2))  # the timed span, in t_end
     whole = block // math.gcd(members, block)  # copies that fill whole kernel blocks: no padded members timed
-    copies = -(-max(1, -(-TIMED_MEMBER_STEPS // taken)) // whole) * whole
+    copies = -(-max(1, -(-TIMED_MEMBER_STEPS // (taken * stretch))) // whole) * whole
     tiled = {name: np.tile(v, (copies,) + (1,) * (np.ndim(v) - 1)) for name, v in values.items()}
     if np.ndim(settings["dt"]):
         settings = {**settings, "dt": tiled["dt"]}
     settings = {**settings, "rtol": tiled["rtol"], "atol": tiled["atol"]}
-    calls = [launch.Launch(scene, method, tiled, constants, **{**settings, "save_dt": factor * settings["save_dt"]})
-             for factor in (1.0, 0.5)]
+    calls = [launch.Launch(scene, method, tiled, constants, **{**settings, "save_dt": span * settings["save_dt"]})
+             for span in (stretch, stretch // 2)]
     best = [np.inf, np.inf]
     for _ in range(repeats):  # one thread: how many blocks a point has cannot leave threads idle
         for k, call in enumerate(calls):

@@ -345,3 +345,28 @@ def test_control_step_chooses_the_steps_of_its_formula_for_every_kind_of_member(
             np.testing.assert_array_equal(counts[:, j], want[5])
             assert (status[j] == 2) == want[6] and (failure_time[j] == time[j]) == want[6]
 
+
+def test_a_few_steps_per_member_are_timed_over_many(monkeypatch):
+    """Issue 39: on a 3-mass chain at dt = 0.1, 0.01 and 0.001 over 8 s, seconds_per_step x steps grew 24.5x for
+    100x the steps: a member's first steps cost more than later ones (its block warming up), and timing 80 steps
+    against 40 left that in. The timed calls now stretch the span until each member takes about
+    TIMED_STEPS_PER_MEMBER steps. On a clock where each member's first 200 steps cost 5 ns more each, the
+    estimate is the 3 ns of a step exactly, at 80 steps per member as at 8000."""
+    from types import SimpleNamespace
+
+    clock = [0.0]
+    real_run = launch.Launch.run
+
+    def costed(self, *args, **kwargs):
+        real_run(self, *args, **kwargs)
+        steps = self.outcome().counts[0] + self.outcome().counts[1]  # per member
+        clock[0] += 1e-3 + 2e-6 * self.members + 3e-9 * float(steps.sum()) + 5e-9 * float(
+            np.minimum(steps, 200).sum())
+
+    monkeypatch.setattr(launch.Launch, "run", costed)
+    monkeypatch.setattr(runner, "time", SimpleNamespace(perf_counter=lambda: clock[0]))
+    for t_end in (0.08, 0.8, 8.0):
+        spec = parse(top_runfile(t_end=t_end, save_dt=t_end / 4, members=2))
+        outcome, seconds = runner.integrate(spec, METHODS["rk4"], members_table(spec), repeats=1)
+        assert outcome.counts[0][0] == round(t_end / 1e-3)
+        assert seconds == pytest.approx(3e-9, rel=1e-9), t_end
