@@ -120,3 +120,24 @@ def test_the_command_line_runs_on_two_local_workers(tmp_path, write_runfile):
     assert done.returncode == 0 and done.stdout.startswith(f"wrote {remote}: 60 members"), done.stderr
     assert done.stderr == "", done.stderr  # the cluster's own logging stays quiet
     same_bits(remote, local)
+
+
+def test_ctrl_c_on_local_workers_is_one_line(tmp_path, write_runfile):
+    """Issue 39: Ctrl-C (SIGINT to the terminal's whole process group) on `--workers 2` printed the right line
+    and then a KeyboardInterrupt traceback from each worker (67 lines). The workers now ignore SIGINT and stop
+    with the run: one line, exit 130, the finished chunks kept."""
+    import signal
+    import time
+
+    path = write_runfile(top_runfile(members=4000, t_end=300.0, save_dt=1.0))
+    out = tmp_path / "out.nc"
+    run = subprocess.Popen([sys.executable, "-m", "ensemble", "run", str(path), "-o", str(out), "--quiet",
+                            "--workers", "2", "--chunk", "128"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                           text=True, start_new_session=True)
+    deadline = time.monotonic() + 120
+    while not list(folder_of(out).glob("members-*")) and run.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.1)
+    os.killpg(run.pid, signal.SIGINT)
+    _, err = run.communicate(timeout=60)
+    assert run.returncode == 130, err
+    assert err.splitlines() == [err.splitlines()[0]] and err.startswith("ensemble: interrupted; the "), err
