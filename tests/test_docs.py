@@ -18,8 +18,8 @@ DOCS = [ROOT / "README.md", ROOT / "analysis" / "README.md", ROOT / "analysis" /
 
 
 # The reference pages the README points to, whose examples open the README's run files' results
-REFERENCE = [ROOT / "docs" / name for name in ("running.md", "runfiles.md", "dataset.md", "physics.md", "methods.md",
-                                              "contributing.md")]
+REFERENCE = [ROOT / "docs" / name for name in ("running.md", "resume.md", "cluster.md", "runfiles.md", "dataset.md",
+                                              "physics.md", "methods.md", "contributing.md")]
 
 
 def python_examples() -> list[str]:
