@@ -6,23 +6,28 @@ records what it finished in the folder OUT.nc.parts/:
     manifest.json                             the run's fingerprint: its run file and the versions that make
                                               its bits (ensemble, numba, numpy, netCDF4)
     members-J0-J1-CRC.nc                      members J0 .. J1 - 1 (12 digits each) are in OUT.nc.tmp: their
-                                              per-member records; CRC is the CRC-32 of the file's bytes (8 hex
-                                              digits: it tells a torn or changed file, not a forged one)
+                                              per-member records; inside, the range and run file it is of and
+                                              a checksum of each saved variable's samples of its members; CRC is
+                                              the CRC-32 of the file's bytes (8 hex digits: it tells a torn or
+                                              changed file, not a forged one)
     members-J0-J1.tmp                         a part being written; a resumed run deletes it
 
-A chunk's saved variables are written once, into OUT.nc.tmp. Its part is
-made only after that: the result is flushed (HDF5's buffers, then fsync),
-then the part is written under its .tmp name, checksummed and renamed. So a
-part with a final name says its members' samples are on the disk in
-OUT.nc.tmp, unless its own bytes changed since (or never reached the disk,
-when the machine went down before the system wrote them out: parts are not
-fsynced), which its checksum tells. Writing more members changes only their
-own bytes of OUT.nc.tmp (see ensemble.store), so a run killed while writing
-a chunk leaves the finished ones intact. A resume checks that OUT.nc.tmp
-opens and is this run's; if not, every part is dropped and the run starts
-over. Only once every member is in are the parts' records written into the
-result (Parts.assemble), the result fsynced and renamed into place, and the
-folder deleted.
+A chunk's saved variables are written once, into OUT.nc.tmp. Its part is made
+only after that: the result is flushed (HDF5's buffers, then fsync), then the
+part is written under its .tmp name, checksummed and renamed. So a part with a
+final name says its members' samples are on the disk in OUT.nc.tmp, unless its
+own bytes changed since (or never reached the disk, when the machine went down
+before the system wrote them out: parts are not fsynced), which its checksum
+tells. Writing more members changes only their own bytes of OUT.nc.tmp (see
+ensemble.store), so a run killed while writing a chunk leaves the finished ones
+intact. A resume checks that OUT.nc.tmp opens and is this run's; if not, every
+part is dropped and the run starts over. It then trusts a part only when the
+range and run file inside it are its name's and this run's (a part renamed or
+copied to another range is not), and when its members' samples in OUT.nc.tmp
+still give the checksums it recorded (sample_sum); a part that fails is dropped,
+and its members computed again. Only once every member is in are the parts'
+records written into the result (Parts.assemble), the result fsynced and renamed
+into place, and the folder deleted.
 """
 from __future__ import annotations
 
@@ -37,6 +42,7 @@ from importlib.metadata import version
 from pathlib import Path
 
 import netCDF4
+import numba
 import numpy as np
 
 from . import __version__
@@ -45,6 +51,7 @@ from .spec import Spec
 from .store import RUN_RECORDS, fsync_path, put_records, record_names, temporary_path
 
 MANIFEST = "manifest.json"
+PARTS_FORMAT = "2"  # 2: parts carry their range, run file and sample checksums (ensemble 0.5.0)
 PART_NAME = re.compile(r"members-(\d{12})-(\d{12})-([0-9a-f]{8})\.nc")
 
 
@@ -58,7 +65,7 @@ def fingerprint(spec: Spec) -> dict[str, str]:
     change the run file's; each rounds differently) and the versions of the packages that compute and store them."""
     return {"run_file_sha256": hashlib.sha256(spec.text.encode()).hexdigest(), "ensemble": __version__,
             "numba": version("numba"), "numpy": np.__version__, "netCDF4": netCDF4.__version__,
-            "device": f"{spec.device} {spec.precision}"}
+            "device": f"{spec.device} {spec.precision}", "parts_format": PARTS_FORMAT}
 
 
 class PartsError(EnsembleError):
@@ -113,6 +120,8 @@ class Parts:
                 part.path.unlink()
             self.dropped.append(f"all {len(self.parts)} part(s) ({problem})")
             self.parts = []
+        elif self.parts:
+            self.parts = self._vouched_for(temporary_path(out))
         self.result = None  # the result's Writer, set before the first part begins
         self.written: dict[int, dict[str, np.ndarray]] = {}  # records of the parts this run wrote, by first member
         # Parts are sealed (checksum, rename) on a thread of their own while the next chunk computes.
@@ -187,6 +196,34 @@ class Parts:
                 parts.append(Part(start, stop, path))
         return parts
 
+    def _vouched_for(self, result: Path) -> list[Part]:
+        """The parts whose recorded range and run file are their name's and this run's, and whose members'
+        samples in `result` (OUT.tmp) give the checksums they recorded; the rest deleted."""
+        kept = []
+        with netCDF4.Dataset(result) as nc:
+            nc.set_auto_mask(False)
+            for part in self.parts:
+                problem = self._part_problem(part, nc)
+                if problem:
+                    part.path.unlink()
+                    self.dropped.append(f"{part.path.name} ({problem})")
+                else:
+                    kept.append(part)
+        return kept
+
+    def _part_problem(self, part: Part, result: netCDF4.Dataset) -> str | None:
+        with netCDF4.Dataset(part.path) as nc:
+            inside = {key: nc.getncattr(key) for key in nc.ncattrs()}
+        if (inside.get("first_member"), inside.get("stop_member")) != (part.start, part.stop):
+            return "holds other members than its name says"
+        if inside.get("run_file_sha256") != fingerprint(self.spec)["run_file_sha256"]:
+            return "is another run's"
+        for name in self.spec.save:
+            found = sample_sum(result.variables[name][part.start:part.stop], part.start, 0)
+            if inside.get(f"samples_sum_{name}") != f"{found:016x}":
+                return f"its members' {name} in the result changed since it was written"
+        return None
+
     def missing(self) -> list[tuple[int, int]]:
         """The member ranges [start, stop) that no finished part holds, in order (see settle)."""
         gaps, at = [], 0
@@ -235,6 +272,7 @@ class PartWriter:
         self.parts, self.start, self.stop = parts, start, stop
         self.temporary = parts.folder / f"members-{start:012d}-{stop:012d}.tmp"
         self._nc = None
+        self.sums = {name: 0 for name in parts.spec.save}  # sample_sum of each saved variable's samples
 
     @property
     def nc(self) -> netCDF4.Dataset:
@@ -250,6 +288,8 @@ class PartWriter:
 
     def write_samples(self, start: int, first: int, data: dict[str, np.ndarray]) -> None:
         self.parts.result.write_samples(start, first, data)
+        for name, values in data.items():
+            self.sums[name] = (self.sums[name] + sample_sum(values, start, first)) % 2**64
 
     def write(self, start: int, data: dict[str, np.ndarray]) -> None:
         """The records of every member of the part (start is the part's)."""
@@ -259,6 +299,9 @@ class PartWriter:
     def finish(self) -> None:
         """Close the file, flush the result, and have the result fsynced and then the part sealed (checksum,
         rename to the part's name) on the parts' own thread: the part is complete once Parts.settle returns."""
+        self.nc.setncatts({"first_member": self.start, "stop_member": self.stop,
+                           "run_file_sha256": fingerprint(self.parts.spec)["run_file_sha256"],
+                           **{f"samples_sum_{name}": f"{value:016x}" for name, value in self.sums.items()}})
         self.nc.close()
         self.parts.written[self.start] = self.records
         self.parts.result.sync()
@@ -279,6 +322,30 @@ class PartWriter:
         except (OSError, RuntimeError):
             pass  # a write failed already (a full disk); that error is the one to report
         self.temporary.unlink(missing_ok=True)
+
+
+def sample_sum(values: np.ndarray, member: int, first: int) -> int:
+    """A checksum of saved samples that does not depend on how they were cut into writes: the sum (mod 2^64) over
+    every value of a 64-bit mix (splitmix64's) of its bits and its place (its member, then its index among that
+    member's values). values: (members, samples, ...) of members member, member + 1, ... from sample `first`.
+    A changed value, or a value moved to another place, changes the sum (but for a 2^-64 chance)."""
+    values = np.ascontiguousarray(values, dtype=np.float64)
+    members = values.shape[0]
+    per_sample = values[0, 0].size if values.size else 1
+    return int(_mixed_sum(values.reshape(members, -1).view(np.uint64), member, first * per_sample))
+
+
+@numba.njit(cache=True, nogil=True)
+def _mixed_sum(bits, member, offset):  # (members, values) uint64; the inner loop vectorizes: no temporaries
+    total = np.uint64(0)
+    for i in range(bits.shape[0]):
+        base = np.uint64(member + i) * np.uint64(0xD6E8FEB86659FD93) + np.uint64(offset)  # odd: members apart
+        for n in range(bits.shape[1]):
+            x = bits[i, n] ^ ((base + np.uint64(n)) * np.uint64(0x9E3779B97F4A7C15))
+            x = (x ^ (x >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
+            x = (x ^ (x >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
+            total += x ^ (x >> np.uint64(31))
+    return total
 
 
 def _checksum(path: Path) -> str:

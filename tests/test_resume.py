@@ -126,6 +126,43 @@ def test_a_corrupted_part_and_a_leftover_are_computed_again(reference, tmp_path,
     same_bits(out, expected)
 
 
+def test_a_bit_flipped_in_the_results_samples_is_found_and_computed_again(reference, tmp_path, monkeypatch, capsys):
+    """Issue 40, item 1: the parts were checksummed, not the samples in OUT.nc.tmp they vouch for; a flipped bit
+    of one member's tilt survived --resume (exit 0, off by 0.084 rad). Each part now records a checksum of its
+    members' samples, and a resume recomputes the part whose samples changed."""
+    path, expected = reference
+    out = tmp_path / "out.nc"
+    _interrupted(load(path), out, after=3, monkeypatch=monkeypatch)
+    with netCDF4.Dataset(out.with_name("out.nc.tmp"), "a") as nc:
+        nc.set_auto_mask(False)
+        value = nc["tilt"][9, 50:51].copy()  # member 9 is in the second part (members 7 to 13)
+        nc["tilt"][9, 50:51] = (value.view("u8") ^ (1 << 40)).view("f8")
+    assert cli.main(["run", str(path), "-o", str(out), "--quiet", "--resume"]) == 0
+    assert "(14 more from the parts of an earlier run)" in capsys.readouterr().out
+    same_bits(out, expected)
+
+
+@pytest.mark.parametrize("how", ["renamed", "copied"])
+def test_a_part_renamed_or_copied_to_another_range_is_not_trusted(reference, tmp_path, monkeypatch, capsys, how):
+    """Issue 40, item 2: a part moved or copied to another member range's name was accepted (those members came
+    out as zeros with status ok): every part of a run had the same bytes. A part now holds its range and run
+    file, and a resume drops one whose inside does not match its name."""
+    path, expected = reference
+    out = tmp_path / "out.nc"
+    _interrupted(load(path), out, after=2, monkeypatch=monkeypatch)
+    first, _ = sorted(folder_of(out).glob("members-*.nc"))
+    crc = first.name.rsplit("-", 1)[1]
+    moved = folder_of(out) / f"members-000000000021-000000000028-{crc}"
+    if how == "renamed":
+        first.rename(moved)
+    else:
+        moved.write_bytes(first.read_bytes())
+    assert cli.main(["run", str(path), "-o", str(out), "--resume"]) == 0
+    said = capsys.readouterr().err
+    assert f"{moved.name} (holds other members than its name says)" in said, said
+    same_bits(out, expected)
+
+
 @pytest.mark.parametrize("damage", ["deleted", "truncated"])
 def test_parts_whose_result_is_lost_are_dropped_and_computed_again(reference, tmp_path, monkeypatch, capsys,
                                                                     damage):
@@ -188,3 +225,17 @@ def test_sigkill_between_parts_with_the_result_half_written_then_resume(tmp_path
     subprocess.run([*command, "-o", str(out), "--resume"], check=True)
     same_bits(out, expected)
     assert not parts.exists() and not half_written.exists()
+
+
+def test_parts_of_the_older_format_are_refused_in_one_line(reference, tmp_path, monkeypatch, capsys):
+    """Parts before ensemble 0.5.0 hold no range, run file or sample checksums: a resume refuses them."""
+    import json
+
+    path, _ = reference
+    out = tmp_path / "out.nc"
+    _interrupted(load(path), out, after=2, monkeypatch=monkeypatch)
+    manifest = folder_of(out) / "manifest.json"
+    manifest.write_text(json.dumps({k: v for k, v in json.loads(manifest.read_text()).items() if k != "parts_format"}))
+    assert cli.main(["run", str(path), "-o", str(out), "--quiet", "--resume"]) == 2
+    line = capsys.readouterr().err.strip()
+    assert "\n" not in line and "parts_format differs" in line, line
