@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import signal
 import sys
 from pathlib import Path
 
@@ -12,7 +13,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 from . import __version__
 from .arguments import OneLineParser, positive_int
-from .errors import EXIT_BAD_INPUT, EXIT_FAILED, EXIT_INTERRUPTED, DeviceUnavailable
+from .errors import EXIT_BAD_INPUT, EXIT_FAILED, EXIT_INTERRUPTED, DeviceUnavailable, EnsembleError
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -168,8 +169,11 @@ def _quiet_numpy() -> None:
 def _run(args) -> int:
     _skip_numba_blas_probe()
     _quiet_numpy()
-    from . import preflight
+    from . import interrupts, preflight
+
+    interrupts.remember()
     from .errors import Incomplete
+    from .interrupts import HeldInterrupts
     from .parts import PartsError
     from .runner import run
     from .scenes import SceneError
@@ -202,29 +206,45 @@ def _run(args) -> int:
         with preflight.OutputLock(out):
             summary = run(spec, out, chunk=args.chunk, progress=not args.quiet, force=args.force,
                           resume=args.resume, command=args.command_line, client=client)
-    except preflight.OutputLocked:
-        return _error(f"{out}: another run is writing it now; wait for it or choose another output")
-    except (PartsError, DeviceUnavailable) as e:  # a GPU that went away after the check
-        return _error(str(e))
-    except SceneError as e:  # a user's scene whose functions do not compile: found before any chunk ran
-        return _error(f"{args.runfile}: scene: {e}")
-    except KeyboardInterrupt:
-        print(f"ensemble: interrupted; {preflight.left_behind(out, resume)}", file=sys.stderr)
-        return EXIT_INTERRUPTED
-    except Incomplete as e:
-        print(f"ensemble: error: {e}; {preflight.left_behind(out, resume)}", file=sys.stderr)
-        return EXIT_FAILED
-    except (OSError, RuntimeError) as e:  # netCDF4 reports HDF5 write failures as RuntimeError
-        print(f"ensemble: error: {out}: writing failed ({preflight.cause(e, out, spec)}); "
-              f"{preflight.left_behind(out, resume)}", file=sys.stderr)
-        return EXIT_FAILED
+    except (preflight.OutputLocked, PartsError, DeviceUnavailable, SceneError, KeyboardInterrupt, Incomplete,
+            OSError, RuntimeError) as e:
+        return _stopped(e, args.runfile, out, resume, spec)
     finally:
         if client is not None:
             from .cluster import close
 
-            close(client)
-    print(f"wrote {out}: {summary}")
+            with HeldInterrupts():  # a Ctrl-C while the cluster closes would leave its traceback
+                close(client)
+    print(f"{'' if summary.complete_already else 'wrote '}{out}: {summary}")
     return 0
+
+
+def _stopped(error: BaseException, runfile: Path, out: Path, resume: str, spec) -> int:
+    """One line on stderr for a run that stopped, and its exit status: refused (2), interrupted (130; the
+    result may have been complete already), failed midway (3: what it left and the command that finishes it)."""
+    from . import preflight
+    from .interrupts import LateInterrupt
+    from .scenes import SceneError
+
+    if isinstance(error, preflight.OutputLocked):
+        return _error(f"{out}: another run is writing it now; wait for it or choose another output")
+    if isinstance(error, SceneError):  # a user's scene whose functions do not compile: found before any chunk ran
+        return _error(f"{runfile}: scene: {error}")
+    if isinstance(error, EnsembleError) and error.exit_status == EXIT_BAD_INPUT:  # parts of another run, no GPU
+        return _error(str(error))
+    if isinstance(error, LateInterrupt):
+        print(f"ensemble: interrupted once the result was complete: wrote {out}: {error.summary}", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    left = preflight.left_behind(out, resume)
+    if isinstance(error, KeyboardInterrupt):
+        print(f"ensemble: interrupted; {left}", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    if isinstance(error, EnsembleError):  # Incomplete: chunks that kept failing on a cluster
+        print(f"ensemble: error: {error}; {left}", file=sys.stderr)
+        return EXIT_FAILED
+    # netCDF4 reports HDF5 write failures as RuntimeError
+    print(f"ensemble: error: {out}: writing failed ({preflight.cause(error, out, spec)}); {left}", file=sys.stderr)
+    return EXIT_FAILED
 
 
 def _methods() -> int:
@@ -283,6 +303,19 @@ def _inertia(args) -> int:
     for line in axes:
         print("  " + row(line, 1e-14))
     return 0
+
+
+def entry() -> None:
+    """The `ensemble` command (and python -m ensemble): main, then exit with its status. After an interrupt the
+    process only ends, and a second Ctrl-C would cut that short with a traceback: it is ignored from there."""
+    try:
+        status = main()
+    except KeyboardInterrupt:  # before a run started or after it ended (a run reports its own)
+        print("ensemble: interrupted", file=sys.stderr)
+        status = EXIT_INTERRUPTED
+    if status == EXIT_INTERRUPTED:
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+    raise SystemExit(status)
 
 
 def main(argv: list[str] | None = None) -> int:

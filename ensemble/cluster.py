@@ -21,7 +21,7 @@ from importlib.metadata import version
 
 import numpy as np
 
-from . import __version__
+from . import __version__, interrupts
 from .errors import EnsembleError, Incomplete
 from .spec import Spec
 
@@ -129,6 +129,7 @@ def compute_on(client, spec: Spec, todo: list[tuple[int, int]], parts, tally, ba
     running = as_completed([f for f in (submit() for _ in range(limit)) if f is not None])
     failed, cause = [], ""
     for future in running:
+        interrupts.check()  # a Ctrl-C that a library swallowed
         start, stop = ranges.pop(future)
         try:
             samples, records = future.result()

@@ -144,6 +144,20 @@ class Parts:
             self._sealing.shutdown()
 
     @staticmethod
+    def left_complete(out: Path, spec: Spec) -> bool:
+        """Whether `out` is this run's whole result with its parts still beside it: the run was stopped between
+        renaming OUT.tmp into place and removing its parts (a resume then only removes them)."""
+        manifest = folder_of(out) / MANIFEST
+        if not out.is_file() or temporary_path(out).exists() or not manifest.is_file():
+            return False
+        try:
+            with netCDF4.Dataset(out) as nc:
+                whole = getattr(nc, "spec", None) == spec.text and getattr(nc, "members_written", -1) == spec.n_members
+            return whole and json.loads(manifest.read_text()) == fingerprint(spec)
+        except (OSError, ValueError):
+            return False
+
+    @staticmethod
     def discard(out: Path) -> None:
         """Delete the parts of `out` and its unfinished result, OUT.tmp: only the files a run writes in the parts
         folder (its manifest, parts and their .tmp files), and the folder once nothing else is in it. In a folder

@@ -48,6 +48,11 @@ def refusal(spec, out: Path, runfile: Path | None, *, chunk: int | None, force: 
     problem = memory_problem(spec)
     if problem:
         return f"{runfile or 'the run'}: {problem}"
+    if resume:
+        from .parts import Parts
+
+        if Parts.left_complete(out, spec):
+            return None  # the run finished and was stopped before removing its parts: the resume removes them
     problem = output_problem(out, runfile, force) or space_problem(out, spec, resume)
     return f"{out}: {problem}" if problem else None
 

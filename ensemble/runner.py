@@ -17,7 +17,9 @@ from pathlib import Path
 
 import numpy as np
 
+from . import interrupts
 from .engine import launch
+from .interrupts import HeldInterrupts, LateInterrupt
 from .methods import METHODS, Method
 from .parts import Parts
 from .records import error_records, growth_per_step, measured_growth, relative_error
@@ -53,11 +55,15 @@ class Summary:
     closed_form: bool = False  # every member was evaluated in closed form (no steps)
     preparing: float = 0.0  # seconds spent compiling or loading kernels before the run, not in `seconds`
     resumed: int = 0  # members of the result computed by an earlier, interrupted run (not counted above)
+    complete_already: bool = False  # an earlier run made the result whole and was stopped before removing its parts
 
     def __str__(self) -> str:
         failed = self.blew_up + self.underflowed
         failures = (f"; {failed} of {self.members + self.resumed} members failed ({self.blew_up} blew up, "
                     f"{self.underflowed} step size underflow)" if failed else "")
+        if self.complete_already:
+            return (f"complete already ({self.resumed} members): the run that made it was stopped before removing "
+                    f"its parts, which are removed now")
         if not self.members:
             return f"{self.resumed} members from an earlier run's parts, assembled in {self.seconds:.3g} s" + failures
         if self.closed_form:
@@ -346,6 +352,9 @@ def run(spec: Spec, out: str | Path, *, chunk: int | None = None, progress: bool
     chunks that keep failing there raise Incomplete after the rest are done. `command` is recorded in the
     file's history (default: `ensemble run <run file>`)."""
     out = Path(out)
+    if resume and Parts.left_complete(out, spec):
+        Parts.discard(out)
+        return Summary(0, 0, 0.0, resumed=spec.n_members, complete_already=True)
     if out.exists() and not force:
         raise FileExistsError(f"{out}: exists; pass force=True to replace it")
     if force and not resume:
@@ -355,6 +364,7 @@ def run(spec: Spec, out: str | Path, *, chunk: int | None = None, progress: bool
         dropped = f"; dropped {', '.join(parts.dropped)}" if parts.dropped else ""
         print(f"resuming: {parts.members_done()} of {spec.n_members} members in {len(parts.parts)} part(s) kept"
               f"{dropped}", file=sys.stderr, flush=True)
+    held = HeldInterrupts()
     try:
         n = spec.n_members
         chunk = chunk or (dask_chunk(spec, sum(client.nthreads().values())) if client else default_chunk(spec))
@@ -376,19 +386,29 @@ def run(spec: Spec, out: str | Path, *, chunk: int | None = None, progress: bool
 
                     compute_on(client, spec, todo, parts, tally, bar, repeats, task or chunk_task)
             parts.settle()  # every part sealed before the result is complete
+            interrupts.check()
+            held.start()  # a Ctrl-C from here waits until the result is whole and the parts are gone
             records = parts.assemble()
     except BaseException:
-        if not parts.close():  # nothing finished: nothing to resume
-            Parts.discard(out)
+        held.stop()
+        with HeldInterrupts():  # a second Ctrl-C must not cut the cleanup short
+            if not parts.close():  # nothing finished: nothing to resume
+                Parts.discard(out)
         raise
     Parts.discard(out)
-    seconds = time.perf_counter() - began
+    summary = _summary(spec, tally, records, time.perf_counter() - began, preparing)
+    if held.stop():
+        raise LateInterrupt(summary)
+    return summary
+
+
+def _summary(spec: Spec, tally: Tally, records: dict[str, np.ndarray], seconds: float, preparing: float) -> Summary:
     failed = np.bincount(records["status"], minlength=len(Status))
     return Summary(tally.members, tally.member_steps, seconds,
                    tally.step_counts.pop() if len(tally.step_counts) == 1 else None,
                    blew_up=int(failed[Status.BLEW_UP]), underflowed=int(failed[Status.STEP_SIZE_UNDERFLOW]),
                    closed_form=all(METHODS[name].closed_form for name in spec.methods), preparing=preparing,
-                   resumed=n - tally.members)
+                   resumed=spec.n_members - tally.members)
 
 
 def chunk_task(spec: Spec, start: int, stop: int, repeats: int = 0):
@@ -413,6 +433,7 @@ def _compute_here(spec: Spec, todo: list[tuple[int, int]], parts: Parts, tally: 
     pending = None
     try:
         for start, stop in todo:
+            interrupts.check()  # a Ctrl-C that a library swallowed
             writer = parts.begin(start, stop)
             try:
                 finish = integrate_chunk(spec, start, stop, writer, repeats, watch=_advance(bar, stop - start))

@@ -133,7 +133,8 @@ def test_ctrl_c_on_local_workers_is_one_line(tmp_path, write_runfile):
     out = tmp_path / "out.nc"
     run = subprocess.Popen([sys.executable, "-m", "ensemble", "run", str(path), "-o", str(out), "--quiet",
                             "--workers", "2", "--chunk", "128"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                           text=True, start_new_session=True)
+                           text=True, start_new_session=True,
+                           preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))  # whatever pytest's is
     deadline = time.monotonic() + 120
     while not list(folder_of(out).glob("members-*")) and run.poll() is None and time.monotonic() < deadline:
         time.sleep(0.1)
