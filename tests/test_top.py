@@ -186,3 +186,23 @@ def test_observed_tilt_and_amplitudes_are_numpys_arctan2_and_hypot():
         finite = ~np.isnan(want)
         assert np.all(np.abs(got - want)[finite] <= 4 * np.spacing(np.abs(want[finite])))
     np.testing.assert_array_equal(np.signbit(tilt[0, :6]), np.signbit(expected[0, :6]))
+
+
+def test_a_tilt_decaying_past_the_smallest_double_goes_to_zero_not_astray():
+    """Issue 40, item 3: rk4 on a damped top whose rates decay into subnormal numbers kept them there (omega
+    stuck at 3.7e-321) and its tilt jumped from 8.9e-19 to 0.6153 rad, status ok. Subnormal state values now
+    become zeros where a member is checked (each saved sample): here tan(tilt) follows tan(tilt0) exp(-rate t)
+    (rate = c (1/lambda1 - 1/lambda3) = 10/s) down to 1e-300 and is exactly 0 once the transverse rates
+    (decaying at c / lambda1 = 20/s) pass the smallest double, and so are the rates at the end."""
+    values = {"lambda1": np.full(4, 1e-3), "lambda3": np.full(4, 2e-3), "c": np.full(4, 0.02),
+              "spin0": np.full(4, 60.0), "tilt0": np.linspace(0.05, 0.2, 4), "azimuth0": np.zeros(4)}
+    outcome = launch.integrate(top, METHODS["rk4"], values, {}, n_save=21, save_dt=5.0, dt=1e-3)
+    assert np.all(outcome.status == 0)
+    t = np.arange(21) * 5.0
+    tilt = top.observe(outcome.samples, ("tilt",), values, {})["tilt"]  # (members, t)
+    law = np.log(np.tan(values["tilt0"]))[:, None] - 10.0 * t
+    shown = tilt > 0
+    assert np.all(np.diff(tilt, axis=1) <= 0) and not shown[:, -1].any()
+    assert shown[:, :7].all()  # to t = 30 s: tan(tilt) about 1e-131
+    np.testing.assert_allclose(np.log(np.tan(tilt[shown])), law[shown], rtol=1e-6)
+    assert np.all(outcome.samples[-1] == 0.0)  # (t, rate, member): every rate flushed to zero by t = 100 s

@@ -31,6 +31,7 @@ from .launch import _fixed_counts, _limits, adaptive_control
 THREADS = 128  # threads per CUDA block
 PRECISIONS = {"float64": np.float64, "float32": np.float32}
 OK, BLEW_UP, UNDERFLOW = int(Status.OK), int(Status.BLEW_UP), int(Status.STEP_SIZE_UNDERFLOW)
+SMALLEST_NORMAL = float(np.finfo(np.float64).tiny)  # 2.2250738585072014e-308
 
 
 def require_gpu() -> str:
@@ -135,6 +136,7 @@ FIXED_STEP = FIXED_HEAD + '''{load_p}
     first = 0
     if start == 0:
 {load_start}
+{flush}
         if {failed}:
             status[m], failure_time[m] = {BLEW_UP}, 0.0
 {nan_y}
@@ -149,6 +151,7 @@ FIXED_STEP = FIXED_HEAD + '''{load_p}
             for step in range(steps_per_save):
 {step}
 {leave}
+{flush_deep}
             if {failed}:
                 status[m], failure_time[m] = {BLEW_UP}, (start + i) * steps_per_save * h
 {nan_y_deep}
@@ -186,6 +189,7 @@ ADAPTIVE = ADAPTIVE_HEAD + '''{load_p}
     first = 0
     if start == 0:
 {load_start}
+{flush}
         {k0} = rhs(REAL(0.0), {y}, {p})
         h = REAL(control[0, m])
         if h <= 0.0:
@@ -214,6 +218,7 @@ ADAPTIVE = ADAPTIVE_HEAD + '''{load_p}
             elif underflowed:
                 status[m], failure_time[m] = {UNDERFLOW}, time
 {nan_y_deep}
+{flush}
         if status[m] == {OK} and ({failed}):
             status[m], failure_time[m] = {BLEW_UP}, target
 {nan_y}
@@ -315,6 +320,13 @@ def _failed(D: int, limit: str = "limit[m]") -> str:
     return f"not ({within}) or {infinite}"
 
 
+def _flush(D: int, indent: int) -> str:
+    """Subnormal state values become zeros of their sign where the CPU's check_members makes them so (the start
+    and each save), so that both give the same bits."""
+    return "\n".join(" " * indent + f"y{c} = y{c} if abs(y{c}) >= {SMALLEST_NORMAL!r} else y{c} * 0.0"
+                     for c in range(D))
+
+
 def _common(D: int, P: int, adaptive: bool) -> dict:
     """The template's fields every family shares: loading and storing a member, its samples and its works rows
     (where a kernel call leaves a member for the next: its state, and an adaptive member's slopes and control)."""
@@ -329,7 +341,8 @@ def _common(D: int, P: int, adaptive: bool) -> dict:
         store = [line.replace("= rejected_last", "= 1.0 if rejected_last else 0.0") for line in store]
     nan = f"{y}, = {', '.join(['NAN'] * D)},"
     return dict(
-        y=y, failed=_failed(D), load_p=_block([f"p{c} = REAL(rate[{c}, m])" for c in range(P)], 4),
+        y=y, failed=_failed(D), flush=_flush(D, 8), flush_deep=_flush(D, 12),
+        load_p=_block([f"p{c} = REAL(rate[{c}, m])" for c in range(P)], 4),
         load_start=_block([f"y{c} = REAL(state0[{c}, m])" for c in range(D)], 8),
         load_works=_block(load, 8), nan_y=" " * 12 + nan, nan_y_deep=" " * 16 + nan,
         store_sample0=_block([f"samples[0, {c}, m] = y{c}" for c in range(D)], 8),
@@ -502,6 +515,9 @@ def set_ghosts(x):
 
 @cuda.jit(device=True)
 def failed(x, v, limit):
+    for i in range(N):  # subnormals to zeros of their sign first, as the CPU's check_members
+        x[i + 1] = x[i + 1] if abs(x[i + 1]) >= {SMALLEST_NORMAL!r} else x[i + 1] * 0.0
+        v[i] = v[i] if abs(v[i]) >= {SMALLEST_NORMAL!r} else v[i] * 0.0
     for i in range(N):
         if not (abs(x[i + 1]) <= limit and abs(v[i]) <= limit) or math.isinf(x[i + 1]) or math.isinf(v[i]):
             return True
@@ -700,7 +716,8 @@ def _sites_kernel(name: str, where: str, pieces: tuple[str, ...], method: Method
         family, template, fields, rows = "runge_kutta", SITES_FIXED, sites_runge_kutta(method, n), 2 * n
     else:
         family, template, fields, rows = "splitting", SITES_FIXED, sites_splitting(method, pieces), 2 * n
-    numbers = dict(N=n, N2=n + 2, periodic=periodic, OK=OK, BLEW_UP=BLEW_UP, UNDERFLOW=UNDERFLOW)
+    numbers = dict(N=n, N2=n + 2, periodic=periodic, OK=OK, BLEW_UP=BLEW_UP, UNDERFLOW=UNDERFLOW,
+                   SMALLEST_NORMAL=SMALLEST_NORMAL)
     body = SITES_HEADER.format(**numbers) + template.format(**numbers, **fields)
     physics_import = f"acceleration, = device_functions({where!r}, ('acceleration',))"
     return GpuKernel(_compiled(f"sites {family}", name, method, precision, physics_import, physics_hash(where),
