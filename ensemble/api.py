@@ -14,6 +14,7 @@ import atexit
 import glob
 import shutil
 import tempfile
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -44,7 +45,11 @@ def run(spec, output=None, *, chunk: int | None = None, progress: bool = True, f
     spec, runfile, described = _spec(spec)
     folder = Path(tempfile.mkdtemp(prefix="ensemble-")) if output is None else None
     out = folder / "result.nc" if folder else Path(output)
-    spec, problem = preflight.check(spec, out, runfile, device=device, chunk=chunk, force=force, resume=resume)
+    spec, rounded, problem = preflight.check(spec, out, runfile, device=device, chunk=chunk, force=force,
+                                             resume=resume)
+    if rounded != chunk:
+        warnings.warn(f"chunk {chunk} is rounded up to {rounded}, whole kernel blocks", stacklevel=2)
+        chunk = rounded
     try:
         if problem:
             raise preflight.RunRefused(problem)

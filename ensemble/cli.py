@@ -27,7 +27,8 @@ def _parser() -> argparse.ArgumentParser:
     run.add_argument("runfile", type=Path, help="run file (TOML), see runs/")
     run.add_argument("-o", "--output", type=Path, help="output file (default: results/<runfile stem>.nc)")
     run.add_argument("--force", action="store_true", help="replace an existing output file")
-    run.add_argument("--chunk", type=int, help="members per chunk held in memory (default: about 32 MB of output)")
+    run.add_argument("--chunk", type=int, help="members per chunk held in memory, rounded up to whole kernel blocks "
+                                               "(default: about 32 MB of output)")
     run.add_argument("--quiet", action="store_true", help="no progress bar")
     run.add_argument("--device", choices=("cpu", "cuda"),
                      help="where the kernels run: this machine's cores, or an NVIDIA GPU (default: the run file's "
@@ -187,10 +188,13 @@ def _run(args) -> int:
         print("ensemble: interrupted while reading the run file; nothing was written", file=sys.stderr)
         return EXIT_INTERRUPTED
     out = args.output or Path("results") / f"{args.runfile.stem}.nc"
-    spec, refusal = preflight.check(spec, out, args.runfile, device=args.device, chunk=args.chunk, force=args.force,
-                                    resume=args.resume, chunk_option="--chunk")
+    spec, chunk, refusal = preflight.check(spec, out, args.runfile, device=args.device, chunk=args.chunk,
+                                           force=args.force, resume=args.resume, chunk_option="--chunk")
     if refusal:
         return _error(refusal)
+    if chunk != args.chunk and not args.quiet:
+        print(f"ensemble: --chunk {args.chunk} is rounded up to {chunk}: whole kernel blocks (or every member), as a "
+              f"block computes all its members however few the chunk has", file=sys.stderr)
     # the command that finishes an interrupted run: a run that replaces an earlier result needs --force again
     resume = f"ensemble run {args.runfile} -o {out} --resume{' --force' if out.exists() else ''}"
     client = None
@@ -204,7 +208,7 @@ def _run(args) -> int:
                 return _error(str(e))
         out.parent.mkdir(parents=True, exist_ok=True)
         with preflight.OutputLock(out):
-            summary = run(spec, out, chunk=args.chunk, progress=not args.quiet, force=args.force,
+            summary = run(spec, out, chunk=chunk, progress=not args.quiet, force=args.force,
                           resume=args.resume, command=args.command_line, client=client)
     except (preflight.OutputLocked, PartsError, DeviceUnavailable, SceneError, KeyboardInterrupt, Incomplete,
             OSError, RuntimeError) as e:

@@ -94,7 +94,7 @@ def test_a_disk_that_fills_up_midway_is_one_line_exit_3_and_resume_finishes_the_
     unhindered run."""
     import errno
 
-    from ensemble import store
+    from ensemble import preflight, store
 
     runfile = tmp_path / "run.toml"
     runfile.write_text(RUN)
@@ -108,6 +108,7 @@ def test_a_disk_that_fills_up_midway_is_one_line_exit_3_and_resume_finishes_the_
         real(*args)
 
     monkeypatch.setattr(store, "put_samples", fills_up)
+    monkeypatch.setattr(preflight, "whole_blocks", lambda spec, chunk: chunk)  # chunks of 64, as asked
     command = ["run", str(runfile), "-o", str(out), "--quiet", "--chunk", "64"]
     assert cli.main(command) == 3
     lines = capsys.readouterr().err.strip().splitlines()
