@@ -99,3 +99,14 @@ def test_every_command_in_the_docs_names_what_exists(doc):
     for (key, wanted), text in zip(options.items(), help_texts(list(options))):
         listed = set(re.findall(r"--[a-z][a-z0-9-]*", text))
         assert wanted <= listed, f"{doc.name}: {' '.join(key)} has no {sorted(wanted - listed)}"
+
+
+def test_every_image_the_docs_show_is_in_the_checkout():
+    """The README's and docs' pictures are committed files (docs/figures.py makes them; *.png is otherwise
+    ignored): each image link names an existing PNG."""
+    shown = []
+    for doc in DOCS:
+        for target in re.findall(r"!\[[^\]]*\]\(([^)]+)\)", doc.read_text()):
+            shown.append(target)
+            assert (doc.parent / target).is_file(), f"{doc.name}: no {target}"
+    assert len(shown) >= 6, shown
