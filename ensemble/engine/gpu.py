@@ -132,19 +132,23 @@ def kernel(state0, rate, h, steps_per_save, limit, samples, status, failure_time
     h = REAL(h)
 '''
 
-FIXED_STEP = FIXED_HEAD + '''{load_p}
-    first = 0
-    if start == 0:
-{load_start}
-{flush}
-        if {failed}:
+# Every kernel's start, after a member's first state is loaded (first call) or its works reloaded (later calls):
+# a start that is not finite fails the member at once.
+START_CHECKED = '''        if {failed}:
             status[m], failure_time[m] = {BLEW_UP}, 0.0
 {nan_y}
 {store_sample0}
         first = 1
     else:
 {load_works}
-{first_call}
+'''
+
+FIXED_STEP = FIXED_HEAD + '''{load_p}
+    first = 0
+    if start == 0:
+{load_start}
+{flush}
+''' + START_CHECKED + '''{first_call}
     for i in range(first, samples.shape[0]):
         if status[m] == {OK}:
 {enter}
@@ -200,14 +204,7 @@ ADAPTIVE = ADAPTIVE_HEAD + '''{load_p}
                          else 1e-6, save_dt))
         time, log2_previous, rejected_last = REAL(0.0), {first_log2}, False
         accepted_count, rejected_count, evaluations = 0.0, 0.0, 1.0
-        if {failed}:
-            status[m], failure_time[m] = {BLEW_UP}, 0.0
-{nan_y}
-{store_sample0}
-        first = 1
-    else:
-{load_works}
-    for i in range(first, samples.shape[0]):
+''' + START_CHECKED + '''    for i in range(first, samples.shape[0]):
         target = (start + i) * save_dt
         while status[m] == {OK} and time < target:
             step = min(h, REAL(target - time))
