@@ -126,7 +126,7 @@ def sample_members(ds: xr.Dataset, members: list[int] | None, count: int = 6) ->
     return [int(m) for m in np.unique(np.linspace(0, ds.sizes["member"] - 1, count).astype(int))]
 
 
-def stability_map(plt, points: xr.Dataset, rows: list[dict], stem: Path) -> Path:
+def draw_stability_map(plt, points: xr.Dataset, rows: list[dict], stem: Path) -> Path:
     """Measured growth per step against the dimensionless step, per stability axis: markers (open: the member
     ran to the end; x: it failed), each method's theory (lines) and theoretical limit (dotted)."""
     from .scenes import of_result
@@ -170,7 +170,7 @@ def _envelope(t: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, np.ndarray
     return t[edges[1:] - 1], np.maximum.reduceat(values, edges[:-1])
 
 
-def energy_drift(plt, ds: xr.Dataset, points: xr.Dataset, drift_step: float, stem: Path) -> Path | None:
+def draw_energy_drift(plt, ds: xr.Dataset, points: xr.Dataset, drift_step: float, stem: Path) -> Path | None:
     """The relative energy error over the run of the member of each method nearest to `drift_step` on the
     oscillation axis; None (and one line saying why) when the result cannot give the drift."""
     from .scenes import of_result
@@ -207,7 +207,7 @@ def energy_drift(plt, ds: xr.Dataset, points: xr.Dataset, drift_step: float, ste
     return save(plt, fig, stem, "energy")
 
 
-def work_precision(plt, table: xr.Dataset, stem: Path, title: str) -> Path:
+def draw_work_precision(plt, table: xr.Dataset, stem: Path, title: str) -> Path:
     """Error against kernel seconds per member (this machine), against right-hand-side evaluations per member
     (any machine) and against the step with reference slopes dt^order, one line per method."""
     fig, (cost, evaluations, steps) = plt.subplots(1, 3, figsize=(17, 5), layout="constrained")

@@ -256,8 +256,8 @@ def stability_command(args) -> int:
     def draw(plt, stem):
         from . import charts
 
-        return [charts.stability_map(plt, points, limits, stem),
-                charts.energy_drift(plt, ds, points, args.drift_step, stem)]
+        return [charts.draw_stability_map(plt, points, limits, stem),
+                charts.draw_energy_drift(plt, ds, points, args.drift_step, stem)]
 
     _write(args, points, "stability", "map", draw)
     return EXIT_CHECK_FAILED if args.check and not all(stability.limit_agrees(r) for r in limits) else EXIT_OK
@@ -280,7 +280,7 @@ def work_precision_command(args) -> int:
     def draw(plt, stem):
         from . import charts
 
-        return [charts.work_precision(plt, table, stem, f"{ds.attrs['scene']}: {ds.attrs.get('title', '')}")]
+        return [charts.draw_work_precision(plt, table, stem, f"{ds.attrs['scene']}: {ds.attrs.get('title', '')}")]
 
     _write(args, table, "work_precision", "table", draw)
     return EXIT_OK
