@@ -334,6 +334,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.command in ("fit", "stability", "work-precision"):
         from . import report
 
+        if report.charts_problem(args.charts):
+            return _error(f"--charts {args.charts}: {report.charts_problem(args.charts)}")
         _quiet_numpy()
         return {"fit": report.fit_command, "stability": report.stability_command,
                 "work-precision": report.work_precision_command}[args.command](args)

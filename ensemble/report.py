@@ -5,6 +5,7 @@ The tables and --check need only the core install; the charts need matplotlib (t
 """
 from __future__ import annotations
 
+import os
 import sys
 from dataclasses import dataclass
 from pathlib import Path
@@ -151,9 +152,25 @@ def outputs(result: Path, name: str, charts: Path | None = None) -> tuple[Path, 
             (charts or result.parent) / f"{stem.name}_{name}")
 
 
+def charts_problem(folder: Path | None) -> str | None:
+    """Why the charts cannot go to `folder` (None if they can, or when no charts are asked for): checked before
+    anything is written."""
+    from .preflight import existing_folder
+
+    if folder is None:
+        return None
+    existing = existing_folder(folder)
+    if not existing.is_dir():
+        return f"{existing} is not a folder"
+    if not os.access(existing, os.W_OK):
+        return f"cannot write in {existing} (permission denied)"
+    return None
+
+
 def cannot_write(folder: Path, error: OSError) -> None:
     """One line on stderr: a table or chart could not be written (the table printed above stands)."""
-    print(f"error: cannot write in {folder} ({error.strerror or error}); the table above stands", file=sys.stderr)
+    print(f"ensemble: error: cannot write in {folder} ({error.strerror or error}); the table above stands",
+          file=sys.stderr)
 
 
 def load_result(path: Path, fit_function):
@@ -167,11 +184,11 @@ def load_result(path: Path, fit_function):
             raise ValueError(problem)
         return ds, fit_function(ds)
     except KeyError as e:
-        print(f"error: {path}: the result has no variable {e}, which a {ds.attrs.get('scene')} result has",
+        print(f"ensemble: error: {path}: the result has no variable {e}, which a {ds.attrs.get('scene')} result has",
               file=sys.stderr)
         return None
     except (OSError, ValueError) as e:  # FitError is a ValueError
-        print(f"error: {path}: {str(e).splitlines()[0]}", file=sys.stderr)
+        print(f"ensemble: error: {path}: {str(e).splitlines()[0]}", file=sys.stderr)
         return None
 
 
@@ -185,7 +202,7 @@ def fit_command(args) -> int:
         return EXIT_BAD_INPUT
     ds, fits = loaded
     if args.members and max(args.members) >= ds.sizes["member"]:
-        print(f"error: --members: {max(args.members)} is not in 0..{ds.sizes['member'] - 1}", file=sys.stderr)
+        print(f"ensemble: error: --members: {max(args.members)} is not in 0..{ds.sizes['member'] - 1}", file=sys.stderr)
         return EXIT_BAD_INPUT
     step = f"dt = {ds.attrs['dt']} s" if "dt" in ds.attrs else "dt per member"
     table = []

@@ -109,7 +109,14 @@ def test_a_missing_result_is_one_line_and_exit_2(tmp_path, name):
 def test_bad_options_are_one_line_and_exit_2(tmp_path):
     result = run_small("two_mass.toml", tmp_path, 1)
     member = command("fit", result, "--members", "5")
-    assert member.returncode == 2 and member.stderr.strip().splitlines() == ["error: --members: 5 is not in 0..0"]
+    assert member.returncode == 2 and member.stderr.strip().splitlines() == [
+        "ensemble: error: --members: 5 is not in 0..0"]
+    assert not (tmp_path / "two_mass_mode_frequencies.nc").exists()
+    not_a_folder = tmp_path / "charts"
+    not_a_folder.write_text("")
+    refused = command("fit", result, "--charts", not_a_folder)
+    assert refused.returncode == 2 and refused.stderr.strip().splitlines() == [
+        f"ensemble: error: --charts {not_a_folder}: {not_a_folder} is not a folder"]
     assert not (tmp_path / "two_mass_mode_frequencies.nc").exists()
     negative = command("fit", result, "--members", "1,-1")
     assert negative.returncode == 2 and "--members: member numbers are >= 0, got -1" in negative.stderr
@@ -197,7 +204,7 @@ def test_an_unwritable_output_is_one_line_and_keeps_the_verdict(tmp_path):
         assert done.returncode == status and "[rate], " in done.stdout
         lines = done.stderr.strip().splitlines()
         assert len(lines) == 1 and lines[0].endswith("); the table above stands"), lines
-        assert lines[0].startswith(f"error: cannot write in {tmp_path} (")
+        assert lines[0].startswith(f"ensemble: error: cannot write in {tmp_path} (")
 
 
 def test_tables_and_check_need_no_matplotlib(tmp_path):
