@@ -38,10 +38,10 @@ class FitError(EnsembleError, ValueError):
 
 
 def progress(count: int, what: str):
-    """range(count), with a progress bar on stderr when it is a terminal: a long fit shows how far it is."""
-    from tqdm import tqdm
+    """range(count), with a progress bar on a terminal (or a notebook): a long fit shows how far it is."""
+    from .bars import Bar
 
-    return tqdm(range(count), desc=what, unit="member", leave=False, disable=None, file=sys.stderr)
+    return Bar(range(count), desc=what, unit="member", leave=False, disable=None, file=sys.stderr)
 
 
 def require(ds: xr.Dataset, scene: str, variables: tuple[str, ...], fit: str) -> None:

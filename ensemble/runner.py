@@ -9,7 +9,6 @@ import sys
 import tempfile
 import threading
 import time
-import warnings
 import zlib
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -18,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from . import interrupts
+from .bars import BAR, Bar
 from .engine import launch
 from .interrupts import HeldInterrupts, LateInterrupt
 from .methods import METHODS, Method
@@ -26,10 +26,6 @@ from .records import error_records, growth_per_step, measured_growth, relative_e
 from .results import COUNTS, Outcome, Status
 from .spec import Spec, members_table
 from .store import Writer
-
-with warnings.catch_warnings():
-    warnings.simplefilter("ignore")  # tqdm's note that, in Jupyter, it chose the notebook's widget bar
-    from tqdm.autonotebook import tqdm
 
 CHUNK_BYTES = 32 * 2**20  # saved data held in memory per chunk
 CHUNK_MEMBER_STEPS = 2e9  # work per chunk: about two seconds at this project's kernel speeds
@@ -477,17 +473,6 @@ def dask_chunk(spec: Spec, threads: int) -> int:
     block = run_block(spec)
     share = -(-spec.n_members // (TASKS_PER_WORKER_THREAD * threads))
     return max(smallest_chunk(spec), min(default_chunk(spec), -(-share // block) * block))
-
-
-class Bar(tqdm):
-    """A run's progress bar: tqdm (a widget in Jupyter with ipywidgets, text elsewhere) with a thread lock of its
-    own. tqdm's default lock also guards bars of other processes, and importing multiprocessing for it took
-    2.5 ms before a run's first kernel; a run's bar moves on its own process's threads only."""
-    _lock = threading.RLock()
-
-
-# The bar counts members, and moves within a launch as its blocks store their samples.
-BAR = "{l_bar}{bar}| {n:.0f}/{total_fmt} members [{elapsed}<{remaining}{postfix}]"
 
 
 def _advance(bar: Bar, members: int):
