@@ -11,6 +11,11 @@ records what it finished in the folder OUT.nc.parts/:
                                               the CRC-32 of the file's bytes (8 hex digits: it tells a torn or
                                               changed file, not a forged one)
     members-J0-J1.tmp                         a part being written; a resumed run deletes it
+    segment-J0-J1-S0-S1-CRC.npz               a record run in segments (runner.segment_samples): members
+                                              J0 .. J1 - 1 have samples S0 .. S1 - 1 in OUT.nc.tmp; inside,
+                                              what their kernel and observation noise continue from, and the
+                                              same range, run file and checksums as a part's. Deleted once
+                                              those members' part is made (SegmentLog)
 
 A chunk's saved variables are written once, into OUT.nc.tmp. Its part is made
 only after that: the result is flushed (HDF5's buffers, then fsync), then the
@@ -25,16 +30,20 @@ part is dropped and the run starts over. It then trusts a part only when the
 range and run file inside it are its name's and this run's (a part renamed or
 copied to another range is not), and when its members' samples in OUT.nc.tmp
 still give the checksums it recorded (sample_sum); a part that fails is dropped,
-and its members computed again. Only once every member is in are the parts'
+and its members computed again. Segments are checked alike, and a member range
+continues from the end of its unbroken run of good segments from sample 0. Only
+once every member is in are the parts'
 records written into the result (Parts.assemble), the result fsynced and renamed
 into place, and the folder deleted.
 """
 from __future__ import annotations
 
 import hashlib
+import itertools
 import json
 import os
 import re
+import zipfile
 import zlib
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
@@ -53,6 +62,7 @@ from .store import RUN_RECORDS, fsync_path, put_records, record_names, temporary
 MANIFEST = "manifest.json"
 PARTS_FORMAT = "2"  # 2: parts carry their range, run file and sample checksums (ensemble 0.5.0)
 PART_NAME = re.compile(r"members-(\d{12})-(\d{12})-([0-9a-f]{8})\.nc")
+SEGMENT_NAME = re.compile(r"segment-(\d{12})-(\d{12})-(\d{12})-(\d{12})-([0-9a-f]{8})\.npz")
 
 
 def folder_of(out: Path) -> Path:
@@ -78,6 +88,21 @@ class Part:
     start: int
     stop: int
     path: Path
+
+
+@dataclass(frozen=True)
+class Segment:
+    """A finished segment: samples first .. end - 1 of members start .. stop - 1, described by the file `path`."""
+    start: int
+    stop: int
+    first: int
+    end: int
+    path: Path
+
+    @staticmethod
+    def of(path: Path) -> Segment | None:
+        match = SEGMENT_NAME.fullmatch(path.name)
+        return match and Segment(*(int(match[k]) for k in range(1, 5)), path)
 
 
 class Parts:
@@ -114,14 +139,18 @@ class Parts:
             self.folder.mkdir(parents=True, exist_ok=True)
             _write_atomically(manifest, json.dumps(fingerprint(spec), indent=1).encode())
         self.parts = self._verified()
-        problem = self._result_problem(temporary_path(out)) if self.parts else None
+        segments = self._segment_files()
+        problem = self._result_problem(temporary_path(out)) if self.parts or segments else None
         if problem:
-            for part in self.parts:
-                part.path.unlink()
-            self.dropped.append(f"all {len(self.parts)} part(s) ({problem})")
-            self.parts = []
+            for file in [*self.parts, *segments]:
+                file.path.unlink()
+            lost = [f"{len(files)} {kind}(s)" for files, kind in ((self.parts, "part"), (segments, "segment")) if files]
+            self.dropped.append(f"all {' and '.join(lost)} ({problem})")
+            self.parts, segments = [], []
         elif self.parts:
             self.parts = self._vouched_for(temporary_path(out))
+        # finished segments of member ranges that no part holds yet, by range, each an unbroken run from sample 0
+        self.segments: dict[tuple[int, int], list[Segment]] = self._continuable(segments, temporary_path(out))
         self.result = None  # the result's Writer, set before the first part begins
         self.written: dict[int, dict[str, np.ndarray]] = {}  # records of the parts this run wrote, by first member
         # Parts are sealed (checksum, rename) on a thread of their own while the next chunk computes.
@@ -165,8 +194,8 @@ class Parts:
         folder = folder_of(out)
         if (folder / MANIFEST).is_file():
             for path in folder.iterdir():
-                ours = path.name == MANIFEST or PART_NAME.fullmatch(path.name) or (
-                    path.name.startswith("members-") and path.name.endswith(".tmp"))
+                ours = path.name == MANIFEST or PART_NAME.fullmatch(path.name) or SEGMENT_NAME.fullmatch(
+                    path.name) or (path.name.startswith(("members-", "segment-")) and path.name.endswith(".tmp"))
                 if ours and path.is_file():
                     path.unlink()
         if folder.is_dir():
@@ -228,15 +257,65 @@ class Parts:
     def _part_problem(self, part: Part, result: netCDF4.Dataset) -> str | None:
         with netCDF4.Dataset(part.path) as nc:
             inside = {key: nc.getncattr(key) for key in nc.ncattrs()}
-        if (inside.get("first_member"), inside.get("stop_member")) != (part.start, part.stop):
+        return self._inside_problem(inside, part.start, part.stop, 0, None, result)
+
+    def _inside_problem(self, inside: dict, start: int, stop: int, first: int, end: int | None,
+                        result: netCDF4.Dataset) -> str | None:
+        """What is wrong with a part's or segment's own account of members start .. stop - 1, samples first ..
+        end - 1 (every sample: end None), checked against its name, this run and the samples in `result`."""
+        if (inside.get("first_member"), inside.get("stop_member")) != (start, stop) or (
+                end is not None and (inside.get("first_sample"), inside.get("stop_sample")) != (first, end)):
             return "holds other members than its name says"
         if inside.get("run_file_sha256") != fingerprint(self.spec)["run_file_sha256"]:
             return "is another run's"
         for name in self.spec.save:
-            found = sample_sum(result.variables[name][part.start:part.stop], part.start, 0)
+            found = sample_sum(result.variables[name][start:stop, first:end], start, first)
             if inside.get(f"samples_sum_{name}") != f"{found:016x}":
                 return f"its members' {name} in the result changed since it was written"
         return None
+
+    def _segment_files(self) -> list[Segment]:
+        """The segment files whose bytes match their checksum, and whose members no part holds; the rest
+        deleted (those of a part made just before the run stopped silently)."""
+        kept = []
+        for path in sorted(self.folder.glob("segment-*")):
+            segment = Segment.of(path)
+            if segment and any(p.start <= segment.start < p.stop for p in self.parts):
+                path.unlink()
+            elif not segment or _checksum(path) != SEGMENT_NAME.fullmatch(path.name)[5]:
+                path.unlink()
+                self.dropped.append(f"{path.name} ({'checksum differs' if segment else 'not a segment'})")
+            else:
+                kept.append(segment)
+        return kept
+
+    def _continuable(self, segments: list[Segment], result: Path) -> dict[tuple[int, int], list[Segment]]:
+        """Per member range, its segments that run on unbroken from sample 0 and whose samples in `result` give
+        their checksums; every other segment deleted."""
+        chains: dict[tuple[int, int], list[Segment]] = {}
+        if not segments:
+            return chains
+        with netCDF4.Dataset(result) as nc:
+            nc.set_auto_mask(False)
+            ordered = sorted(segments, key=lambda g: (g.start, g.stop, g.first))
+            for members, group in itertools.groupby(ordered, key=lambda g: (g.start, g.stop)):
+                chain, problem = [], None
+                for segment in group:
+                    if problem:
+                        problem = "follows a segment that was dropped"
+                    elif segment.first != (chain[-1].end if chain else 0):
+                        problem = "does not continue the segments before it"
+                    else:
+                        problem = self._inside_problem(_segment_inside(segment.path), *members, segment.first,
+                                                       segment.end, nc)
+                    if problem:
+                        segment.path.unlink()
+                        self.dropped.append(f"{segment.path.name} ({problem})")
+                    else:
+                        chain.append(segment)
+                if chain:
+                    chains[members] = chain
+        return chains
 
     def missing(self) -> list[tuple[int, int]]:
         """The member ranges [start, stop) that no finished part holds, in order (see settle)."""
@@ -246,6 +325,20 @@ class Parts:
                 gaps.append((at, part.start))
             at = part.stop
         return gaps + ([(at, self.spec.n_members)] if at < self.spec.n_members else [])
+
+    def continuing(self) -> list[tuple[int, int, int]]:
+        """(first member, stop member, samples done) of each member range that continues from its segments."""
+        return [(start, stop, chain[-1].end) for (start, stop), chain in self.segments.items()]
+
+    @staticmethod
+    def segments_left(out: Path) -> list[tuple[int, int, int]]:
+        """As continuing(), read from the names of the segment files of `out`'s parts folder."""
+        done: dict[tuple[int, int], int] = {}
+        for path in folder_of(out).glob("segment-*.npz"):
+            segment = Segment.of(path)
+            if segment:
+                done[segment.start, segment.stop] = max(done.get((segment.start, segment.stop), 0), segment.end)
+        return [(start, stop, end) for (start, stop), end in sorted(done.items())]
 
     def members_done(self) -> int:
         """Members in finished parts, counting those being sealed."""
@@ -287,6 +380,7 @@ class PartWriter:
         self.temporary = parts.folder / f"members-{start:012d}-{stop:012d}.tmp"
         self._nc = None
         self.sums = {name: 0 for name in parts.spec.save}  # sample_sum of each saved variable's samples
+        self.logs: list[SegmentLog] = []
 
     @property
     def nc(self) -> netCDF4.Dataset:
@@ -304,6 +398,11 @@ class PartWriter:
         self.parts.result.write_samples(start, first, data)
         for name, values in data.items():
             self.sums[name] = (self.sums[name] + sample_sum(values, start, first)) % 2**64
+
+    def log(self, start: int, stop: int) -> SegmentLog:
+        """The segment log of members start .. stop - 1 (a range of the part's members that runs together)."""
+        self.logs.append(SegmentLog(self, start, stop))
+        return self.logs[-1]
 
     def write(self, start: int, data: dict[str, np.ndarray]) -> None:
         """The records of every member of the part (start is the part's)."""
@@ -327,6 +426,8 @@ class PartWriter:
     def _seal(self) -> Part:
         path = self.parts.folder / f"members-{self.start:012d}-{self.stop:012d}-{_checksum(self.temporary)}.nc"
         os.replace(self.temporary, path)
+        for log in self.logs:  # the part holds their members now
+            log.discard()
         return Part(self.start, self.stop, path)
 
     def abandon(self) -> None:
@@ -336,6 +437,75 @@ class PartWriter:
         except (OSError, RuntimeError):
             pass  # a write failed already (a full disk); that error is the one to report
         self.temporary.unlink(missing_ok=True)
+
+
+class SegmentLog:
+    """The finished segments of a record run in segments (runner.segment_samples), members start .. stop - 1 of a
+    part being written: each segment's end is saved as a segment file, and a resumed run continues from the last
+    one kept (Parts.segments) instead of from sample 0."""
+
+    STATE = ("works", "status", "failure_time", "counts")  # launch.Launch.state(), in the file as they are
+
+    def __init__(self, writer: PartWriter, start: int, stop: int):
+        self.writer, self.start, self.stop = writer, start, stop
+        self.paths = [segment.path for segment in writer.parts.segments.pop((start, stop), [])]
+
+    def resumed(self, call, record) -> tuple[int, dict] | None:
+        """Where the kept segments end, (sample, kernel state), with `record` (runner._Record) and the part's
+        checksums restored to that point; None (and the segments deleted) when there are none, or when they are
+        of another kernel layout than `call`'s."""
+        if not self.paths:
+            return None
+        loaded = [_load(path) for path in self.paths]
+        state = {name: loaded[-1][name] for name in self.STATE if name in loaded[-1]}
+        if not call.takes(state):
+            self.discard()
+            return None
+        record.restore(json.loads(str(loaded[-1]["noise"])), [d["amplitudes"] for d in loaded if "amplitudes" in d],
+                       [d["errors"] for d in loaded if "errors" in d])
+        for inside in map(_segment_inside, self.paths):
+            for name in self.writer.sums:
+                self.writer.sums[name] = (self.writer.sums[name] + int(inside[f"samples_sum_{name}"], 16)) % 2**64
+        return Segment.of(self.paths[-1]).end, state
+
+    def save(self, first: int, data: dict[str, np.ndarray], state: dict[str, np.ndarray], record: dict) -> None:
+        """Samples first, first + 1, ... of the members, just written as `data` (name: (members, samples, ...)),
+        are finished: with the kernel's `state` and the record's (runner._Record.state), a segment file says so,
+        once the samples are on the disk."""
+        end = first + len(next(iter(data.values()))[0])
+        inside = {"first_member": self.start, "stop_member": self.stop, "first_sample": first, "stop_sample": end,
+                  "run_file_sha256": fingerprint(self.writer.parts.spec)["run_file_sha256"],
+                  **{f"samples_sum_{name}": f"{sample_sum(values, self.start, first):016x}"
+                     for name, values in data.items()}}
+        result = self.writer.parts.result
+        result.sync()
+        fsync_path(result.temporary)
+        name = f"segment-{self.start:012d}-{self.stop:012d}-{first:012d}-{end:012d}"
+        temporary = self.writer.parts.folder / f"{name}.tmp"
+        with open(temporary, "wb") as file:
+            np.savez(file, **state, **{k: v for k, v in record.items() if k != "noise"},
+                     noise=np.array(json.dumps(record["noise"])), inside=np.array(json.dumps(inside)))
+        path = self.writer.parts.folder / f"{name}-{_checksum(temporary)}.npz"
+        os.replace(temporary, path)
+        self.paths.append(path)
+
+    def discard(self) -> None:
+        for path in self.paths:
+            path.unlink(missing_ok=True)
+        self.paths = []
+
+
+def _load(path: Path) -> dict[str, np.ndarray]:
+    with np.load(path, allow_pickle=False) as data:
+        return dict(data)
+
+
+def _segment_inside(path: Path) -> dict:
+    """A segment file's own account of itself (see SegmentLog.save); empty when it cannot be read."""
+    try:
+        return json.loads(str(_load(path)["inside"]))
+    except (OSError, ValueError, KeyError, zipfile.BadZipFile):
+        return {}
 
 
 def sample_sum(values: np.ndarray, member: int, first: int) -> int:

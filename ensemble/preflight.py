@@ -187,15 +187,17 @@ def cause(error: Exception, out: Path, spec) -> str:
 
 def left_behind(out: Path, resume: str) -> str:
     """What an interrupted or failed run leaves, and how to finish it."""
-    from .parts import folder_of
+    from .parts import Parts, folder_of
     from .store import temporary_path
 
     folder = folder_of(out)
     finished = len(list(folder.glob("members-*.nc"))) if folder.exists() else 0
-    if not finished:
+    going = Parts.segments_left(out) if folder.exists() else []
+    if not finished and not going:
         return "no chunk had finished; nothing was kept"
-    return (f"the {finished} chunk(s) finished so far are kept in {temporary_path(out)} and {folder}; {resume} "
-            f"finishes the run")
+    kept = [f"the {finished} chunk(s) finished so far"] if finished else []
+    kept += [f"samples 0 to {end - 1} of members {start} to {stop - 1}" for start, stop, end in going]
+    return f"{' and '.join(kept)} are kept in {temporary_path(out)} and {folder}; {resume} finishes the run"
 
 
 class OutputLocked(EnsembleError):

@@ -92,10 +92,15 @@ def run_block(spec: Spec) -> int:
 
 def segment_samples(spec: Spec) -> int:
     """Saved samples per kernel call: every one, unless one kernel block's share of them would outgrow
-    CHUNK_BYTES; then the record runs in segments of this many samples (each call continues the last)."""
+    CHUNK_BYTES, or its work CHUNK_MEMBER_STEPS (on a GPU, chunk_budget's); then the record runs in segments of
+    this many samples (each call continues the last), and an interrupted run continues from the last segment that
+    finished (ensemble.parts.SegmentLog)."""
     per_sample, _ = _record_bytes(spec)
     block = run_block(spec)
-    return int(max(1, min(spec.n_save, chunk_budget(spec)[0] // (per_sample * block))))
+    memory, work = chunk_budget(spec)
+    steps = steps_per_member(spec)
+    by_work = spec.n_save * work / (block * steps) if steps else spec.n_save
+    return int(max(1, min(spec.n_save, memory // (per_sample * block), by_work)))
 
 
 def member_bytes(spec: Spec) -> int:
@@ -231,8 +236,9 @@ class _Record:
         self.noise = {name: noise_streams(spec, name, first, members) for name in spec.noise}
         self.times, self.amplitudes, self.errors = spec.times(), [], []
 
-    def add(self, start: int, samples: np.ndarray) -> None:
-        """Samples start, start + 1, ... (count, state rows, members) of the launch."""
+    def add(self, start: int, samples: np.ndarray) -> dict[str, np.ndarray]:
+        """Samples start, start + 1, ... (count, state rows, members) of the launch; returns the saved variables
+        written for them (name: (members, count, ...))."""
         spec, scene = self.spec, self.scene
         data = scene.observe(samples, spec.save, self.values, spec.constants)
         for name, streams in self.noise.items():
@@ -244,6 +250,23 @@ class _Record:
         if spec.measure["error"]:
             exact = scene.exact(self.values, spec.constants, self.times[start:start + len(samples)])
             self.errors.append(relative_error(samples, exact))
+        return data
+
+    def state(self) -> dict:
+        """What the record continues from after the last `add`: its noise streams' states ("noise") and that
+        add's pieces of the amplitudes and errors (arrays)."""
+        state = {"noise": {name: [g.bit_generator.state for g in streams] for name, streams in self.noise.items()}}
+        for name in ("amplitudes", "errors"):
+            if getattr(self, name):
+                state[name] = getattr(self, name)[-1]
+        return state
+
+    def restore(self, noise: dict, amplitudes: list[np.ndarray], errors: list[np.ndarray]) -> None:
+        """Continue from the pieces that `state` gave, add by add, and the noise states of the last."""
+        for name, states in noise.items():
+            for generator, state in zip(self.noise[name], states):
+                generator.bit_generator.state = state
+        self.amplitudes, self.errors = list(amplitudes), list(errors)
 
     def records(self, outcome: Outcome, seconds_per_step=None) -> dict[str, np.ndarray]:
         """The per-member records (member,) once every sample is added; seconds_per_step() times the kernel when
@@ -267,23 +290,27 @@ def _joined(pieces: list[np.ndarray], axis: int) -> np.ndarray:
 
 
 def integrate_members(spec: Spec, method: Method, values: dict[str, np.ndarray], first: int, write_samples,
-                      repeats: int = 0, watch=None, threads: int | None = None):
+                      repeats: int = 0, watch=None, threads: int | None = None, log=None):
     """Integrate members first, first + 1, ... (one method and dt); returns finish(), which hands their saved
     variables to write_samples(first sample, variables) and returns the per-member records (member,).
 
     A record in one kernel call (segment_samples) is observed and written in finish(), so that finish can run on
     another thread while the next kernel runs; a record in segments is, segment by segment, as it comes (its
-    kernel's buffer is reused). watch as launch.integrate's."""
+    kernel's buffer is reused), and each finished segment is saved to `log` (a parts.SegmentLog), from whose
+    last segment the members continue. watch as launch.integrate's."""
     scene = spec.model
     settings = _settings(spec, method, values)
     call = launch.Launch(scene, method, values, spec.constants, **settings, segment=segment_samples(spec))
     record = _Record(spec, method, values, first, call.members, write_samples)
     whole = []
-    for start, samples in call.segments(threads, watch=watch):
+    resume = log and log.resumed(call, record)
+    for start, samples in call.segments(threads, watch=watch, resume=resume):
         if call.segment == call.n_save:
             whole.append((start, samples))
         else:
-            record.add(start, samples())
+            data = record.add(start, samples())
+            if log is not None:
+                log.save(start, data, call.state(), record.state())
     outcome = call.outcome()
     stepping = {**settings, "n_save": 2, "save_dt": spec.t_end}  # the same steps, saving only the end
 
@@ -310,7 +337,8 @@ def integrate_chunk(spec: Spec, start: int, stop: int, sink, repeats: int = 0, w
         finishes.append(integrate_members(
             spec, METHODS[str(values["method"][0])], values, start + k0,
             lambda first, samples, k0=k0: sink.write_samples(start + k0, first, samples),
-            repeats, watch=fraction, threads=threads))
+            repeats, watch=fraction, threads=threads,
+            log=sink.log(start + k0, start + k1) if hasattr(sink, "log") else None))
 
     def finish() -> dict[str, np.ndarray]:
         records = [f() for f in finishes]
@@ -358,8 +386,10 @@ def run(spec: Spec, out: str | Path, *, chunk: int | None = None, progress: bool
     parts = Parts(out, spec, resume=resume)
     if resume and progress:
         dropped = f"; dropped {', '.join(parts.dropped)}" if parts.dropped else ""
+        going = "".join(f"; members {j0} to {j1 - 1} continue from sample {k} of {spec.n_save}"
+                        for j0, j1, k in parts.continuing())
         print(f"resuming: {parts.members_done()} of {spec.n_members} members in {len(parts.parts)} part(s) kept"
-              f"{dropped}", file=sys.stderr, flush=True)
+              f"{going}{dropped}", file=sys.stderr, flush=True)
     held = HeldInterrupts()
     try:
         n = spec.n_members
@@ -369,7 +399,7 @@ def run(spec: Spec, out: str | Path, *, chunk: int | None = None, progress: bool
         repeats = spec.measure["repeats"] if spec.measure["timing"] else 0
         tally = Tally()
         began = time.perf_counter()
-        with Writer(out, spec, members_table(spec), command, reopen=bool(parts.parts)) as result:
+        with Writer(out, spec, members_table(spec), command, reopen=bool(parts.parts or parts.segments)) as result:
             parts.result = result
             with Bar(total=n, initial=parts.members_done(), unit="member", file=sys.stderr, disable=not progress,
                       leave=False, bar_format=BAR) as bar:
@@ -388,7 +418,7 @@ def run(spec: Spec, out: str | Path, *, chunk: int | None = None, progress: bool
     except BaseException:
         held.stop()
         with HeldInterrupts():  # a second Ctrl-C must not cut the cleanup short
-            if not parts.close():  # nothing finished: nothing to resume
+            if not parts.close() and not Parts.segments_left(out):  # nothing finished: nothing to resume
                 Parts.discard(out)
         raise
     Parts.discard(out)

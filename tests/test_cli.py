@@ -169,8 +169,9 @@ def test_the_command_printed_after_an_interrupted_force_run_finishes_it(write_ru
 
 def test_ctrl_c_inside_a_long_kernel_call_stops_the_run_at_once(tmp_path):
     """One save interval of 5e9 steps (hours): Ctrl-C while the kernel runs ends the process within seconds, exit
-    130, keeping nothing (no chunk had finished) and writing no output. The kernel runs on daemon threads; the
-    main thread only waits, so the interrupt reaches it."""
+    130, keeping only the segment that finished (the first sample: a member resumes at its saved samples) and
+    writing no output. The kernel runs on daemon threads; the main thread only waits, so the interrupt reaches
+    it."""
     import signal
     import time
 
@@ -193,8 +194,9 @@ def test_ctrl_c_inside_a_long_kernel_call_stops_the_run_at_once(tmp_path):
     finally:
         run.kill()
     assert run.returncode == 130 and time.monotonic() - sent < 5, err
-    assert err.splitlines()[-1] == "ensemble: interrupted; no chunk had finished; nothing was kept", err
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["long.toml"]
+    assert err.splitlines()[-1] == (f"ensemble: interrupted; samples 0 to 0 of members 0 to 0 are kept in {result} "
+                                    f"and {out}.parts; ensemble run {runfile} -o {out} --resume finishes the run"), err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["long.nc.parts", "long.nc.tmp", "long.toml"]
 
 
 def test_the_watch_sees_the_fraction_done_grow_to_one():

@@ -183,3 +183,33 @@ def test_a_run_is_resumed_only_on_the_device_it_started_on(tmp_path, monkeypatch
     assert err.count("\n") == 1 and "was made by another run (device differs)" in err
     assert not out.exists() and list(tmp_path.glob("out.nc.parts/members-*"))
     assert cli.main(["run", str(path), "-o", str(out), "--quiet", "--resume"]) == 0
+
+
+@pytest.mark.parametrize("method", ["rk4", "dopri5"])
+def test_a_long_record_on_the_gpu_continues_from_its_last_segment(tmp_path, monkeypatch, method):
+    """Issue 40, item 8 on the GPU: a record in segments of one sample, interrupted after its second segment,
+    resumes from the kernel state the GPU left there (copied out after each segment) to the bits of one run."""
+    from ensemble import parts
+
+    from .test_resume import same_bits
+
+    monkeypatch.setattr(runner, "GPU_CHUNK_BYTES", 64)
+    spec = spec_of(TOP, method, device="cuda")
+    assert runner.segment_samples(spec) == 1 and spec.n_save == 5
+    whole, out = tmp_path / "whole.nc", tmp_path / "out.nc"
+    runner.run(spec, whole, progress=False)
+    real, saved = parts.SegmentLog.save, []
+
+    def save(self, *args):
+        real(self, *args)
+        saved.append(1)
+        if len(saved) == 2:
+            raise KeyboardInterrupt
+
+    monkeypatch.setattr(parts.SegmentLog, "save", save)
+    with pytest.raises(KeyboardInterrupt):
+        runner.run(spec, out, progress=False)
+    monkeypatch.setattr(parts.SegmentLog, "save", real)
+    assert len(list(tmp_path.glob("out.nc.parts/segment-*.npz"))) == 2
+    runner.run(spec, out, progress=False, resume=True)
+    same_bits(out, whole)

@@ -430,7 +430,7 @@ class GpuLaunch:
             self.steps_per_save = round(save_dt / dt)
             self.head = (self.state0, self.rate, float(dt), int(self.steps_per_save), self.limit)
 
-    def segments(self, threads: int | None = None, watch=None):
+    def segments(self, threads: int | None = None, watch=None, resume: tuple[int, dict] | None = None):
         """As launch.Launch.segments (threads is ignored): yields (first, samples) per kernel call, samples()
         returning (count, state rows, members) float64 in host memory. Segment k + 1 integrates while the caller
         handles segment k, whose samples are overwritten by segment k + 2: the caller copies what it keeps."""
@@ -438,20 +438,24 @@ class GpuLaunch:
 
         n = self.members
         compute, copy = cuda.stream(), cuda.stream()
-        self.status = cuda.to_device(np.zeros(n, np.int8))
-        self.failure_time = cuda.to_device(np.full(n, np.nan))
-        self.works = cuda.to_device(np.zeros((self.kernel.rows, n)))
-        self.counts = cuda.to_device(np.zeros((3, n))) if self.method.adaptive else None
+        start = {"status": np.zeros(n, np.int8), "failure_time": np.full(n, np.nan),
+                 "works": np.zeros((self.kernel.rows, n)), **({"counts": np.zeros((3, n))} if self.method.adaptive
+                                                                else {}), **(resume[1] if resume else {})}
+        for name, value in start.items():
+            setattr(self, name, cuda.to_device(value))
         tail = ((self.counts,) if self.method.adaptive else ()) + (self.status, self.failure_time, self.works)
         grid = max(1, -(-n // THREADS))
         copied, waiting = {}, None
-        for k, first in enumerate(range(0, self.n_save, self.segment)):
+        for k, first in enumerate(range(resume[0] if resume else 0, self.n_save, self.segment)):
             count = min(self.segment, self.n_save - first)
             shape = (count, self.state_rows, n)
             if k >= 2:
                 copied[k - 2].wait(compute)  # its buffer is copied out before this segment overwrites it
             samples = self._buffer(("device", k % 2, shape), lambda: cuda.device_array(shape, dtype=self.real))
             self.kernel.function[grid, THREADS, compute](*self.head, samples, *tail, first, n)
+            snapshot = {name: getattr(self, name).copy_to_host(
+                self._buffer(("state", k % 2, name), lambda name=name: cuda.pinned_array_like(start[name])),
+                stream=compute) for name in start}  # what state() gives once this segment is handed on
             integrated = cuda.event()
             integrated.record(compute)
             integrated.wait(copy)
@@ -461,7 +465,7 @@ class GpuLaunch:
             copied[k].record(copy)
             if waiting is not None:
                 yield self._handed(waiting, watch)
-            waiting = (first, count, host, copied[k])
+            waiting = (first, count, host, copied[k], snapshot)
         if waiting is not None:
             yield self._handed(waiting, watch)
         cuda.synchronize()
@@ -475,11 +479,21 @@ class GpuLaunch:
         return self.buffers[key]
 
     def _handed(self, waiting, watch):
-        first, count, host, event = waiting
+        first, count, host, event, self._state = waiting
         event.synchronize()
         if watch is not None:
             watch(min(1.0, (first + count - 1) / max(self.n_save - 1, 1)))
         return first, lambda: host if host.dtype == np.float64 else host.astype(np.float64)
+
+    def state(self) -> dict[str, np.ndarray]:
+        """As launch.Launch.state: copies, in host memory, of what the last segment handed on left."""
+        return {name: value.copy() for name, value in self._state.items()}
+
+    def takes(self, state: dict[str, np.ndarray]) -> bool:
+        n, rows = self.members, self.kernel.rows
+        mine = {"status": ((n,), np.int8), "failure_time": ((n,), np.float64), "works": ((rows, n), np.float64),
+                **({"counts": ((3, n), np.float64)} if self.method.adaptive else {})}
+        return mine.keys() == state.keys() and all((v.shape, v.dtype) == mine[k] for k, v in state.items())
 
     def run(self, threads: int | None = None, watch=None) -> None:
         keep = np.array if self.segment < self.n_save else np.asarray  # segments share two buffers: copies

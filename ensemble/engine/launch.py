@@ -114,15 +114,17 @@ class Launch:
         self.progress = np.zeros(blocks, dtype=np.int64)
         self.counts = np.zeros((3, padded)) if method.adaptive else None  # fixed steps are counted afterwards
 
-    def segments(self, threads: int | None = None, watch=None):
+    def segments(self, threads: int | None = None, watch=None, resume: tuple[int, dict] | None = None):
         """Run the kernel (or evaluate the closed form) from the start, on `threads` threads (default
         thread_count()); yields (first, samples) per call, samples() returning samples first .. first + count - 1
         as (count, state rows, members): a view of the array the kernel wrote, member by member (a new one each
         call, so it may be read on another thread while the next call runs). watch(fraction of the run done), if
         given, is called from this thread while it waits. A run in segments gives the bits of one in a single
-        call: each call continues from the work arrays the last one left."""
+        call: each call continues from the work arrays the last one left. resume = (sample, state()) continues a
+        run that had made samples 0 .. sample - 1 and then stopped, from what state() gave there."""
+        first_sample = resume[0] if resume else 0
         if self.method.closed_form:
-            for first in range(0, self.n_save, self.segment):
+            for first in range(first_sample, self.n_save, self.segment):
                 exact = self.exact(first, min(self.segment, self.n_save - first))
                 yield first, lambda exact=exact: exact
             return
@@ -136,13 +138,30 @@ class Launch:
         else:
             head = (self.state0, self.rate, float(self.dt), int(self.steps_per_save), self.limit)
             tail = (self.status, self.failure_time, self.progress, self.works)
-        for first in range(0, self.n_save, self.segment):
+        for name, value in (resume[1] if resume else {}).items():
+            getattr(self, name)[:] = value
+        for first in range(first_sample, self.n_save, self.segment):
             samples = np.empty((self.members, min(self.segment, self.n_save - first), self.state_rows))
             self.progress[:] = 0
             done = None if watch is None else (
                 lambda: watch(min(1.0, (first + self.progress.mean()) / max(self.n_save - 1, 1))))
             run_blocks(self.kernel.function, (*head, samples, *tail, first), self.state0.shape[0], threads, done)
             yield first, lambda samples=samples: samples.transpose(1, 2, 0)
+
+    def state(self) -> dict[str, np.ndarray]:
+        """Copies of what the kernel continues from (work arrays, status, failure times, adaptive counts), as the
+        last segment that `segments` yielded left them: `segments(resume=(its first + count, state()))` continues
+        from there, to the same bits. Empty for a closed form."""
+        if self.method.closed_form:
+            return {}
+        names = ("works", "status", "failure_time") + (("counts",) if self.method.adaptive else ())
+        return {name: getattr(self, name).copy() for name in names}
+
+    def takes(self, state: dict[str, np.ndarray]) -> bool:
+        """Whether `state` (from state()) is of this launch's layout: the same arrays, shapes and types."""
+        mine = self.state()
+        return mine.keys() == state.keys() and all(
+            mine[k].shape == state[k].shape and mine[k].dtype == state[k].dtype for k in mine)
 
     def run(self, threads: int | None = None, watch=None) -> None:
         """Run the whole record (as `segments`), keeping every sample for `outcome`."""
