@@ -43,6 +43,12 @@ def _parser() -> argparse.ArgumentParser:
                        help="compute on N Dask worker processes started here (needs the dask extra)")
     commands.add_parser("methods", help="list the integration methods",
                         description="List each method: order, symplectic or not, and the scenes it applies to.")
+    tune = commands.add_parser("tune", help="time this machine's kernel layouts and keep the fastest (once per "
+                                            "machine, about a minute)",
+                               description="Time the candidate kernel layouts on this machine (vector width, "
+                                           "members per block) and keep the winners for every later run; see "
+                                           "docs/speed.md.")
+    tune.add_argument("--dry-run", action="store_true", help="measure and print, but keep nothing")
     _analysis_parsers(commands)
     _inertia_parser(commands)
     return parser
@@ -170,9 +176,10 @@ def _quiet_numpy() -> None:
 def _run(args) -> int:
     _skip_numba_blas_probe()
     _quiet_numpy()
-    from . import interrupts, preflight
+    from . import interrupts, preflight, tuning
 
     interrupts.remember()
+    tuning.prepare()  # before anything compiles: the vector width is fixed from there
     from .errors import Incomplete
     from .interrupts import HeldInterrupts
     from .parts import PartsError
@@ -249,6 +256,23 @@ def _stopped(error: BaseException, runfile: Path, out: Path, resume: str, spec) 
     # netCDF4 reports HDF5 write failures as RuntimeError
     print(f"ensemble: error: {out}: writing failed ({preflight.cause(error, out, spec)}); {left}", file=sys.stderr)
     return EXIT_FAILED
+
+
+def _tune(args) -> int:
+    from . import tuning
+
+    print(f"tuning this machine: {tuning.host_key()['cpu']}")
+    try:
+        chosen, measured = tuning.tune(say=lambda line: print(line, flush=True))
+    except RuntimeError as e:
+        return _error(str(e))
+    print(f"chosen: vectors {tuning.width_name(chosen.vector_bits)}, generated kernels' blocks "
+          f"{chosen.block or 'the engine default'}")
+    if args.dry_run:
+        print("kept nothing (--dry-run)")
+    else:
+        print(f"wrote {tuning.save(chosen, measured)}: every later `ensemble run` here uses it")
+    return 0
 
 
 def _methods() -> int:
@@ -331,6 +355,8 @@ def main(argv: list[str] | None = None) -> int:
         return _run(args)
     if args.command == "inertia":
         return _inertia(args)
+    if args.command == "tune":
+        return _tune(args)
     if args.command in ("fit", "stability", "work-precision"):
         from . import report
 

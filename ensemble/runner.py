@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from . import interrupts
+from . import interrupts, tuning
 from .bars import BAR, Bar
 from .engine import launch
 from .interrupts import HeldInterrupts, LateInterrupt
@@ -376,6 +376,7 @@ def run(spec: Spec, out: str | Path, *, chunk: int | None = None, progress: bool
     chunks that keep failing there raise Incomplete after the rest are done. `command` is recorded in the
     file's history (default: `ensemble run <run file>`)."""
     out = Path(out)
+    _tuned(progress)
     if resume and Parts.left_complete(out, spec):
         Parts.discard(out)
         return Summary(0, 0, 0.0, resumed=spec.n_members, complete_already=True)
@@ -426,6 +427,14 @@ def run(spec: Spec, out: str | Path, *, chunk: int | None = None, progress: bool
     if held.stop():
         raise LateInterrupt(summary)
     return summary
+
+
+def _tuned(progress: bool) -> None:
+    """Apply this machine's tuning (ensemble.tuning), saying once (with progress) what there is to say of it."""
+    tuning.prepare()
+    said = tuning.pending_line()
+    if said and progress:
+        print(said, file=sys.stderr, flush=True)
 
 
 def _summary(spec: Spec, tally: Tally, records: dict[str, np.ndarray], seconds: float, preparing: float) -> Summary:

@@ -9,6 +9,14 @@ import pytest
 if os.environ.get("ENSEMBLE_TEST_GPU") != "1":
     os.environ.setdefault("NUMBA_ENABLE_CUDASIM", "1")
 
+if "ENSEMBLE_TUNING_FILE" not in os.environ:  # runs under test keep the engine's defaults and say nothing of tuning
+    import tempfile
+    from pathlib import Path
+
+    from ensemble import tuning
+
+    os.environ["ENSEMBLE_TUNING_FILE"] = str(tuning.save(tuning.Tuning(), {}, Path(tempfile.mkdtemp()) / "t.json"))
+
 
 def _toml_value(value) -> str:
     if isinstance(value, str):

@@ -60,7 +60,7 @@ from bench_chain import numpy_verlet
 from bench_top import numpy_rk
 from hostinfo import LIMIT, CBeside, host
 
-from ensemble import records
+from ensemble import records, tuning
 from ensemble.arguments import OneLineParser, positive_int
 from ensemble.engine import launch
 from ensemble.methods import METHODS
@@ -384,7 +384,21 @@ def c_limit() -> dict[str, float]:
     for line in out.splitlines():
         if match := re.match(r"(top rk4|chain verlet N=(\d+))\s+([0-9.e+]+)", line):
             rates["top rk4" if match[2] is None else f"chain verlet N={match[2]}"] = float(match[3])
+        elif match := re.match(r"peak FMA\s+([0-9.e+]+)", line):
+            rates["peak flop/s"] = float(match[1])
     return rates
+
+
+#: Flops a step of a case makes, as ../shared/limit/ens.c counts them (a fused multiply-add is 2): a top rk4
+#: member-step 68, a verlet mass-step 10 (a chain's and a ring's); yoshida4 makes three verlet force sweeps a step.
+FLOPS_PER_STEP = {"top rk4": 68, "verlet": 10, "yoshida4": 30}
+
+
+def peak_share(name: str, rate: float, limit: dict[str, float]) -> str:
+    """' , P% of peak' for a case whose flops per step are counted (FLOPS_PER_STEP), with limit.py's peak."""
+    flops = FLOPS_PER_STEP.get(name) or next((f for k, f in FLOPS_PER_STEP.items() if f" {k} " in f" {name} "), None)
+    peak = limit.get("peak flop/s")
+    return f", {rate * flops / peak:.0%} of peak" if flops and peak else ""
 
 
 # --- whole runs (--full) ---------------------------------------------------------------------------------------
@@ -478,7 +492,9 @@ def main() -> None:
     parser.add_argument("--whole", action="store_true", help="only the two whole-run workloads, --repeats times "
                                                             "each, beside the C measured just before them")
     args = parser.parse_args()
+    tuning.prepare()  # this machine's `ensemble tune` choices, before anything compiles
     print(host(), flush=True)
+    print(f"tuning: {tuning.describe()}", flush=True)
     if args.whole:
         return whole_only(args.repeats)
     peers, naive = not args.no_peers, naive_numba()
@@ -513,7 +529,7 @@ def main() -> None:
     for name, case in runs.items():
         if name in with_peers:
             cases[name] = {**case(True, timed=1), **cases[name]}  # ensemble's (and the C's) from the rounds
-        print(name, _row(cases[name]), flush=True)
+        print(name, _row(cases[name]) + peak_share(name, cases[name]["ensemble"], limit), flush=True)
     print("top rk4 kernel on", ", ".join(f"{t} thread(s) {r:.3g}" for t, r in zip(threads, by_threads)), flush=True)
     names = list(cases)
     rates = np.array([[cases[c].get(p, np.nan) for p in PEERS] for c in names])

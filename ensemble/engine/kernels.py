@@ -22,6 +22,7 @@ from numba.core.registry import CPUDispatcher
 
 from ..methods import Method
 from ..scenes.contract import load, python_function
+from ..tuning import applied
 from . import templates
 from .blocks import FAST, HELPERS, Kernel
 
@@ -73,9 +74,10 @@ def factor_counts(where: str, pieces: tuple[str, ...], parameters: int) -> dict[
 
 
 def block_size(scene, constants: dict, method: Method) -> int:
-    """Members per kernel block."""
+    """Members per kernel block: the scene's BLOCK if it names one, else this machine's tuning
+    (ensemble.tuning), else BLOCK."""
     own = _own_kernels(scene)
-    return own.block_size(constants, method) if own else getattr(scene, "BLOCK", BLOCK)
+    return own.block_size(constants, method) if own else getattr(scene, "BLOCK", None) or applied().block or BLOCK
 
 
 def kernel(scene, method: Method, constants: dict) -> Kernel:
@@ -85,7 +87,7 @@ def kernel(scene, method: Method, constants: dict) -> Kernel:
         return own.kernel(method, constants)
     D, P = scene.kernel_rows(constants)
     return _generated(scene.NAME, scene.PHYSICS, tuple(scene.PIECES), method, D, P,
-                      getattr(scene, "BLOCK", BLOCK))
+                      block_size(scene, constants, method))
 
 
 def _own_kernels(scene) -> ModuleType | None:

@@ -1,0 +1,281 @@
+"""This machine's kernel layout, chosen by measurement (`ensemble tune`) and kept in a small file.
+
+LLVM picks a vector width for each CPU model: on recent Intel server cores it prefers 256-bit vectors even where
+512-bit ones are there, and the hand-written C of ../shared/limit, compiled with gcc, uses 512. On an Intel Xeon
+(Emerald Rapids) the top's rk4 kernel ran at 0.64 of that C with 256-bit vectors and at 1.02 with 512
+(docs/speed.md). No rule fits every CPU, so `ensemble tune` times the candidates here: the vector width LLVM
+prefers (a process-wide setting of Numba's code generator), and the members per block of the kernels the engine
+generates from its templates. The winners go to tuning_path(), keyed by the CPU model, its vector extensions,
+Numba's version and a hash of the engine's kernel sources; a file of another machine or engine is ignored with
+one line. `ensemble run` applies a valid file before it compiles anything (`apply`); without one it uses the
+engine's rules and says once that `ensemble tune` may make runs faster. It never tunes on its own.
+
+Neither choice changes a member's arithmetic: every run file in runs/ and the method sweeps gave the same bits
+with 256- and 512-bit vectors on the Intel Xeon, and a block holds members side by side, each computed alone
+(tests/test_tuning.py checks both).
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import platform
+import tempfile
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+FORMAT = 1
+HINT = "ensemble: this machine's kernels are untuned; `ensemble tune` (once, about a minute) may make runs faster"
+
+
+@dataclass(frozen=True)
+class Tuning:
+    """The choices: vector_bits (512 or 256: the width LLVM is told to prefer; None: its own choice for this CPU)
+    and block (members per block of the kernels generated from the engine's templates; None: the engine's)."""
+    vector_bits: int | None = None
+    block: int | None = None
+
+
+def tuning_path() -> Path:
+    """ENSEMBLE_TUNING_FILE, else tuning.json beside the generated kernels (ensemble.engine.kernels.kernel_folder)."""
+    if os.environ.get("ENSEMBLE_TUNING_FILE"):
+        return Path(os.environ["ENSEMBLE_TUNING_FILE"])
+    from .engine.kernels import kernel_folder
+
+    return kernel_folder() / "tuning.json"
+
+
+def host_key() -> dict[str, str]:
+    """What a tuning holds for: the CPU model and its vector extensions, Numba's version, and the engine's kernel
+    sources (a new engine may want other choices)."""
+    import numba
+
+    model, flags = platform.processor() or "unknown", set()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                model = line.split(":", 1)[1].strip()
+            elif line.startswith("flags"):
+                flags = set(line.split(":", 1)[1].split())
+    except OSError:
+        pass
+    vectors = ",".join(sorted(f for f in flags if f.startswith(("avx", "fma", "sse4"))))
+    return {"cpu": model, "vectors": vectors, "numba": numba.__version__, "engine": engine_hash()}
+
+
+def engine_hash() -> str:
+    """SHA-256 of the engine's kernel sources: its templates and helpers, and the chain's own kernels."""
+    root = Path(__file__).parent
+    digest = hashlib.sha256()
+    for path in (root / "engine" / "templates.py", root / "engine" / "blocks.py",
+                 root / "scenes" / "chain" / "kernels.py"):
+        digest.update(path.read_bytes())
+    return digest.hexdigest()
+
+
+def load(path: Path | None = None) -> tuple[Tuning | None, str | None]:
+    """(the tuning of this machine from `path` (default tuning_path()), None) or (None, one line saying why there
+    is none: untuned, or a file that is unreadable or another machine's)."""
+    path = path or tuning_path()
+    if not path.exists():
+        return None, HINT
+    try:
+        found = json.loads(path.read_text())
+        choices = found["choices"]
+        tuning = Tuning(vector_bits=choices.get("vector_bits"), block=choices.get("block"))
+        if tuning.vector_bits not in (None, 256, 512) or (
+                tuning.block is not None and (not isinstance(tuning.block, int) or tuning.block not in BLOCKS)):
+            raise ValueError("unknown choices")
+    except (OSError, ValueError, KeyError, TypeError, AttributeError) as e:
+        return None, f"ensemble: ignoring {path}: it cannot be read ({e}); `ensemble tune` writes a new one"
+    if found.get("format") != FORMAT or found.get("host") != host_key():
+        return None, (f"ensemble: ignoring {path}: it was tuned on another machine, Numba or engine; "
+                      f"`ensemble tune` tunes this one")
+    return tuning, None
+
+
+BLOCKS = (32, 64, 128, 256)  # the block sizes `ensemble tune` tries for generated kernels
+_applied: Tuning | None = None
+
+
+def applied() -> Tuning:
+    """The tuning this process runs with (apply's), or the engine's rules."""
+    return _applied or Tuning()
+
+
+def apply(tuning: Tuning | None) -> str | None:
+    """Run this process's kernels with `tuning` (None: the engine's rules). The vector width takes effect only
+    before Numba's code generator starts (its first compile or cache load), and not where NUMBA_CPU_FEATURES or
+    NUMBA_CPU_NAME is set; returns one line when it had started already with another width, else None."""
+    global _applied
+    _applied = tuning
+    if tuning is None or tuning.vector_bits is None or "NUMBA_CPU_FEATURES" in os.environ or (
+            "NUMBA_CPU_NAME" in os.environ):  # the user's own choice of code for this CPU stands
+        return None
+    features = vector_features(tuning.vector_bits)
+    if not set_features(features):
+        return (f"ensemble: the tuned {tuning.vector_bits}-bit vectors need a fresh process (Numba had compiled "
+                f"before); this run uses the width LLVM prefers")
+    return None
+
+
+def vector_features(bits: int | None) -> str | None:
+    """Numba's CPU features string for this host with LLVM told to prefer `bits`-bit vectors (None: as is)."""
+    if bits is None:
+        return None
+    from llvmlite import binding
+
+    return binding.get_host_cpu_features().flatten() + (",-prefer-256-bit" if bits == 512 else ",+prefer-256-bit")
+
+
+def set_features(features: str | None) -> bool:
+    """Set Numba's CPU features for this process's code generator; False if it had started with others."""
+    from numba.core import config, registry
+
+    started = "_toplevel_target_context" in registry.cpu_target.__dict__
+    if started:
+        return config.CPU_FEATURES == features
+    config.CPU_FEATURES = features
+    return True
+
+
+def save(tuning: Tuning, measured: dict, path: Path | None = None) -> Path:
+    """Write the tuning file (atomically): the choices, what they hold for, and the rates they were chosen by."""
+    path = path or tuning_path()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    text = json.dumps({"format": FORMAT, "host": host_key(), "choices": asdict(tuning), "measured": measured},
+                      indent=1)
+    handle, temporary = tempfile.mkstemp(dir=path.parent, suffix=".tmp")
+    with os.fdopen(handle, "w") as out:
+        out.write(text)
+    os.replace(temporary, path)
+    return path
+
+
+# ---------------------------------------------------------------- measuring (`ensemble tune`)
+
+CANDIDATE_MARGIN = 1.03  # a candidate replaces the engine's default only when this much faster
+ROUNDS = 2  # each candidate's process runs this many times, the candidates in turn
+
+
+def tune(say=print) -> tuple[Tuning, dict]:
+    """Time the candidates on this machine and return (the winning Tuning, the rates measured). Each vector width
+    runs in a process of its own (it is fixed once Numba has compiled), ROUNDS times in turn; the top's rk4
+    kernel at the engine's block and the chain's verlet at 16 masses vote with the geometric mean of their rates.
+    Then the blocks of the generated kernels are timed under the winning width."""
+    widths = [None, 512, 256] if "avx512f" in host_key()["vectors"].split(",") else [None]
+    from .engine.kernels import BLOCK
+
+    rounds = [{bits: _measured(bits, [BLOCK]) for bits in widths} for _ in range(ROUNDS)]
+    rates = {bits: {case: sum(r[bits][case] for r in rounds) / ROUNDS for case in rounds[0][bits]} for bits in widths}
+    for bits in widths:
+        say(f"  vectors {width_name(bits):>14}: " + ", ".join(f"{k} {v:.3g}" for k, v in rates[bits].items()))
+    score = {bits: (rates[bits][f"top rk4, block {BLOCK}"] * rates[bits]["chain verlet N=16"]) ** 0.5
+             for bits in widths}
+    bits = max(widths, key=lambda b: score[b] / (1.0 if b is None else CANDIDATE_MARGIN))
+    others = [b for b in BLOCKS if b != BLOCK]
+    blocks = {**{BLOCK: rates[bits][f"top rk4, block {BLOCK}"]},
+              **{b: v for b, v in zip(others, _measured(bits, others, chain=False).values())}}
+    say("  generated kernels' blocks under the chosen vectors: "
+        + ", ".join(f"{b} members {v:.3g}" for b, v in sorted(blocks.items())))
+    block = max(blocks, key=lambda b: blocks[b] / (1.0 if b == BLOCK else CANDIDATE_MARGIN))
+    measured = {"vectors": {width_name(b): rates[b] for b in widths},
+                "blocks": {str(b): v for b, v in blocks.items()}, "units": "member-steps/s (top), mass-steps/s (chain)"}
+    return Tuning(vector_bits=bits, block=None if block == BLOCK else block), measured
+
+
+def width_name(bits: int | None) -> str:
+    return "LLVM's choice" if bits is None else f"{bits}-bit"
+
+
+def _measured(bits: int | None, blocks: list[int], chain: bool = True) -> dict[str, float]:
+    """measure_here's rates, from a process of its own."""
+    import subprocess
+    import sys
+
+    asked = json.dumps({"bits": bits, "blocks": blocks, "chain": chain})
+    done = subprocess.run([sys.executable, "-c", f"from ensemble.tuning import _serve; _serve({asked!r})"],
+                          capture_output=True, text=True, check=False)
+    if done.returncode != 0:
+        raise RuntimeError(f"timing the {width_name(bits)} vectors failed: "
+                           f"{(done.stderr.strip().splitlines() or ['?'])[-1]}")
+    return json.loads(done.stdout.strip().splitlines()[-1])
+
+
+def _serve(asked: str) -> None:
+    asked = json.loads(asked)
+    print(json.dumps(measure_here(asked["bits"], asked["blocks"], asked["chain"])))
+
+
+def measure_here(bits: int | None, blocks: list[int], chain: bool = True) -> dict[str, float]:
+    """In a process that has compiled nothing yet: the top's rk4 kernel at each block (member-steps/s) and the
+    chain's verlet at 16 masses (mass-steps/s), with LLVM preferring `bits`-bit vectors; medians of 5 calls."""
+    import numpy as np
+
+    set_features(vector_features(bits))
+    from .engine import launch
+    from .methods import METHODS
+    from .scenes import SCENES
+
+    members, steps = 32768, 1000
+    rng = np.random.default_rng(0)
+    top = {"lambda1": np.full(members, 1e-3), "lambda3": np.full(members, 2e-3), "c": np.full(members, 1e-4),
+           "spin0": np.full(members, 60.0), "tilt0": rng.uniform(0.02, 0.2, members),
+           "azimuth0": rng.uniform(0.0, 6.28, members)}
+    rates = {}
+    for block in blocks:
+        apply(Tuning(block=block))
+        call = launch.Launch(SCENES["top"], METHODS["rk4"], top, {}, n_save=2, save_dt=steps * 1e-3, dt=1e-3)
+        rates[f"top rk4, block {block}"] = members * steps / _median_seconds(call)
+    if chain:
+        n, chains = 16, 4096
+        masses = {"m": np.ones((chains, n)), "k": np.ones((chains, n + 1)), "x0": rng.normal(0, 0.1, (chains, n)),
+                  "v0": np.zeros((chains, n))}
+        call = launch.Launch(SCENES["chain"], METHODS["verlet"], masses, {"n": n, "boundary": "fixed"}, n_save=2,
+                             save_dt=steps * 0.01, dt=0.01)
+        rates["chain verlet N=16"] = n * chains * steps / _median_seconds(call)
+    return rates
+
+
+def _median_seconds(call, repeats: int = 5) -> float:
+    import statistics
+    import time
+
+    call.run()  # compiles or loads the kernel
+    seconds = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        call.run()
+        seconds.append(time.perf_counter() - start)
+    return statistics.median(seconds)
+
+
+_prepared = False
+_pending: str | None = None
+
+
+def prepare() -> None:
+    """Load this machine's tuning file and apply it, once per process, before anything is compiled (`ensemble
+    run` calls it first thing); what to say about it waits for pending_line."""
+    global _prepared, _pending
+    if _prepared:
+        return
+    _prepared = True
+    tuning, line = load()
+    _pending = apply(tuning) or line
+
+
+def pending_line() -> str | None:
+    """The one line prepare has to say (untuned, a file ignored, a width that came too late), once per process."""
+    global _pending
+    line, _pending = _pending, None
+    return line
+
+
+def describe() -> str:
+    """What this process runs with, in words (benchmarks print it beside the host)."""
+    tuning = applied()
+    if _applied is None:
+        return "untuned (the engine's rules and LLVM's vector width)"
+    return (f"vectors {width_name(tuning.vector_bits)}, generated kernels' blocks "
+            f"{tuning.block or 'the engine default'} (from {tuning_path()})")

@@ -1,0 +1,137 @@
+"""Per-machine tuning (issue 41): `ensemble tune`'s choices are kept in a file keyed by the machine and the engine;
+a run applies a valid file, says once in one line when there is none or it is ignored (corrupt, another machine's),
+and gives the same bits tuned and untuned."""
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+
+import pytest
+
+from ensemble import cli, runner, tuning
+from ensemble.engine import kernels
+from ensemble.methods import METHODS
+from ensemble.scenes import SCENES
+from ensemble.spec import load
+
+from .conftest import top_runfile
+from .test_resume import same_bits
+
+TOPS = top_runfile(members=20, t_end=0.5, save_dt=0.05, method=None) + (
+    '[[sweep]]\nmethod = ["rk4", "split2"]\n[[sweep]]\nmethod = ["dopri5"]\nrtol = [1e-8]\n')
+
+
+@pytest.fixture
+def fresh(monkeypatch, tmp_path):
+    """This process as if it had not looked for its tuning yet, with its tuning file at tmp_path/tuning.json."""
+    path = tmp_path / "tuning.json"
+    monkeypatch.setenv("ENSEMBLE_TUNING_FILE", str(path))
+    monkeypatch.setattr(tuning, "_prepared", False)
+    monkeypatch.setattr(tuning, "_pending", None)
+    monkeypatch.setattr(tuning, "_applied", None)
+    return path
+
+
+def _stderr_of_two_runs(spec, folder, capsys) -> list[str]:
+    for name in ("a.nc", "b.nc"):
+        runner.run(spec, folder / name, progress=True)
+    return [line for line in capsys.readouterr().err.splitlines() if line.startswith("ensemble:")]
+
+
+def test_an_untuned_machine_is_told_once(fresh, tmp_path, write_runfile, capsys):
+    spec = load(write_runfile(TOPS))
+    assert _stderr_of_two_runs(spec, tmp_path, capsys) == [tuning.HINT]
+    assert "ensemble tune" in tuning.HINT and kernels.block_size(SCENES["top"], {}, METHODS["rk4"]) == kernels.BLOCK
+
+
+@pytest.mark.parametrize("text, why", [
+    ("{not json", "it cannot be read"),
+    (json.dumps({"format": 1, "choices": {"block": 48}}), "it cannot be read (unknown choices)"),
+    ("other machine", "it was tuned on another machine, Numba or engine")])
+def test_a_corrupt_or_foreign_tuning_file_is_ignored_in_one_line(fresh, tmp_path, write_runfile, capsys, text, why):
+    if text == "other machine":
+        tuning.save(tuning.Tuning(block=64), {}, fresh)
+        found = json.loads(fresh.read_text())
+        fresh.write_text(json.dumps({**found, "host": {**found["host"], "cpu": "Another CPU"}}))
+    else:
+        fresh.write_text(text)
+    spec = load(write_runfile(TOPS))
+    lines = _stderr_of_two_runs(spec, tmp_path, capsys)
+    assert len(lines) == 1 and lines[0].startswith(f"ensemble: ignoring {fresh}: {why}"), lines
+    assert kernels.block_size(SCENES["top"], {}, METHODS["rk4"]) == kernels.BLOCK  # the engine's rule
+
+
+def test_a_tuned_block_is_used_and_gives_the_same_bits(fresh, tmp_path, write_runfile, capsys):
+    """Blocks of 64 instead of 128 for the kernels generated from templates (rk4, a splitting, dopri5)."""
+    spec = load(write_runfile(TOPS))
+    runner.run(spec, tmp_path / "untuned.nc", progress=False)
+    tuning.save(tuning.Tuning(block=64), {}, fresh)
+    tuning._prepared = False
+    runner.run(spec, tmp_path / "tuned.nc", progress=True)
+    assert not [line for line in capsys.readouterr().err.splitlines() if line.startswith("ensemble:")]
+    assert kernels.block_size(SCENES["top"], {}, METHODS["rk4"]) == 64
+    same_bits(tmp_path / "tuned.nc", tmp_path / "untuned.nc")
+
+
+def _has_avx512() -> bool:
+    return "avx512f" in tuning.host_key()["vectors"].split(",")
+
+
+@pytest.mark.skipif(not _has_avx512(), reason="the vector width is a choice only where 512-bit vectors exist")
+def test_tuned_512_bit_vectors_reach_numba_and_give_the_same_bits(tmp_path, write_runfile):
+    """In processes of their own (the width is fixed at Numba's first compile): a run tuned to 512-bit vectors
+    compiles with LLVM told so, and writes the bits of a run with LLVM's own choice."""
+    path = write_runfile(TOPS)
+    wide = tmp_path / "wide.json"
+    tuning.save(tuning.Tuning(vector_bits=512), {}, wide)
+    env = {**os.environ, "ENSEMBLE_TUNING_FILE": str(wide)}
+    shown = subprocess.run([sys.executable, "-c", "from ensemble import tuning\ntuning.prepare()\n"
+                            "from numba.core import config\nprint(config.CPU_FEATURES)"],
+                           env=env, capture_output=True, text=True, check=True)
+    assert shown.stdout.strip().endswith(",-prefer-256-bit"), shown
+    for name, environment in (("llvm.nc", os.environ), ("wide.nc", env)):
+        subprocess.run([sys.executable, "-m", "ensemble", "run", str(path), "-o", str(tmp_path / name), "--quiet"],
+                       env=environment, check=True)
+    same_bits(tmp_path / "wide.nc", tmp_path / "llvm.nc")
+
+
+def test_a_width_tuned_after_numba_started_is_said_and_not_claimed(fresh):
+    """A notebook that compiled Numba code before its first run: the width cannot change any more."""
+    import numba
+
+    numba.njit(lambda x: x + 1)(1)
+    from numba.core import config
+
+    before = config.CPU_FEATURES
+    line = tuning.apply(tuning.Tuning(vector_bits=512))
+    assert config.CPU_FEATURES == before and "need a fresh process" in line
+
+
+def test_tune_keeps_a_candidate_only_when_it_is_clearly_faster(fresh, monkeypatch, capsys):
+    """The choice logic on given rates: 512-bit vectors 20% faster win; blocks within 3% of the default lose."""
+    rates = {None: 1.0, 512: 1.2, 256: 1.0}
+
+    def measured(bits, blocks, chain=True):
+        out = {f"top rk4, block {b}": 1e9 * rates[bits] * (1.02 if b == 64 else 1.0) for b in blocks}
+        return {**out, **({"chain verlet N=16": 4e9 * rates[bits]} if chain else {})}
+
+    monkeypatch.setattr(tuning, "_measured", measured)
+    monkeypatch.setattr(tuning, "host_key", lambda: {"vectors": "avx,avx2,avx512f", "cpu": "x", "numba": "y",
+                                                      "engine": "z"})
+    chosen, table = tuning.tune(say=lambda line: None)
+    assert chosen == tuning.Tuning(vector_bits=512, block=None)
+    rates[512] = 1.02  # within the margin: LLVM's own choice stays
+    assert tuning.tune(say=lambda line: None)[0] == tuning.Tuning(vector_bits=None, block=None)
+    tuning.save(chosen, table)
+    assert tuning.load() == (chosen, None)
+
+
+def test_ensemble_tune_dry_run_measures_and_keeps_nothing(fresh, monkeypatch, capsys):
+    monkeypatch.setattr(tuning, "_measured", lambda bits, blocks, chain=True: {
+        **{f"top rk4, block {b}": 1e9 for b in blocks}, **({"chain verlet N=16": 4e9} if chain else {})})
+    assert cli.main(["tune", "--dry-run"]) == 0
+    out = capsys.readouterr().out
+    assert "chosen: vectors LLVM's choice, generated kernels' blocks the engine default" in out
+    assert "kept nothing" in out and not fresh.exists()
