@@ -50,7 +50,14 @@ def host_key() -> dict[str, str]:
     sources (a new engine may want other choices)."""
     import numba
 
-    model, flags = platform.processor() or "unknown", set()
+    model, flags = cpu()
+    vectors = ",".join(sorted(f for f in flags if f.startswith(("avx", "fma", "sse4"))))
+    return {"cpu": model, "vectors": vectors, "numba": numba.__version__, "engine": engine_hash()}
+
+
+def cpu() -> tuple[str, set[str]]:
+    """This machine's CPU model and its feature flags (from /proc/cpuinfo; elsewhere what platform says)."""
+    model, flags = platform.processor() or "unknown CPU", set()
     try:
         for line in Path("/proc/cpuinfo").read_text().splitlines():
             if line.startswith("model name"):
@@ -59,8 +66,7 @@ def host_key() -> dict[str, str]:
                 flags = set(line.split(":", 1)[1].split())
     except OSError:
         pass
-    vectors = ",".join(sorted(f for f in flags if f.startswith(("avx", "fma", "sse4"))))
-    return {"cpu": model, "vectors": vectors, "numba": numba.__version__, "engine": engine_hash()}
+    return model, flags
 
 
 def engine_hash() -> str:

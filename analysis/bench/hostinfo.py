@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 import os
-import platform
 import subprocess
 import sys
 from pathlib import Path
@@ -90,15 +89,9 @@ class CBeside:
 
 def host() -> str:
     """CPU model, widest vector extension and Numba's thread count."""
-    model, flags = platform.processor() or "unknown CPU", set()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                model = line.split(":", 1)[1].strip()
-            elif line.startswith("flags"):
-                flags = set(line.split(":", 1)[1].split())
-    except OSError:
-        pass
+    from ensemble.tuning import cpu
+
+    model, flags = cpu()
     widest = next((f for f in ("avx512f", "avx2", "avx", "sse4_2", "neon") if f in flags), "unknown")
     threads = os.environ.get("NUMBA_NUM_THREADS") or str(os.cpu_count())
     return f"host: {model}, widest vectors {widest}, {threads} threads"
