@@ -168,7 +168,8 @@ def tune(say=print) -> tuple[Tuning, dict]:
     """Time the candidates on this machine and return (the winning Tuning, the rates measured). Each vector width
     runs in a process of its own (it is fixed once Numba has compiled), ROUNDS times in turn; the top's rk4
     kernel at the engine's block and the chain's verlet at 16 masses vote with the geometric mean of their rates.
-    Then the blocks of the generated kernels are timed under the winning width."""
+    Then the blocks of the generated kernels are timed under the winning width, all in one process, ROUNDS times.
+    A candidate replaces the default only when CANDIDATE_MARGIN faster."""
     widths = [None, 512, 256] if "avx512f" in host_key()["vectors"].split(",") else [None]
     from .engine.kernels import BLOCK
 
@@ -179,9 +180,8 @@ def tune(say=print) -> tuple[Tuning, dict]:
     score = {bits: (rates[bits][f"top rk4, block {BLOCK}"] * rates[bits]["chain verlet N=16"]) ** 0.5
              for bits in widths}
     bits = max(widths, key=lambda b: score[b] / (1.0 if b is None else CANDIDATE_MARGIN))
-    others = [b for b in BLOCKS if b != BLOCK]
-    blocks = {**{BLOCK: rates[bits][f"top rk4, block {BLOCK}"]},
-              **{b: v for b, v in zip(others, _measured(bits, others, chain=False).values())}}
+    timed = [_measured(bits, list(BLOCKS), chain=False) for _ in range(ROUNDS)]  # all in one process, in turn
+    blocks = {b: sum(t[f"top rk4, block {b}"] for t in timed) / ROUNDS for b in BLOCKS}
     say("  generated kernels' blocks under the chosen vectors: "
         + ", ".join(f"{b} members {v:.3g}" for b, v in sorted(blocks.items())))
     block = max(blocks, key=lambda b: blocks[b] / (1.0 if b == BLOCK else CANDIDATE_MARGIN))
@@ -215,7 +215,8 @@ def _serve(asked: str) -> None:
 
 def measure_here(bits: int | None, blocks: list[int], chain: bool = True) -> dict[str, float]:
     """In a process that has compiled nothing yet: the top's rk4 kernel at each block (member-steps/s) and the
-    chain's verlet at 16 masses (mass-steps/s), with LLVM preferring `bits`-bit vectors; medians of 5 calls."""
+    chain's verlet at 16 masses (mass-steps/s), with LLVM preferring `bits`-bit vectors; each the median of 5
+    calls, the kernels called in turn."""
     import numpy as np
 
     set_features(vector_features(bits))
@@ -228,32 +229,37 @@ def measure_here(bits: int | None, blocks: list[int], chain: bool = True) -> dic
     top = {"lambda1": np.full(members, 1e-3), "lambda3": np.full(members, 2e-3), "c": np.full(members, 1e-4),
            "spin0": np.full(members, 60.0), "tilt0": rng.uniform(0.02, 0.2, members),
            "azimuth0": rng.uniform(0.0, 6.28, members)}
-    rates = {}
+    calls = {}  # name: (launch, steps it makes)
     for block in blocks:
         apply(Tuning(block=block))
-        call = launch.Launch(SCENES["top"], METHODS["rk4"], top, {}, n_save=2, save_dt=steps * 1e-3, dt=1e-3)
-        rates[f"top rk4, block {block}"] = members * steps / _median_seconds(call)
+        calls[f"top rk4, block {block}"] = (launch.Launch(SCENES["top"], METHODS["rk4"], top, {}, n_save=2,
+                                                          save_dt=steps * 1e-3, dt=1e-3), members * steps)
     if chain:
         n, chains = 16, 4096
         masses = {"m": np.ones((chains, n)), "k": np.ones((chains, n + 1)), "x0": rng.normal(0, 0.1, (chains, n)),
                   "v0": np.zeros((chains, n))}
-        call = launch.Launch(SCENES["chain"], METHODS["verlet"], masses, {"n": n, "boundary": "fixed"}, n_save=2,
-                             save_dt=steps * 0.01, dt=0.01)
-        rates["chain verlet N=16"] = n * chains * steps / _median_seconds(call)
-    return rates
+        calls["chain verlet N=16"] = (launch.Launch(SCENES["chain"], METHODS["verlet"], masses,
+                                                    {"n": n, "boundary": "fixed"}, n_save=2, save_dt=steps * 0.01,
+                                                    dt=0.01), n * chains * steps)
+    seconds = _seconds_in_turn([call for call, _ in calls.values()])
+    return {name: work / s for (name, (_, work)), s in zip(calls.items(), seconds)}
 
 
-def _median_seconds(call, repeats: int = 5) -> float:
+def _seconds_in_turn(calls: list, repeats: int = 5) -> list[float]:
+    """Median seconds of each launch's run, the launches called in turn `repeats` times (after one call each that
+    compiles or loads its kernel), so that a slow spell of the machine hits them all."""
     import statistics
     import time
 
-    call.run()  # compiles or loads the kernel
-    seconds = []
-    for _ in range(repeats):
-        start = time.perf_counter()
+    for call in calls:
         call.run()
-        seconds.append(time.perf_counter() - start)
-    return statistics.median(seconds)
+    seconds = [[] for _ in calls]
+    for _ in range(repeats):
+        for call, timed in zip(calls, seconds):
+            start = time.perf_counter()
+            call.run()
+            timed.append(time.perf_counter() - start)
+    return [statistics.median(timed) for timed in seconds]
 
 
 _prepared = False
