@@ -12,6 +12,10 @@ try:
 except PackageNotFoundError:  # running from a source tree that is not installed
     __version__ = "0+unknown"
 
+from . import tuning as _tuning  # noqa: E402
+
+_tuning.prepare()  # this machine's `ensemble tune` choices, before any Numba function of ours is made
+
 from .errors import EnsembleError  # noqa: E402 (the root of every error ensemble raises)
 from .parameter import Parameter, ParameterError  # noqa: E402 (what a scene file of your own imports)
 

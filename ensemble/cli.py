@@ -176,10 +176,9 @@ def _quiet_numpy() -> None:
 def _run(args) -> int:
     _skip_numba_blas_probe()
     _quiet_numpy()
-    from . import interrupts, preflight, tuning
+    from . import interrupts, preflight
 
     interrupts.remember()
-    tuning.prepare()  # before anything compiles: the vector width is fixed from there
     from .errors import Incomplete
     from .interrupts import HeldInterrupts
     from .parts import PartsError

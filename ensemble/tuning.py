@@ -21,7 +21,7 @@ import json
 import os
 import platform
 import tempfile
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 FORMAT = 1
@@ -31,42 +31,54 @@ HINT = "ensemble: this machine's kernels are untuned; `ensemble tune` (once, abo
 @dataclass(frozen=True)
 class Tuning:
     """The choices: vector_bits (512 or 256: the width LLVM is told to prefer; None: its own choice for this CPU)
-    and block (members per block of the kernels generated from the engine's templates; None: the engine's)."""
+    and block (members per block of the kernels generated from the engine's templates; None: the engine's).
+    features: Numba's CPU features string that gives vector_bits here (kept in the file, so that applying it
+    needs no LLVM at import)."""
     vector_bits: int | None = None
     block: int | None = None
+    features: str | None = field(default=None, compare=False)
+
+
+def kernel_folder() -> Path:
+    """Where this machine's generated kernel files (ensemble.engine.kernels) and its tuning go: ENSEMBLE_KERNEL_DIR,
+    else NUMBA_CACHE_DIR/ensemble-kernels, else the user's cache folder (XDG_CACHE_HOME or
+    ~/.cache)/ensemble/kernels."""
+    if os.environ.get("ENSEMBLE_KERNEL_DIR"):
+        return Path(os.environ["ENSEMBLE_KERNEL_DIR"])
+    if os.environ.get("NUMBA_CACHE_DIR"):
+        return Path(os.environ["NUMBA_CACHE_DIR"]) / "ensemble-kernels"
+    return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "ensemble" / "kernels"
 
 
 def tuning_path() -> Path:
-    """ENSEMBLE_TUNING_FILE, else tuning.json beside the generated kernels (ensemble.engine.kernels.kernel_folder)."""
+    """ENSEMBLE_TUNING_FILE, else tuning.json beside the generated kernels (kernel_folder)."""
     if os.environ.get("ENSEMBLE_TUNING_FILE"):
         return Path(os.environ["ENSEMBLE_TUNING_FILE"])
-    from .engine.kernels import kernel_folder
-
     return kernel_folder() / "tuning.json"
 
 
 def host_key() -> dict[str, str]:
     """What a tuning holds for: the CPU model and its vector extensions, Numba's version, and the engine's kernel
     sources (a new engine may want other choices)."""
-    import numba
+    from importlib.metadata import version
 
     model, flags = cpu()
     vectors = ",".join(sorted(f for f in flags if f.startswith(("avx", "fma", "sse4"))))
-    return {"cpu": model, "vectors": vectors, "numba": numba.__version__, "engine": engine_hash()}
+    return {"cpu": model, "vectors": vectors, "numba": version("numba"), "engine": engine_hash()}
 
 
 def cpu() -> tuple[str, set[str]]:
     """This machine's CPU model and its feature flags (from /proc/cpuinfo; elsewhere what platform says)."""
-    model, flags = platform.processor() or "unknown CPU", set()
+    model, flags = None, set()
     try:
         for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
+            if line.startswith("model name") and model is None:
                 model = line.split(":", 1)[1].strip()
-            elif line.startswith("flags"):
+            elif line.startswith("flags") and not flags:
                 flags = set(line.split(":", 1)[1].split())
     except OSError:
         pass
-    return model, flags
+    return model or platform.processor() or "unknown CPU", flags  # platform.processor() runs `uname -p`
 
 
 def engine_hash() -> str:
@@ -88,7 +100,8 @@ def load(path: Path | None = None) -> tuple[Tuning | None, str | None]:
     try:
         found = json.loads(path.read_text())
         choices = found["choices"]
-        tuning = Tuning(vector_bits=choices.get("vector_bits"), block=choices.get("block"))
+        tuning = Tuning(vector_bits=choices.get("vector_bits"), block=choices.get("block"),
+                        features=choices.get("features"))
         if tuning.vector_bits not in (None, 256, 512) or (
                 tuning.block is not None and (not isinstance(tuning.block, int) or tuning.block not in BLOCKS)):
             raise ValueError("unknown choices")
@@ -115,13 +128,15 @@ def apply(tuning: Tuning | None) -> str | None:
     NUMBA_CPU_NAME is set; returns one line when it had started already with another width, else None."""
     global _applied
     _applied = tuning
-    if tuning is None or tuning.vector_bits is None or "NUMBA_CPU_FEATURES" in os.environ or (
-            "NUMBA_CPU_NAME" in os.environ):  # the user's own choice of code for this CPU stands
+    if tuning is None or tuning.vector_bits is None:
         return None
-    features = vector_features(tuning.vector_bits)
-    if not set_features(features):
-        return (f"ensemble: the tuned {tuning.vector_bits}-bit vectors need a fresh process (Numba had compiled "
-                f"before); this run uses the width LLVM prefers")
+    if "NUMBA_CPU_FEATURES" in os.environ or "NUMBA_CPU_NAME" in os.environ:  # the user's own choice stands
+        _applied = Tuning(block=tuning.block)
+        return None
+    if not set_features(tuning.features or vector_features(tuning.vector_bits)):
+        _applied = Tuning(block=tuning.block)
+        return (f"ensemble: the tuned {tuning.vector_bits}-bit vectors need a fresh process (Numba code was "
+                f"compiled before ensemble was imported); this run uses the width LLVM prefers")
     return None
 
 
@@ -135,11 +150,20 @@ def vector_features(bits: int | None) -> str | None:
 
 
 def set_features(features: str | None) -> bool:
-    """Set Numba's CPU features for this process's code generator; False if it had started with others."""
+    """Set Numba's CPU features for this process's code generator; False if it had started with others. Before
+    Numba is imported, through NUMBA_CPU_FEATURES (importing Numba here would slow down every `ensemble` command
+    by a quarter of a second; processes started from this one inherit it)."""
+    import sys
+
+    if "numba" not in sys.modules:
+        if features is None:
+            os.environ.pop("NUMBA_CPU_FEATURES", None)
+        else:
+            os.environ["NUMBA_CPU_FEATURES"] = features
+        return True
     from numba.core import config, registry
 
-    started = "_toplevel_target_context" in registry.cpu_target.__dict__
-    if started:
+    if "_toplevel_target_context" in registry.cpu_target.__dict__:
         return config.CPU_FEATURES == features
     config.CPU_FEATURES = features
     return True
@@ -149,8 +173,8 @@ def save(tuning: Tuning, measured: dict, path: Path | None = None) -> Path:
     """Write the tuning file (atomically): the choices, what they hold for, and the rates they were chosen by."""
     path = path or tuning_path()
     path.parent.mkdir(parents=True, exist_ok=True)
-    text = json.dumps({"format": FORMAT, "host": host_key(), "choices": asdict(tuning), "measured": measured},
-                      indent=1)
+    choices = {**asdict(tuning), "features": tuning.features or vector_features(tuning.vector_bits)}
+    text = json.dumps({"format": FORMAT, "host": host_key(), "choices": choices, "measured": measured}, indent=1)
     handle, temporary = tempfile.mkstemp(dir=path.parent, suffix=".tmp")
     with os.fdopen(handle, "w") as out:
         out.write(text)
@@ -160,7 +184,7 @@ def save(tuning: Tuning, measured: dict, path: Path | None = None) -> Path:
 
 # ---------------------------------------------------------------- measuring (`ensemble tune`)
 
-CANDIDATE_MARGIN = 1.03  # a candidate replaces the engine's default only when this much faster
+CANDIDATE_MARGIN = 1.05  # a candidate replaces the default only when this much faster: blocks within 5% are noise here
 ROUNDS = 2  # each candidate's process runs this many times, the candidates in turn
 
 
@@ -267,8 +291,9 @@ _pending: str | None = None
 
 
 def prepare() -> None:
-    """Load this machine's tuning file and apply it, once per process, before anything is compiled (`ensemble
-    run` calls it first thing); what to say about it waits for pending_line."""
+    """Load this machine's tuning file and apply it, once per process, before anything is compiled: importing
+    ensemble calls it (ensemble/__init__.py), ahead of every Numba function of ours. What to say about it waits
+    for pending_line."""
     global _prepared, _pending
     if _prepared:
         return
@@ -287,7 +312,7 @@ def pending_line() -> str | None:
 def describe() -> str:
     """What this process runs with, in words (benchmarks print it beside the host)."""
     tuning = applied()
-    if _applied is None:
+    if _applied is None or _applied == Tuning():
         return "untuned (the engine's rules and LLVM's vector width)"
     return (f"vectors {width_name(tuning.vector_bits)}, generated kernels' blocks "
             f"{tuning.block or 'the engine default'} (from {tuning_path()})")

@@ -110,7 +110,7 @@ def test_a_width_tuned_after_numba_started_is_said_and_not_claimed(fresh):
 
 
 def test_tune_keeps_a_candidate_only_when_it_is_clearly_faster(fresh, monkeypatch, capsys):
-    """The choice logic on given rates: 512-bit vectors 20% faster win; blocks within 3% of the default lose."""
+    """The choice logic on given rates: 512-bit vectors 20% faster win; blocks within 5% of the default lose."""
     rates = {None: 1.0, 512: 1.2, 256: 1.0}
 
     def measured(bits, blocks, chain=True):
@@ -122,7 +122,7 @@ def test_tune_keeps_a_candidate_only_when_it_is_clearly_faster(fresh, monkeypatc
                                                       "engine": "z"})
     chosen, table = tuning.tune(say=lambda line: None)
     assert chosen == tuning.Tuning(vector_bits=512, block=None)
-    rates[512] = 1.02  # within the margin: LLVM's own choice stays
+    rates[512] = 1.04  # within the margin: LLVM's own choice stays
     assert tuning.tune(say=lambda line: None)[0] == tuning.Tuning(vector_bits=None, block=None)
     tuning.save(chosen, table)
     assert tuning.load() == (chosen, None)

@@ -492,7 +492,6 @@ def main() -> None:
     parser.add_argument("--whole", action="store_true", help="only the two whole-run workloads, --repeats times "
                                                             "each, beside the C measured just before them")
     args = parser.parse_args()
-    tuning.prepare()  # this machine's `ensemble tune` choices, before anything compiles
     print(host(), flush=True)
     print(f"tuning: {tuning.describe()}", flush=True)
     if args.whole:

@@ -22,21 +22,11 @@ from numba.core.registry import CPUDispatcher
 
 from ..methods import Method
 from ..scenes.contract import load, python_function
-from ..tuning import applied
+from ..tuning import applied, kernel_folder
 from . import templates
 from .blocks import FAST, HELPERS, Kernel
 
 BLOCK = 128  # members per block of a scene whose kernel_rows are its whole state (rows of B floats each)
-
-
-def kernel_folder() -> Path:
-    """Where generated kernel files go: ENSEMBLE_KERNEL_DIR, else NUMBA_CACHE_DIR/ensemble-kernels, else the user's
-    cache folder (XDG_CACHE_HOME or ~/.cache)/ensemble/kernels."""
-    if os.environ.get("ENSEMBLE_KERNEL_DIR"):
-        return Path(os.environ["ENSEMBLE_KERNEL_DIR"])
-    if os.environ.get("NUMBA_CACHE_DIR"):
-        return Path(os.environ["NUMBA_CACHE_DIR"]) / "ensemble-kernels"
-    return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "ensemble" / "kernels"
 
 
 def physics_functions(where: str, names: tuple[str, ...]) -> tuple:
