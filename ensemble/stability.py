@@ -93,6 +93,10 @@ def stability_map(ds: xr.Dataset) -> xr.Dataset:
     scene = of_result(ds.attrs)
     if scene is None:
         raise fitting.FitError("stability_map needs a result of `ensemble run`")
+    if not scene.STABILITY_AXES:
+        raise fitting.FitError(f"stability_map: scene {ds.attrs['scene']!r} declares no stability axes (a scene of "
+                               f"your own: STABILITY_AXES, stability_axis, step_growth and axis_growth, see "
+                               f"docs/scenes.md)")
     if "growth_per_step" not in ds:
         raise fitting.FitError("stability_map: the result has no growth_per_step; add `[measure] growth = true` to "
                            "its run file and run it again")

@@ -58,6 +58,34 @@ def exact(t, x0, v0, gamma, omega0, F, Omega):
     return x, v
 
 
+# For `ensemble stability` (optional, all four or none): the free oscillation's eigenvalues
+# lambda = -gamma +- i sqrt(omega0^2 - gamma^2) decide how a method's step grows.
+STABILITY_AXES = ("h omega0",)  # the dimensionless step of the free oscillation
+
+
+def stability_axis(values, constants, h):
+    """Each member's axis and its place on it, h omega0; h (s) and the values arrays over members."""
+    x = h * np.broadcast_to(values["omega0"], np.shape(h))
+    return np.full(x.shape, STABILITY_AXES[0]), x
+
+
+def _factor(method, z):
+    """|one step's factor| on y' = (z / h) y: a Runge-Kutta method's |R(z)|; the closed form's exp(Re z)."""
+    return np.abs(method.tableau.stability(z)) if method.tableau is not None else np.exp(np.real(z))
+
+
+def step_growth(method, values, constants, h):
+    """Theory: the growth factor per step of a member's faster-growing free motion (h z at both eigenvalues)."""
+    gamma, omega0 = (np.broadcast_to(values[name], np.shape(h)) for name in ("gamma", "omega0"))
+    root = np.sqrt(omega0**2 - gamma**2 + 0j)
+    return np.maximum(_factor(method, h * (-gamma + 1j * root)), _factor(method, h * (-gamma - 1j * root)))
+
+
+def axis_growth(method, axis, x):
+    """Growth factor per step of an undamped oscillation at x = h omega0 (z = i x)."""
+    return _factor(method, 1j * np.asarray(x, dtype=float))
+
+
 def fit(ds):
     """Each member's steady amplitude, fitted (least squares of A cos + B sin) to x over the record's last
     quarter, against the theory; an xarray Dataset over member."""

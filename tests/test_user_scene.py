@@ -109,6 +109,70 @@ def test_the_examples_run_file_runs_and_its_fit_finds_the_steady_amplitude(tmp_p
     np.testing.assert_allclose(fitted["amplitude"], fitted["amplitude_theory"], rtol=2e-3)
 
 
+STABILITY_SCAN = f"""scene = "{EXAMPLE}"
+dt = 1.0
+t_end = 3000.0
+save_dt = 1.0
+members = 1
+seed = 1
+save = ["x"]
+[measure]
+growth = true
+[parameters]
+gamma = 0.0
+F = 0.0
+Omega = 1.0
+x0 = 1e-3
+[[sweep]]
+method = ["euler"]
+omega0 = [0.05, 0.5, 1.0, 2.0]
+[[sweep]]
+method = ["rk4"]
+omega0 = [0.5, 2.0, 2.7, 2.79, 2.81, 2.82, 2.84, 2.85, 2.88, 3.0]
+"""
+
+
+def test_a_user_scene_that_declares_its_stability_gets_stability_maps(tmp_path, capsys):
+    """The example's optional stability functions: `ensemble stability --check` on an undamped scan of h omega0
+    finds rk4's limit 2 sqrt(2) within 2% (between the scan's 2.82 and 2.84) and euler growing at every step."""
+    from ensemble import cli, stability
+
+    runfile = tmp_path / "scan.toml"
+    runfile.write_text(STABILITY_SCAN)
+    out = tmp_path / "scan.nc"
+    assert cli.main(["run", str(runfile), "-o", str(out), "--quiet"]) == 0
+    assert cli.main(["stability", str(out), "--check"]) == 0, capsys.readouterr().out
+    points = stability.stability_map(xr.load_dataset(out))
+    rows = {r["method"]: r for r in stability.stability_limits(points)}
+    assert rows["rk4"]["theory"] == pytest.approx(8**0.5, rel=1e-6) and 2.82 <= rows["rk4"]["measured"] <= 2.84
+    assert rows["euler"]["theory"] == 0 and rows["euler"]["measured"] == 0
+    # each member's growth per step (fitted to the state's norm) is the theory's |R(i h omega0)|, where a
+    # member lasts long enough to fit: euler at h omega0 = 1 blows up after 40 steps
+    lasting = points["x"].values <= np.where(points["method"].values == "euler", 1.0, 2.85)
+    np.testing.assert_allclose(points["growth"].values[lasting], points["growth_theory"].values[lasting], rtol=3e-4)
+
+
+def test_a_user_scene_without_stability_axes_is_refused_by_ensemble_stability_in_one_line(tmp_path, capsys):
+    from ensemble import cli
+
+    (tmp_path / "spring.py").write_text(SPRING)
+    runfile = tmp_path / "run.toml"
+    runfile.write_text('scene = "spring.py"\nmethod = "rk4"\ndt = 0.1\nt_end = 1.0\nsave_dt = 0.1\nmembers = 2\n'
+                       'seed = 1\n[measure]\ngrowth = true\n[parameters]\nomega = 1.0\nx0 = 1.0\n')
+    assert cli.main(["run", str(runfile), "-o", str(tmp_path / "r.nc"), "--quiet"]) == 0
+    capsys.readouterr()
+    assert cli.main(["stability", str(tmp_path / "r.nc")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "declares no stability axes" in err, err
+
+
+def test_a_scene_declaring_part_of_its_stability_is_one_line(tmp_path):
+    (tmp_path / "spring.py").write_text(SPRING + "STABILITY_AXES = ('h omega',)\n")
+    with pytest.raises(SceneError, match="declares STABILITY_AXES for stability maps, but not stability_axis, "
+                                         "step_growth, axis_growth"):
+        resolve(str(tmp_path / "spring.py"))
+
+
 BROKEN = {
     "no rhs": ("STATE = {'x': ('m', 'x')}\nPARAMETERS = {'x0': Parameter('m', 'start')}\n", "has no rhs"),
     "wrong signature": (_ := "STATE = {'x': ('m', 'x')}\nPARAMETERS = {'k': Parameter('s-1', 'rate'), "

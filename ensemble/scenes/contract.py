@@ -121,6 +121,10 @@ class UserScene:
             self.fit = module.fit
         if hasattr(module, "charts"):
             self.charts = module.charts
+        if all(hasattr(module, name) for name in STABILITY):  # `ensemble stability` reads a result against them
+            self.STABILITY_AXES = tuple(module.STABILITY_AXES)
+            self.stability_axis, self.step_growth, self.axis_growth = (
+                module.stability_axis, module.step_growth, module.axis_growth)
         _check(self)
 
     def sizes(self, constants: dict) -> dict[str, int]:
@@ -161,13 +165,18 @@ class UserScene:
         return {name: np.ascontiguousarray(samples[:, c, :].T) for c, name in enumerate(self.STATE) if name in names}
 
     def amplitudes(self, samples: np.ndarray, values: dict, constants: dict) -> np.ndarray:
-        """|each state variable|, (members, len(STATE), t): the motions whose growth [measure] growth fits."""
-        return np.abs(samples.transpose(2, 1, 0))
+        """The state's Euclidean norm, (members, 1, t): the motion whose growth [measure] growth fits (a single
+        variable of an oscillation passes through zero every half period, the norm does not)."""
+        return np.sqrt(np.sum(samples.transpose(2, 1, 0) ** 2, axis=1, keepdims=True))
 
     def conserved_energy(self, ds) -> np.ndarray:
         """No conserved energy is declared: NaN (member, t)."""
         return np.full((ds.sizes["member"], ds.sizes["t"]), np.nan)
 
+
+#: What a scene declares for `ensemble stability` (all or none): the names of its dimensionless steps, each
+#: member's axis and place on it, the growth per step linear theory predicts for a member, and along an axis.
+STABILITY = ("STABILITY_AXES", "stability_axis", "step_growth", "axis_growth")
 
 _REQUIRED = {"STATE": "name -> (units, long_name) of each state variable",
              "PARAMETERS": "name -> ensemble.Parameter, with <state>0 for each state variable's start",
@@ -207,6 +216,11 @@ def _check(scene: UserScene) -> None:
                  len(scene.STATE))
     if hasattr(module, "exact"):
         _signature(where, module.exact, "exact", ["t", *scene.starts, *scene.rates])
+    declared = [name for name in STABILITY if hasattr(module, name)]
+    if declared and len(declared) < len(STABILITY):
+        missing = [name for name in STABILITY if name not in declared]
+        raise SceneError(f"{where}: it declares {', '.join(declared)} for stability maps, but not "
+                         f"{', '.join(missing)}")
 
 
 def _signature(where: str, function, name: str, arguments: list[str]) -> None:
