@@ -374,8 +374,32 @@ def run(spec: Spec, out: str | Path, *, chunk: int | None = None, progress: bool
     stopped midway computes only what its parts lack (raises parts.PartsError if they are another run's).
     `client` (a dask.distributed Client) computes the chunks on its cluster with `task` (default chunk_task);
     chunks that keep failing there raise Incomplete after the rest are done. `command` is recorded in the
-    file's history (default: `ensemble run <run file>`)."""
-    out = Path(out)
+    file's history (default: `ensemble run <run file>`). A run of few, long members here runs them in a smaller
+    block (few_members_block)."""
+    with tuning.members_block(None if client else few_members_block(spec)):
+        return _run(spec, Path(out), chunk, progress, force, resume, command, client, task)
+
+
+def few_members_block(spec: Spec) -> int | None:
+    """Members per block for a run of fewer members than its kernels' block, when the block's idle lanes would
+    cost more than CHUNK_MEMBER_STEPS (a few seconds; below that a kernel compiled anew for the smaller block
+    costs more): the smallest power of 2 that holds the members, at least FEW_MEMBERS_BLOCK. None otherwise, on a
+    GPU, and for scenes whose kernels are their own (the chain's). A block computes all its lanes however few
+    are members, and a member's arithmetic does not depend on its block: the bits are the same."""
+    scene = spec.model
+    if spec.device != "cpu" or getattr(scene, "KERNELS", None):
+        return None
+    block = run_block(spec)
+    if spec.n_members >= block or steps_per_member(spec) * block < CHUNK_MEMBER_STEPS:
+        return None
+    return min(block, max(FEW_MEMBERS_BLOCK, 1 << (spec.n_members - 1).bit_length()))
+
+
+FEW_MEMBERS_BLOCK = 8  # the smallest block: one AVX-512 vector of doubles, two of AVX2
+
+
+def _run(spec: Spec, out: Path, chunk: int | None, progress: bool, force: bool, resume: bool,
+         command: str | None, client, task) -> Summary:
     _tuned(progress)
     if resume and Parts.left_complete(out, spec):
         Parts.discard(out)

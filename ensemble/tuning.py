@@ -21,6 +21,7 @@ import json
 import os
 import platform
 import tempfile
+from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -115,11 +116,30 @@ def load(path: Path | None = None) -> tuple[Tuning | None, str | None]:
 
 BLOCKS = (32, 64, 128, 256)  # the block sizes `ensemble tune` tries for generated kernels
 _applied: Tuning | None = None
+_few_members: int | None = None  # members_block's
 
 
 def applied() -> Tuning:
     """The tuning this process runs with (apply's), or the engine's rules."""
     return _applied or Tuning()
+
+
+def generated_block(default: int) -> int:
+    """Members per block of a kernel generated from the engine's templates: members_block's while a run of few
+    members is under way, else the tuning's, else `default`."""
+    return _few_members or applied().block or default
+
+
+@contextmanager
+def members_block(block: int | None):
+    """While in the block, generated kernels run `block` members per block (None: as before): a run of fewer
+    members than a block sets it (runner.few_members_block)."""
+    global _few_members
+    previous, _few_members = _few_members, block
+    try:
+        yield
+    finally:
+        _few_members = previous
 
 
 def apply(tuning: Tuning | None) -> str | None:

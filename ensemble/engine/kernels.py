@@ -22,7 +22,7 @@ from numba.core.registry import CPUDispatcher
 
 from ..methods import Method
 from ..scenes.contract import load, python_function
-from ..tuning import applied, kernel_folder
+from ..tuning import generated_block, kernel_folder
 from . import templates
 from .blocks import FAST, HELPERS, Kernel
 
@@ -64,10 +64,10 @@ def factor_counts(where: str, pieces: tuple[str, ...], parameters: int) -> dict[
 
 
 def block_size(scene, constants: dict, method: Method) -> int:
-    """Members per kernel block: the scene's BLOCK if it names one, else this machine's tuning
-    (ensemble.tuning), else BLOCK."""
+    """Members per kernel block: the scene's BLOCK if it names one, else the run's or this machine's tuning
+    (ensemble.tuning.generated_block), else BLOCK."""
     own = _own_kernels(scene)
-    return own.block_size(constants, method) if own else getattr(scene, "BLOCK", None) or applied().block or BLOCK
+    return own.block_size(constants, method) if own else getattr(scene, "BLOCK", None) or generated_block(BLOCK)
 
 
 def kernel(scene, method: Method, constants: dict) -> Kernel:
