@@ -7,8 +7,9 @@ LLVM picks a vector width for each CPU model: on recent Intel server cores it pr
 prefers (a process-wide setting of Numba's code generator), and the members per block of the kernels the engine
 generates from its templates. The winners go to tuning_path(), keyed by the CPU model, its vector extensions,
 Numba's version and a hash of the engine's kernel sources; a file of another machine or engine is ignored with
-one line. `ensemble run` applies a valid file before it compiles anything (`apply`); without one it uses the
-engine's rules and says once that `ensemble tune` may make runs faster. It never tunes on its own.
+one line. Importing ensemble applies a valid file (`prepare`), before any Numba function of ours exists; a run
+without one uses the engine's rules and says once that `ensemble tune` may make runs faster. Nothing tunes on
+its own.
 
 Neither choice changes a member's arithmetic: every run file in runs/ and the method sweeps gave the same bits
 with 256- and 512-bit vectors on the Intel Xeon, and a block holds members side by side, each computed alone
