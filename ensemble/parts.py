@@ -463,7 +463,7 @@ class SegmentLog:
             return None
         record.restore(json.loads(str(loaded[-1]["noise"])), [d["amplitudes"] for d in loaded if "amplitudes" in d],
                        [d["errors"] for d in loaded if "errors" in d])
-        for inside in map(_segment_inside, self.paths):
+        for inside in (json.loads(str(d["inside"])) for d in loaded):
             for name in self.writer.sums:
                 self.writer.sums[name] = (self.writer.sums[name] + int(inside[f"samples_sum_{name}"], 16)) % 2**64
         return Segment.of(self.paths[-1]).end, state
