@@ -455,7 +455,8 @@ class GpuLaunch:
             self.kernel.function[grid, THREADS, compute](*self.head, samples, *tail, first, n)
             snapshot = {name: getattr(self, name).copy_to_host(
                 self._buffer(("state", k % 2, name), lambda name=name: cuda.pinned_array_like(start[name])),
-                stream=compute) for name in start}  # what state() gives once this segment is handed on
+                stream=compute) for name in start} if self.segment < self.n_save else {}  # state() of a
+            # segment handed on; a record in one call is never continued, and needs no copy of its kernel state
             integrated = cuda.event()
             integrated.record(compute)
             integrated.wait(copy)
@@ -486,7 +487,8 @@ class GpuLaunch:
         return first, lambda: host if host.dtype == np.float64 else host.astype(np.float64)
 
     def state(self) -> dict[str, np.ndarray]:
-        """As launch.Launch.state: copies, in host memory, of what the last segment handed on left."""
+        """As launch.Launch.state: copies, in host memory, of what the last segment handed on left (empty for a
+        record in one kernel call, which is never continued)."""
         return {name: value.copy() for name, value in self._state.items()}
 
     def takes(self, state: dict[str, np.ndarray]) -> bool:
