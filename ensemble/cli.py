@@ -263,14 +263,15 @@ def _tune(args) -> int:
     print(f"tuning this machine: {tuning.host_key()['cpu']}")
     try:
         chosen, measured = tuning.tune(say=lambda line: print(line, flush=True))
-    except RuntimeError as e:
-        return _error(str(e))
-    print(f"chosen: vectors {tuning.width_name(chosen.vector_bits)}, generated kernels' blocks "
-          f"{chosen.block or 'the engine default'}")
-    if args.dry_run:
-        print("kept nothing (--dry-run)")
-    else:
-        print(f"wrote {tuning.save(chosen, measured)}: every later `ensemble run` here uses it")
+        print(f"chosen: vectors {tuning.width_name(chosen.vector_bits)}, generated kernels' blocks "
+              f"{chosen.block or 'the engine default'}")
+        if args.dry_run:
+            print("kept nothing (--dry-run)")
+        else:
+            print(f"wrote {tuning.save(chosen, measured)}: every later `ensemble run` here uses it")
+    except (RuntimeError, OSError) as e:  # a measurement that failed, a cache folder that cannot be written
+        print(f"ensemble: error: tune: {e}; nothing was kept", file=sys.stderr)
+        return EXIT_FAILED
     return 0
 
 

@@ -135,3 +135,14 @@ def test_ensemble_tune_dry_run_measures_and_keeps_nothing(fresh, monkeypatch, ca
     out = capsys.readouterr().out
     assert "chosen: vectors LLVM's choice, generated kernels' blocks the engine default" in out
     assert "kept nothing" in out and not fresh.exists()
+
+
+def test_ensemble_tune_that_cannot_write_its_file_is_one_line(fresh, monkeypatch, capsys):
+    """A tuning file whose folder cannot be made (a file stands in its place): one line, exit 3, nothing kept."""
+    monkeypatch.setattr(tuning, "_measured", lambda bits, blocks, chain=True: {
+        **{f"top rk4, block {b}": 1e9 for b in blocks}, **({"chain verlet N=16": 4e9} if chain else {})})
+    fresh.parent.joinpath("blocked").write_text("a file, not a folder")
+    monkeypatch.setenv("ENSEMBLE_TUNING_FILE", str(fresh.parent / "blocked" / "tuning.json"))
+    assert cli.main(["tune"]) == 3
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith("ensemble: error: tune: ") and "nothing was kept" in err, err

@@ -21,7 +21,7 @@ from pathlib import Path
 from hostinfo import host
 from kill_resume import same_data
 
-from ensemble.arguments import OneLineParser
+from ensemble.arguments import OneLineParser, positive_float
 
 RUN_FILE = """scene = "top"
 method = "rk4"
@@ -38,13 +38,6 @@ spin0 = 60.0
 tilt0 = 0.1
 azimuth0 = 0.0
 """
-
-
-def positive_float(text: str) -> float:
-    value = float(text)
-    if not value > 0:
-        raise ValueError(text)
-    return value
 
 
 def timed(command: list[str], stop_after: float | None = None, sign=signal.SIGINT) -> tuple[float, str]:
