@@ -386,10 +386,11 @@ def few_members_block(spec: Spec) -> int | None:
     """Members per block for a run of fewer members than its kernels' block, when the block's idle lanes would
     cost more than CHUNK_MEMBER_STEPS (a few seconds; below that a kernel compiled anew for the smaller block
     costs more): the smallest power of 2 that holds the members, at least FEW_MEMBERS_BLOCK. None otherwise, on a
-    GPU, and for scenes whose kernels are their own (the chain's). A block computes all its lanes however few
-    are members, and a member's arithmetic does not depend on its block: the bits are the same."""
+    GPU, and for fields of sites (the chain), whose blocks follow their own rule (ensemble.engine.sites). A block
+    computes all its lanes however few are members, and a member's arithmetic does not depend on its block: the
+    bits are the same."""
     scene = spec.model
-    if spec.device != "cpu" or getattr(scene, "KERNELS", None):
+    if spec.device != "cpu" or getattr(scene, "SITES", False):
         return None
     block = run_block(spec)
     if spec.n_members >= block or steps_per_member(spec) * block < CHUNK_MEMBER_STEPS:

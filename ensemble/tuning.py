@@ -84,11 +84,11 @@ def cpu() -> tuple[str, set[str]]:
 
 
 def engine_hash() -> str:
-    """SHA-256 of the engine's kernel sources: its templates and helpers, and the chain's own kernels."""
+    """SHA-256 of the engine's kernel sources: its templates (for members of D values and for fields of sites)
+    and its helpers."""
     root = Path(__file__).parent
     digest = hashlib.sha256()
-    for path in (root / "engine" / "templates.py", root / "engine" / "blocks.py",
-                 root / "scenes" / "chain" / "kernels.py"):
+    for path in (root / "engine" / "templates.py", root / "engine" / "sites.py", root / "engine" / "blocks.py"):
         digest.update(path.read_bytes())
     return digest.hexdigest()
 

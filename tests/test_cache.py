@@ -67,13 +67,14 @@ def test_every_kernel_family_gives_the_same_bits_compiled_and_cached(tmp_path):
 
 def test_every_kernel_is_keyed_on_the_helpers_and_its_scenes_physics():
     """Numba keys a cached kernel on its own file (and closure) alone. A kernel generated from the engine's templates
-    lives in a file whose text holds hashes of blocks.HELPERS (the helpers it inlines) and of its scene's physics
-    file, so a change to either makes a new file that compiles anew; the chain's hand-written kernels hold
-    HELPERS in their closures."""
+    lives in a file whose text holds hashes of the helpers it inlines (blocks.HELPERS; sites.SITES_HELPERS, which
+    includes it, for a field of sites) and of its scene's physics file, so a change to either makes a new file
+    that compiles anew."""
     import hashlib
 
     from ensemble.engine import kernels
     from ensemble.engine.blocks import HELPERS
+    from ensemble.engine.sites import SITES_HELPERS
     from ensemble.methods import METHODS
     from ensemble.scenes import SCENES, applies
 
@@ -83,10 +84,7 @@ def test_every_kernel_is_keyed_on_the_helpers_and_its_scenes_physics():
             if not applies(method, scene) or method.closed_form:
                 continue
             function = kernels.kernel(scene, method, constants[name]).function.py_func
-            if getattr(scene, "KERNELS", None):
-                assert any(isinstance(cell.cell_contents, str) and cell.cell_contents == HELPERS
-                           for cell in function.__closure__), (name, method.name)
-                continue
             text = Path(function.__code__.co_filename).read_text()
+            helpers = SITES_HELPERS if getattr(scene, "SITES", False) else HELPERS
             physics = hashlib.sha256(kernels.physics_file(scene.PHYSICS).read_bytes()).hexdigest()
-            assert f"# helpers: {HELPERS}" in text and f"# physics: {physics}" in text, (name, method.name)
+            assert f"# helpers: {helpers}" in text and f"# physics: {physics}" in text, (name, method.name)

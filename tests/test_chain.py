@@ -11,11 +11,10 @@ import xarray as xr
 from scipy.linalg import expm
 
 from ensemble import cli, runner
-from ensemble.engine import launch
+from ensemble.engine import kernels, launch, sites
+from ensemble.engine.sites import TILE_ROWS, block_size, tiles
 from ensemble.methods import METHODS
 from ensemble.scenes import applies, chain
-from ensemble.scenes.chain import kernels as chain_kernels
-from ensemble.scenes.chain.kernels import TILE_ROWS, block_size, tiles
 from ensemble.spec import SpecError, load, parse
 
 CHAIN_METHODS = [name for name, m in METHODS.items() if applies(m, chain) and not (m.closed_form or m.adaptive)]
@@ -214,7 +213,7 @@ def test_long_chains_are_tiled(monkeypatch):
     """The tiling tests' chains run in tiles on this host; short ones do not, even where the L1 cache is small."""
     assert tiles(LONG, block_size({"n": LONG}, METHODS["verlet"]))
     assert not tiles(2 * TILE_ROWS, block_size({"n": 2 * TILE_ROWS}, METHODS["verlet"]))
-    monkeypatch.setattr(chain_kernels, "l1_data_bytes", lambda: 1024)
+    monkeypatch.setattr(sites, "l1_data_bytes", lambda: 1024)
     assert tiles(2 * TILE_ROWS + 1, 8) and not tiles(2 * TILE_ROWS, 8)
 
 
@@ -225,11 +224,11 @@ def test_a_members_bits_do_not_depend_on_its_block(monkeypatch):
     samples = []
     try:
         for block in (4, 16):
-            monkeypatch.setattr(chain_kernels, "block_size", lambda constants, method, block=block: block)
-            chain_kernels._kernel.cache_clear()
+            monkeypatch.setattr(sites, "block_size", lambda constants, method, block=block: block)
+            kernels._sites_generated.cache_clear()
             samples.append(run("verlet", values, constants, 0.05, 7, 3))
     finally:
-        chain_kernels._kernel.cache_clear()  # later tests must not get a kernel built for a forced block
+        kernels._sites_generated.cache_clear()  # later tests must not get a kernel built for a forced block
     np.testing.assert_array_equal(samples[0], samples[1])
 
 
@@ -245,12 +244,12 @@ def test_a_chain_dopri5_member_does_not_depend_on_its_block_and_an_underflow_sto
     outcomes = []
     try:
         for block in (8, 16):
-            monkeypatch.setattr(chain_kernels, "block_size", lambda constants, method, block=block: block)
-            chain_kernels._kernel.cache_clear()
+            monkeypatch.setattr(sites, "block_size", lambda constants, method, block=block: block)
+            kernels._sites_generated.cache_clear()
             outcomes.append(launch.integrate(chain, METHODS["dopri5"], values, constants, n_save=4, save_dt=0.5,
                                              rtol=rtol, atol=atol))
     finally:
-        chain_kernels._kernel.cache_clear()
+        kernels._sites_generated.cache_clear()
     np.testing.assert_allclose(outcomes[0].samples, outcomes[1].samples, rtol=0, atol=1e-14)
     np.testing.assert_array_equal(outcomes[0].counts, outcomes[1].counts)
     out, running = outcomes[0], np.arange(20) != 5
@@ -267,25 +266,25 @@ def test_splitting_blocks_are_two_vectors_of_the_host_unless_they_outgrow_its_l1
         folder.mkdir()
         for name, text in (("level", level), ("type", kind), ("size", size)):
             (folder / name).write_text(text + "\n")
-    assert chain_kernels.l1_data_bytes.__wrapped__(tmp_path) == 48 * 1024
-    assert chain_kernels.l1_data_bytes.__wrapped__(tmp_path / "absent") == 32 * 1024
+    assert sites.l1_data_bytes.__wrapped__(tmp_path) == 48 * 1024
+    assert sites.l1_data_bytes.__wrapped__(tmp_path / "absent") == 32 * 1024
     (tmp_path / "index1" / "size").write_text("48 KB\n")  # not sysfs's form: the default, not a crash
-    assert chain_kernels.l1_data_bytes.__wrapped__(tmp_path) == 32 * 1024
+    assert sites.l1_data_bytes.__wrapped__(tmp_path) == 32 * 1024
     verlet = METHODS["verlet"]
     for doubles, l1, expected in ((8, 48 * 1024, {16: 16, 64: 16, 100: 8, 1024: 8}),
                                   (4, 32 * 1024, {16: 8, 127: 8, 128: 4})):
-        monkeypatch.setattr(chain_kernels, "vector_doubles", lambda doubles=doubles: doubles)
-        monkeypatch.setattr(chain_kernels, "l1_data_bytes", lambda l1=l1: l1)
-        assert {n: chain_kernels.block_size({"n": n}, verlet) for n in expected} == expected
-    assert chain_kernels.block_size({"n": 2}, verlet) == 64
+        monkeypatch.setattr(sites, "vector_doubles", lambda doubles=doubles: doubles)
+        monkeypatch.setattr(sites, "l1_data_bytes", lambda l1=l1: l1)
+        assert {n: sites.block_size({"n": n}, verlet) for n in expected} == expected
+    assert sites.block_size({"n": 2}, verlet) == 64
     # an adaptive pair's 20n + 15 rows: 64 members fit 48 KiB up to n = 4 and 32 KiB up to n = 2, then 16
     # members below 16 masses; 16 members fit 48 KiB at n = 16, not at n = 24; never fewer than 8
     dopri5 = METHODS["dopri5"]
     for doubles, l1, expected in ((8, 48 * 1024, {2: 64, 4: 64, 5: 16, 15: 16, 16: 16, 24: 8, 128: 8}),
                                   (4, 32 * 1024, {2: 64, 3: 16, 15: 16, 16: 8, 128: 8})):
-        monkeypatch.setattr(chain_kernels, "vector_doubles", lambda doubles=doubles: doubles)
-        monkeypatch.setattr(chain_kernels, "l1_data_bytes", lambda l1=l1: l1)
-        assert {n: chain_kernels.block_size({"n": n}, dopri5) for n in expected} == expected
+        monkeypatch.setattr(sites, "vector_doubles", lambda doubles=doubles: doubles)
+        monkeypatch.setattr(sites, "l1_data_bytes", lambda l1=l1: l1)
+        assert {n: sites.block_size({"n": n}, dopri5) for n in expected} == expected
 
 
 def test_course_chain_in_mode_two_oscillates_at_sqrt_3k_over_m(write_runfile):

@@ -21,7 +21,7 @@ each round: on these shared hosts the C's own rate wandered by 30% within
 minutes, so a ratio to a C measured minutes apart says little.
 
 --block B runs every kernel in blocks of B members instead of the block that
-ensemble.scenes.chain.kernels.block_size picks for this host: how its rule
+ensemble.engine.sites.block_size picks for this host: how its rule
 was measured. A member's bits do not depend on its block.
 """
 from __future__ import annotations

@@ -99,10 +99,10 @@ def host() -> str:
 
 def force_chain_block(block: int, adaptive_only: bool = False) -> None:
     """Run the chains' kernels (with adaptive_only, their adaptive ones alone) in blocks of `block` members instead
-    of the block ensemble.scenes.chain.kernels.block_size picks for this host. Call it before any chain kernel is
-    built: Numba caches each block size's kernel apart (a closure constant)."""
-    from ensemble.scenes.chain import kernels
+    of the block ensemble.engine.sites.block_size picks for this host. Call it before any chain kernel is
+    built: each block size's kernel is a file of its own (ensemble.engine.kernels)."""
+    from ensemble.engine import sites
 
-    choose = kernels.block_size
-    kernels.block_size = lambda constants, method: (block if method.adaptive or not adaptive_only
+    choose = sites.block_size
+    sites.block_size = lambda constants, method: (block if method.adaptive or not adaptive_only
                                                     else choose(constants, method))

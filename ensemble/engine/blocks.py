@@ -15,10 +15,10 @@ was a separate cache line far from the next: loading and saving a block of
 variables' layout. Per-member arrays (limit, status, failure_time, control,
 counts) are (..., members).
 
-The kernels are built from the engine's templates (ensemble.engine.templates), one per method family, and
-inline the helpers here; the chain's hand-written kernels (ensemble/scenes/chain/kernels.py) do too. Numba keys
-a cached kernel on its own file and closure alone, so a generated kernel's file holds HELPERS, a hash of the
-helpers' source, and the chain's kernels hold it in their closures.
+The kernels are built from the engine's templates (ensemble.engine.templates for a member of D values,
+ensemble.engine.sites for a field of sites), one per method family, and inline the helpers here. Numba keys
+a cached kernel on its own file alone, so a generated kernel's file holds HELPERS, a hash of the helpers'
+source.
 How the runner calls a kernel is in `ensemble.engine.launch`.
 """
 from __future__ import annotations
@@ -426,38 +426,6 @@ def trial_steps(work, c0, B, target):
         work[(c0 + ERR) * B + j] = 0.0
         left += step > 0.0
     return left
-
-
-@njit(**FAST)
-def splitting_schedule(pieces, fractions, h, steps_per_save, chunk):
-    """The pieces of one save interval of steps h (s): kinds (KICK or DRIFT), taus (s), and lags.
-
-    pieces and fractions: a splitting's sequence (piece numbers, fractions
-    of the step). Where a step ends with the piece the next begins with
-    (verlet: a half kick), the two merge into one. lags[p] is how many masses piece p runs
-    behind the first piece of its chunk (pieces in chunks of `chunk`): one
-    more at each change between kick and drift.
-    """
-    E = len(pieces)
-    merge = E > 1 and pieces[0] == pieces[E - 1]
-    kinds = np.empty(E * steps_per_save, np.int64)
-    taus = np.empty(E * steps_per_save)
-    count = 0
-    for step in range(steps_per_save):
-        for e in range(E):
-            if merge and e == 0 and step > 0:
-                continue  # done by the previous step's last piece
-            tau = h * fractions[e]
-            if merge and e == E - 1 and step < steps_per_save - 1:
-                tau += h * fractions[0]
-            kinds[count] = pieces[e]
-            taus[count] = tau
-            count += 1
-    lags = np.zeros(count, np.int64)
-    for p in range(count):
-        if p % chunk:
-            lags[p] = lags[p - 1] + (kinds[p] != kinds[p - 1])
-    return kinds[:count], taus[:count], lags
 
 
 # A member's state: D rows from row 0, then its P parameter rows (the engine's templates, ensemble.engine.templates);

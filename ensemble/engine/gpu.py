@@ -371,8 +371,8 @@ class GpuKernel(NamedTuple):
 def kernel(scene, method: Method, constants: dict, precision: str = "float64") -> GpuKernel:
     """The CUDA kernel of a stepping method for a scene (compiled when first launched)."""
     D, P = scene.kernel_rows(constants)
-    if getattr(scene, "SITES", None):
-        return _sites_kernel(scene.NAME, scene.SITES, tuple(scene.PIECES), method, constants["n"],
+    if getattr(scene, "SITES", False):
+        return _sites_kernel(scene.NAME, scene.PHYSICS, tuple(scene.PIECES), method, constants["n"],
                              constants["boundary"] == "periodic", precision)
     return _member_kernel(scene.NAME, scene.PHYSICS, tuple(scene.PIECES), method, D, P, precision)
 

@@ -8,7 +8,6 @@ never rewritten (Numba's cache index checks its source file's time stamp). The f
 from __future__ import annotations
 
 import hashlib
-import importlib
 import importlib.util
 import os
 import sys
@@ -23,7 +22,7 @@ from numba.core.registry import CPUDispatcher
 from ..methods import Method
 from ..scenes.contract import load, python_function
 from ..tuning import generated_block, kernel_folder
-from . import templates
+from . import sites, templates
 from .blocks import FAST, HELPERS, Kernel
 
 BLOCK = 128  # members per block of a scene whose kernel_rows are its whole state (rows of B floats each)
@@ -64,27 +63,28 @@ def factor_counts(where: str, pieces: tuple[str, ...], parameters: int) -> dict[
 
 
 def block_size(scene, constants: dict, method: Method) -> int:
-    """Members per kernel block: the scene's BLOCK if it names one, else the run's or this machine's tuning
-    (ensemble.tuning.generated_block), else BLOCK."""
-    own = _own_kernels(scene)
-    return own.block_size(constants, method) if own else getattr(scene, "BLOCK", None) or generated_block(BLOCK)
+    """Members per kernel block: a field of sites' rule (ensemble.engine.sites.block_size), else the scene's BLOCK
+    if it names one, else the run's or this machine's tuning (ensemble.tuning.generated_block), else BLOCK."""
+    if getattr(scene, "SITES", False):
+        return sites.block_size(constants, method)
+    return getattr(scene, "BLOCK", None) or generated_block(BLOCK)
 
 
 def kernel(scene, method: Method, constants: dict) -> Kernel:
-    """Kernel(function, work rows) of a stepping method for a scene: compiled, or loaded from Numba's cache."""
-    own = _own_kernels(scene)
-    if own:
-        return own.kernel(method, constants)
+    """Kernel(function, work rows) of a stepping method for a scene: compiled, or loaded from Numba's cache. A
+    scene whose member is a field of sites (SITES) gets ensemble.engine.sites's templates, for its constants' n
+    sites and boundary; every other scene the templates of ensemble.engine.templates."""
+    if getattr(scene, "SITES", False):
+        return _sites_generated(scene.NAME, scene.PHYSICS, method, constants["n"], constants["boundary"] == "periodic")
     D, P = scene.kernel_rows(constants)
     return _generated(scene.NAME, scene.PHYSICS, tuple(scene.PIECES), method, D, P,
                       block_size(scene, constants, method))
 
 
-def _own_kernels(scene) -> ModuleType | None:
-    """A scene whose kernels are still written by hand (the chain's: its force sweeps, tiles and halos are not in
-    a template yet) names their module as KERNELS."""
-    own = getattr(scene, "KERNELS", None)
-    return importlib.import_module(own) if own else None
+@cache
+def _sites_generated(name: str, where: str, method: Method, n: int, periodic: bool) -> Kernel:
+    body, rows = sites.source(name, where, physics_hash(where), method, n, periodic)
+    return Kernel(load_source(body, f"{name}_{method.name}_{n}").kernel, rows)
 
 
 @cache

@@ -1,5 +1,6 @@
-"""One kernel template per method family, filled in with a scene's physics: the only stage loops, splitting loops
-and step-size control loops in ensemble.
+"""One kernel template per method family, filled in with a scene's physics. With ensemble.engine.sites (the same
+families over a member that is a field of sites, the chain) and ensemble.engine.gpu (both on a GPU), these are
+the only stage loops, splitting loops and step-size control loops in ensemble.
 
 A template is Python source with the scene's state (D rows) and parameters (P rows) spelled out as scalar
 variables of one member: y0 .. y{D-1}, p0 .. p{P-1}. The kernel calls the scene's functions by name, imported

@@ -24,7 +24,9 @@ class Scene(Protocol):
     `values` (name -> (members,) or (members, site)); kernel arrays are (rows, members).
 
     PHYSICS names the module (or file) whose functions the engine's templates call: rhs(t, *state, *parameters)
-    and each piece's flow (ensemble.engine.templates).
+    and each piece's flow (ensemble.engine.templates); or, for a scene with SITES = True, whose member is n sites
+    each moved by its two neighbours (the chain), acceleration(x_left, x, x_right, c_left, c_right)
+    (ensemble.engine.sites, with n and boundary among its constants).
     """
 
     NAME: str

@@ -6,8 +6,8 @@ Boundaries: "fixed" (walls at both ends, N+1 springs), "free" (N-1 springs),
 "periodic" (a ring of N springs). Spring s connects, in order:
 fixed: the left wall and mass 1, mass s and s+1, ..., mass N and the right wall;
 free: mass s and s+1; periodic: mass s and s+1, the last one mass N and mass 1.
-Displacements x (m) are measured from equilibrium. The compiled forces and the
-kernels are in `kernels.py` beside this file.
+Displacements x (m) are measured from equilibrium. The compiled acceleration of a mass,
+from which ensemble.engine.sites builds the kernels, is in `physics.py` beside this file.
 """
 from __future__ import annotations
 
@@ -17,8 +17,8 @@ from ...methods import KICK_DRIFT, Method
 from ...parameter import Mode, Parameter, ParameterError
 
 NAME = "chain"
-KERNELS = "ensemble.scenes.chain.kernels"  # its kernels, written by hand: force sweeps, tiles and ring halos
-SITES = "ensemble.scenes.chain.kernels"  # on a GPU: a field of sites, `acceleration` of a mass between neighbours
+PHYSICS = "ensemble.scenes.chain.physics"  # `acceleration` of a mass between its neighbours
+SITES = True  # a member is a field of sites: the engine builds its kernels from ensemble.engine.sites
 PIECES = KICK_DRIFT  # splitting methods: kick (v += tau a(x)) and drift (x += tau v)
 EVALUATING_PIECES = ("kick",)  # a kick evaluates the forces
 BOUNDARIES = ("fixed", "free", "periodic")
@@ -294,7 +294,7 @@ def observe(samples: np.ndarray, names, values: dict[str, np.ndarray], constants
     if "v" in names:
         out["v"] = np.ascontiguousarray(v)
     if "energy" in names:
-        from .kernels import BOUNDARIES, sample_energy  # compiled: the model alone does not import Numba
+        from .physics import sample_energy  # compiled: the model alone does not import Numba
 
         out["energy"] = sample_energy(np.ascontiguousarray(samples.transpose(2, 0, 1)),
                                       np.ascontiguousarray(values["m"], dtype=float),

@@ -1,0 +1,559 @@
+"""Kernels over a field of sites: the method families' loops for a scene whose member is n sites on a line or a
+ring, each accelerated by its two neighbours alone (the chain: masses joined by springs).
+
+The scene's physics module gives one function, compiled with Numba:
+
+    acceleration(x_left, x, x_right, c_left, c_right) -> acceleration of a site at x (m s-2)
+
+where c_left and c_right are the site's couplings to its left and right neighbour (the scene's `rate` rows 0 .. n-1
+and n .. 2n-1 of a member; a wall or a free end is a neighbour at rest with coupling 0 or the wall's). Its state
+is positions then velocities (2n rows), and its splittings are KICK_DRIFT (kick: v += tau a(x); drift: x += tau v).
+
+As ensemble.engine.templates does for a member of D values, `source` fills in a family's template (explicit
+Runge-Kutta tableaus, kick/drift splittings, embedded adaptive pairs) with the scene's `acceleration`, imported
+by name; ensemble.engine.kernels writes it to a file that Numba keys its disk cache on. The helpers that do not
+call `acceleration` are here, compiled once and inlined; those that do are written into each kernel's file
+(FORCES). This file also holds the layout's rules: members per block (block_size) and when a long chain's
+splitting runs in tiles (tiles, ring_halo).
+
+Work rows (B members each, row r of member j at r B + j): X (n + 2: ghost, sites 1..n, ghost), V (n), then CL and
+CR (n each: the couplings); in a tiled ring's rows, n + 2 halo sites stand where these have n (see SPLITTING).
+Runge-Kutta adds the stage state ZX (n + 2), ZV (n) and slopes KX, KV (stages x n each); an adaptive pair then
+its control rows (blocks.CONTROL_ROWS). Forces come from neighbours only: O(n) per step.
+"""
+from __future__ import annotations
+
+import hashlib
+from functools import cache
+from pathlib import Path
+
+import numpy as np
+from numba import njit
+
+from ..methods import Method
+from ..results import UNDERFLOWED
+from .blocks import (
+    CONTROL_ROWS,
+    ERR,
+    FAST,
+    HELPERS,
+    REJECTED_LAST,
+    adaptive_constants,
+    block_done,
+    check_members,
+    fill_failed,
+    method_constants,
+    rows_in,
+    sample_out,
+    select,
+)
+
+#: A hash of this file and the engine's helpers: every sites kernel's file holds it (see engine.kernels).
+SITES_HELPERS = hashlib.sha256(Path(__file__).read_bytes() + HELPERS.encode()).hexdigest()
+
+TILE_ROWS, TILE_PIECES = 64, 32  # a long chain's splitting kernel: sites per tile, pieces per sweep
+TILE_FROM_L1 = 1.5  # a splitting runs in tiles when a block's rows outgrow this many times the L1 data cache
+PIECES = ("kick", "drift")  # the splittings' pieces, in methods.KICK_DRIFT's order
+KICK = PIECES.index("kick")
+
+
+# ---------------------------------------------------------------- layout rules
+
+def block_size(constants: dict, method: Method) -> int:
+    """Members per kernel block for `method` on a field of n sites: 64 below 16 sites, except for an adaptive
+    pair whose 64 members' work rows (20n + 15 for dopri5, control rows included) would outgrow the host's L1
+    data cache (l1_data_bytes): then two SIMD vectors of this host, but never fewer than 16. From 16 sites on,
+    64 for fixed-step Runge-Kutta, and for splittings and adaptive pairs two SIMD vectors (vector_doubles: 8
+    members with AVX2, 16 with AVX-512), or one where a block's work rows (4n + 2 for a splitting) would
+    outgrow the L1 data cache, but never fewer than 8 for a pair.
+
+    A splitting member's arithmetic does not depend on its block: results are the same bits on every host. An
+    adaptive pair's takes the same steps in every block, but its values can differ in the last places between
+    blocks, so between hosts whose L1 caches or vectors differ from 3 sites on (LLVM's fast-math code
+    differs). Measured with
+    `python analysis/bench/bench_chain.py --n 16 64 128 --repeats 5 --steps 1000 --block B` (2^20 masses):
+
+    - verlet on an AVX-512 host (AMD EPYC Zen 5, 48 KiB L1d; 2026-11-25, commit 0d9a3d3), blocks of 8, 16 and
+      32: n = 16 1.37e10, 1.57e10 and 1.17e10 mass-steps/s; n = 64 1.52e10, 1.59e10 and 1.11e10; n = 128
+      1.56e10, 1.19e10 and 6.9e9 (the C of ../shared/limit 9e9 to 1.1e10 in the same rounds). At n = 2 (`--n 2`),
+      blocks of 16, 32 and 64 gave 4.0e9, 9.9e9 and 1.09e10. Compiled for AVX2 on that host
+      (NUMBA_CPU_NAME=znver3), blocks of 4, 8 and 16 gave 8.3e9, 1.50e10 and 1.52e10 at n = 16, and 1.15e10,
+      1.66e10 and 1.21e10 at n = 128.
+    - per member-step at n = 16 on an AVX2 host (AMD EPYC Zen 3; `analysis/bench/bench_dopri5.py`'s chains), blocks
+      of 4, 8, 16 and 64: rk4 8.96e-8, 1.62e-7, 1.06e-7 and 6.86e-8 s; dopri5, in the same run as rk4 at 64,
+      6.4, 2.3, 2.8 and 6.0 times rk4 (and 5.5 at 32). That was before a pair's accepted steps moved in selects.
+    - dopri5 over rk4 on the AVX-512 host, after that: see analysis/bench/README.md (bench_dopri5.py --chain-block B).
+      Below 16 sites there, dopri5 in blocks of 64 and 16 took 8.3e-9 and 1.05e-8 s per member-step at n = 3,
+      1.02e-8 and 1.17e-8 at n = 4, 1.35e-8 and 1.30e-8 at n = 5, 2.3e-8 and 1.75e-8 at n = 6, and 6.6e-8 and
+      2.4e-8 at n = 12; 64 members' rows fill 0.8, 1.0, 1.2, 1.4 and 2.7 times its 48 KiB L1 cache. Compiled
+      for AVX2, blocks of 16 beat blocks of 8 from n = 6 to 12.
+
+    A tableau's stage sums gain from longer rows; an adaptive block's members wait for the block's slowest, and
+    its seven stages' rows outgrow the L1 cache in long blocks.
+    """
+    n = constants["n"]
+    pair = 2 * vector_doubles()
+    member_bytes = (stage_rows(n, method.tableau.stages)[-1] + CONTROL_ROWS) * 8 if method.adaptive else 0
+    if n < 16:
+        return 64 if member_bytes * 64 <= l1_data_bytes() else max(pair, 16)
+    if method.adaptive:
+        return pair if member_bytes * pair <= l1_data_bytes() else max(pair // 2, 8)
+    if method.tableau is not None:
+        return 64
+    return pair if (4 * n + 2) * pair * 8 <= l1_data_bytes() else pair // 2
+
+
+@cache
+def vector_doubles() -> int:
+    """Doubles in one SIMD vector of this host's widest extension (LLVM's host features): 8 with AVX-512F,
+    4 with AVX, else 2."""
+    from llvmlite import binding
+
+    features = binding.get_host_cpu_features()
+    return 8 if features.get("avx512f") else 4 if features.get("avx") else 2
+
+
+@cache
+def l1_data_bytes(cpu: Path = Path("/sys/devices/system/cpu/cpu0/cache")) -> int:
+    """Bytes of the first CPU's level 1 data cache (Linux sysfs: "48K"); 32 KiB where it cannot be read."""
+    units = {"K": 1024, "M": 1024**2}
+    for index in sorted(cpu.glob("index*")):
+        try:
+            level, kind, size = ((index / name).read_text().strip() for name in ("level", "type", "size"))
+            if level == "1" and kind in ("Data", "Unified"):
+                return int(size[:-1]) * units[size[-1]] if size[-1:] in units else int(size)
+        except (OSError, ValueError):  # unreadable, or not in sysfs's form
+            continue
+    return 32 * 1024
+
+
+def tiles(n: int, B: int) -> bool:
+    """Whether a splitting kernel runs a field of n sites in blocks of B members in tiles (see SPLITTING):
+    when a block's 4n + 2 rows outgrow TILE_FROM_L1 times the L1 data cache, and the field is longer than two
+    tiles (so a ring is longer than its halos). On the AVX-512 host (48 KiB L1d, blocks of 8) one piece at a
+    time was faster at n = 200 and 256, tiles from n = 288 on: 1.70, 1.43 and 1.12 times the C verlet against
+    1.22, 1.21 and 1.33 in tiles (analysis/bench/README.md)."""
+    return n > 2 * TILE_ROWS and (4 * n + 2) * B * 8 > TILE_FROM_L1 * l1_data_bytes()
+
+
+def ring_halo(method: Method) -> int:
+    """Sites a long ring's rows hold beyond each end for a splitting `method`: the most kicks in one run of
+    TILE_PIECES pieces (one site each: how far a row end's wrong value travels before the halos are copied
+    again)."""
+    _, _, _, _, _, pieces, fractions = method_constants(method)
+    kinds = splitting_schedule.py_func(pieces, fractions, 1.0, 2 * TILE_PIECES + 1, TILE_PIECES)[0]  # no compile
+    return max(int(np.sum(kinds[c:c + TILE_PIECES] == KICK)) for c in range(0, len(kinds), TILE_PIECES))
+
+
+def stage_rows(n: int, stages: int) -> tuple[int, ...]:
+    """The first rows of X, V, ZX, ZV, KX and KV in a Runge-Kutta kernel of `stages` stages (CL and CR lie between
+    V and ZX), and the row after KV: where an adaptive kernel's control rows begin."""
+    X, V = 0, n + 2
+    ZX = V + 3 * n  # after V, CL and CR
+    ZV = ZX + n + 2
+    KX = ZV + n
+    KV = KX + stages * n
+    return X, V, ZX, ZV, KX, KV, KV + stages * n
+
+
+# ---------------------------------------------------------------- helpers that do not call the scene
+# They take n, B and the rows as arguments: inlined into a kernel, these are its constants again.
+
+@njit(**FAST)
+def splitting_schedule(pieces, fractions, h, steps_per_save, chunk):
+    """The pieces of one save interval of steps h (s): kinds (KICK or DRIFT), taus (s), and lags.
+
+    pieces and fractions: a splitting's sequence (piece numbers, fractions
+    of the step). Where a step ends with the piece the next begins with
+    (verlet: a half kick), the two merge into one. lags[p] is how many sites piece p runs
+    behind the first piece of its chunk (pieces in chunks of `chunk`): one
+    more at each change between kick and drift.
+    """
+    E = len(pieces)
+    merge = E > 1 and pieces[0] == pieces[E - 1]
+    kinds = np.empty(E * steps_per_save, np.int64)
+    taus = np.empty(E * steps_per_save)
+    count = 0
+    for step in range(steps_per_save):
+        for e in range(E):
+            if merge and e == 0 and step > 0:
+                continue  # done by the previous step's last piece
+            tau = h * fractions[e]
+            if merge and e == E - 1 and step < steps_per_save - 1:
+                tau += h * fractions[0]
+            kinds[count] = pieces[e]
+            taus[count] = tau
+            count += 1
+    lags = np.zeros(count, np.int64)
+    for p in range(count):
+        if p % chunk:
+            lags[p] = lags[p - 1] + (kinds[p] != kinds[p - 1])
+    return kinds[:count], taus[:count], lags
+
+
+@njit(inline="always", **FAST)
+def set_ghosts(work, x, n, B, periodic):
+    """Ring: the ghost sites of the positions at row x copy sites n and 1; walls and free ends keep 0."""
+    if periodic:
+        for j in range(B):
+            work[x * B + j] = work[(x + n) * B + j]
+            work[(x + n + 1) * B + j] = work[(x + 1) * B + j]
+
+
+@njit(inline="always", **FAST)
+def _fill_halos(work, row, n, halo, B):
+    """A tiled ring's rows from `row` on (one of X + 1, V, CL, CR) hold halo sites, its n sites, halo sites:
+    the halos copy the sites at the ring's other end (site n - halo + e before site 1, site e after site n)."""
+    for q in range(halo * B):
+        work[row * B + q] = work[(row + n) * B + q]
+        work[(row + halo + n) * B + q] = work[(row + halo) * B + q]
+
+
+@njit(inline="always", **FAST)
+def refresh_halos(work, n, halo, B):
+    """A tiled ring: its positions' and velocities' halos from its sites (nothing when halo is 0)."""
+    m = n + 2 * halo
+    if halo > 0:
+        _fill_halos(work, 1, n, halo, B)
+        _fill_halos(work, m + 2, n, halo, B)
+
+
+@njit(inline="always", **FAST)
+def _store_sample(work, samples, save, block, n, halo, B):
+    m = n + 2 * halo
+    sample_out(work, 1 + halo, samples, save, block, 0, n, B)
+    sample_out(work, m + 2 + halo, samples, save, block, n, n, B)
+
+
+@njit(inline="always", **FAST)
+def load_block(work, state0, rate, block, samples, n, halo, B, periodic):
+    """Start a block's (zeroed) work array with its state and couplings; also its first sample. A tiled ring's
+    rows hold n + 2 halo sites each, its own n between two halos."""
+    m = n + 2 * halo
+    rows_in(work, 1 + halo, state0[block], 0, n, B)
+    rows_in(work, m + 2 + halo, state0[block], n, n, B)
+    rows_in(work, 2 * m + 2 + halo, rate[block], 0, n, B)
+    rows_in(work, 3 * m + 2 + halo, rate[block], n, n, B)
+    _store_sample(work, samples, 0, block, n, halo, B)
+    if halo > 0:
+        refresh_halos(work, n, halo, B)
+        _fill_halos(work, 2 * m + 2, n, halo, B)
+        _fill_halos(work, 3 * m + 2, n, halo, B)
+    else:
+        set_ghosts(work, 0, n, B, periodic)
+
+
+@njit(inline="always", **FAST)
+def fixed_start(work, works, state0, rate, block, samples, limit, status, failure_time, progress, start, n, halo,
+                B, periodic):
+    """Copy a block's work array into the call's `work` (cache_line_array), and whether the block runs: a call
+    at start 0 loads it from state0, a later one continues it unless every member has failed."""
+    work[:] = works[block]
+    if start == 0:
+        load_block(work, state0, rate, block, samples, n, halo, B, periodic)
+        m = n + 2 * halo
+        check_members(work, 1, 2 * m + 1, B, block * B, limit, status, failure_time, 0.0)  # a non-finite start
+        return True
+    return not block_done(samples, status, progress, block, B)
+
+
+@njit(inline="always", **FAST)
+def saved(work, samples, save, block, limit, status, failure_time, progress, t, step_row, n, halo, B):
+    """End of a save interval at time t (s): fail the members that blew up, store sample `save`; when no member
+    of the block runs any more, fill its later samples with NaN and return True (the block is done). A tiled
+    ring's halos are refreshed first, so the check sees its sites' values only."""
+    refresh_halos(work, n, halo, B)
+    m = n + 2 * halo
+    running = check_members(work, 1, 2 * m + 1, B, block * B, limit, status, failure_time, t, step_row)
+    _store_sample(work, samples, save, block, n, halo, B)
+    if running == 0:
+        fill_failed(samples, save + 1, block, B)
+    progress[block] = samples.shape[1] - 1 if running == 0 else save
+    return running == 0
+
+
+@njit(inline="always", **FAST)
+def stage_sums(work, weights, S, KX, KV, i, j, n, B):
+    """sum_s weights[s] K_s for site i + 1 of member j: its x part and its v part."""
+    dx = 0.0
+    dv = 0.0
+    for s in range(S):
+        dx += weights[s] * work[(KX + s * n + i) * B + j]
+        dv += weights[s] * work[(KV + s * n + i) * B + j]
+    return dx, dv
+
+
+@njit(inline="always", **FAST)
+def drift(work, tau, lo, hi, n, B):
+    """Drift sites lo + 1 .. hi: x += tau (s) times their velocity."""
+    w = work[lo * B:]
+    for q in range((hi - lo) * B):
+        w[B + q] += tau * w[(n + 2) * B + q]
+
+
+@njit(inline="always", **FAST)
+def accept(work, X, V, ZX, ZV, KX, KV, C0, S, n, B):
+    """After control_step: members whose step was accepted move to the stage state ZX, ZV (its last slopes are the
+    next step's first); members whose step underflowed become NaN. In selects for blocks of 16 or more, in
+    branches for fewer: each form is the faster at its block, as AVX-512 and as AVX2 code (analysis/bench/README.md,
+    `python analysis/bench/bench_dopri5.py --chain-block B`)."""
+    last = S - 1
+    for i in range(n):
+        for j in range(B):
+            err = work[(C0 + ERR) * B + j]
+            accepted = (work[(C0 + REJECTED_LAST) * B + j] == 0.0) & (err >= 0.0)
+            underflowed = err == UNDERFLOWED
+            if B >= 16:
+                x, v = work[(X + 1 + i) * B + j], work[(V + i) * B + j]
+                work[(X + 1 + i) * B + j] = select(accepted, work[(ZX + 1 + i) * B + j], select(underflowed, np.nan, x))
+                work[(V + i) * B + j] = select(accepted, work[(ZV + i) * B + j], select(underflowed, np.nan, v))
+                work[(KX + i) * B + j] = select(accepted, work[(KX + last * n + i) * B + j], work[(KX + i) * B + j])
+                work[(KV + i) * B + j] = select(accepted, work[(KV + last * n + i) * B + j], work[(KV + i) * B + j])
+            elif accepted:
+                work[(X + 1 + i) * B + j] = work[(ZX + 1 + i) * B + j]
+                work[(V + i) * B + j] = work[(ZV + i) * B + j]
+                work[(KX + i) * B + j] = work[(KX + last * n + i) * B + j]
+                work[(KV + i) * B + j] = work[(KV + last * n + i) * B + j]
+            elif underflowed:
+                work[(X + 1 + i) * B + j] = np.nan
+                work[(V + i) * B + j] = np.nan
+
+
+# ---------------------------------------------------------------- the templates
+
+HEADER = '''"""Generated by ensemble.engine.sites: the {family} kernel of {scene}, method {method}, {n} sites{ring}.
+
+Do not edit: ensemble writes a new file whenever the template, the scene's physics or the engine's helpers change.
+"""
+# physics: {physics_hash}
+# helpers: {helpers_hash}
+import math
+
+import numpy as np
+from numba import njit
+
+from ensemble.engine.blocks import (ATOL, ERR, FAST, RTOL, STEP, H, block_done, cache_line_array, check_members,
+                                    control_step, counts_out, first_step, start_control, trial_steps)
+from ensemble.engine.kernels import physics_functions
+from ensemble.engine.sites import (KICK, TILE_PIECES, TILE_ROWS, accept, drift, fixed_start, load_block,
+                                   refresh_halos, saved, set_ghosts, splitting_schedule, stage_sums)
+
+acceleration, = physics_functions({where!r}, ("acceleration",))
+
+N, HALO, B, PERIODIC = {n}, {halo}, {B}, {periodic}  # sites, halo sites beyond each end of a row, members, a ring
+M = N + 2 * HALO  # sites in a row
+S = {S}  # stages
+X, V, ZX, ZV, KX, KV, C0 = {rows}  # first rows (see ensemble.engine.sites); C0: an adaptive pair's control
+
+
+@njit(inline="always", **FAST)
+def site_acceleration(work, x, i, j, n, B):
+    """Acceleration (m s-2) of site i + 1 of member j, from the positions at row x (with ghosts)."""
+    CL, CR = 2 * n + 2, 3 * n + 2
+    return acceleration(work[(x + i) * B + j], work[(x + 1 + i) * B + j], work[(x + 2 + i) * B + j],
+                        work[(CL + i) * B + j], work[(CR + i) * B + j])
+
+
+@njit(inline="always", **FAST)
+def slopes(work, zx, zv, kx, kv, n, B):
+    """A stage's slopes: velocities from row zv into row kx, accelerations from row zx into row kv.
+
+    One loop over the n x B values (site i, member j at i B + j): a stage's rows kx, kv are known only at run
+    time, and over a block's B members alone LLVM does not check them against the rows read, so it did not
+    vectorize (a chain's dopri5 spent a third of its time here, scalar)."""
+    for q in range(n * B):
+        work[kx * B + q] = work[zv * B + q]
+        work[kv * B + q] = site_acceleration(work, zx, 0, q, n, B)  # q = i B + j: site i + 1, member j
+
+
+@njit(inline="always", **FAST)
+def stage(work, s, a, h, step_row):
+    """Runge-Kutta stage s: its state Z = Y + sum_r h a[s, r] K_r into rows ZX, ZV, then its slopes into KX_s,
+    KV_s. The step is h, or each member's own from row step_row when step_row >= 0 (adaptive kernels); a is the
+    flat stages x stages tableau, zero from column s."""
+    for i in range(N):
+        for j in range(B):
+            hj = work[step_row * B + j] if step_row >= 0 else h
+            zx = work[(X + 1 + i) * B + j]
+            zv = work[(V + i) * B + j]
+            for r in range(S):
+                ha = hj * a[s * S + r]
+                zx += ha * work[(KX + r * N + i) * B + j]
+                zv += ha * work[(KV + r * N + i) * B + j]
+            work[(ZX + 1 + i) * B + j] = zx
+            work[(ZV + i) * B + j] = zv
+    set_ghosts(work, ZX, N, B, PERIODIC)
+    slopes(work, ZX, ZV, KX + s * N, KV + s * N, N, B)
+
+
+@njit(inline="always", **FAST)
+def kick(work, tau, lo, hi, n, B):
+    """Kick sites lo + 1 .. hi: v += tau (s) times their acceleration."""
+    w = work[lo * B:]  # rows from lo on, indexed from 0
+    for q in range((hi - lo) * B):  # q = i B + j: site lo + i + 1, member j
+        w[(n + 2) * B + q] += tau * site_acceleration(w, 0, 0, q, n, B)
+'''
+
+SIGNATURE = '''
+
+@njit(nogil=True, cache=True, **FAST)
+def kernel(state0, rate, h, steps_per_save, limit, samples, status, failure_time, progress, works, start,
+           first_block, end_block):
+    """state0 (blocks, 2n, B), rate (blocks, 2n, B), limit (M,) -> samples (members, count, 2n),
+    status (M,), failure_time (M,) (s; set only where a member fails); M = blocks x B."""
+'''
+
+# A long chain's rows outgrow the L1 cache (tiles), so its splitting kernel runs TILE_PIECES pieces (kicks and
+# drifts) at once over tiles of TILE_ROWS sites, each piece one site behind the piece before it where kick and drift
+# alternate (a wavefront): every site still sees its neighbours as the one-piece-at-a-time order has them, so
+# results are bit for bit the same. A ring's ends need each other's last piece, so a long ring's rows hold HALO more
+# sites on each side (ring_halo), copies of the sites at its other end made before each run of pieces: a wrong
+# value at a row's end travels one site a kick, so it never reaches the ring's own sites, which take the same bits
+# as one piece at a time. A short ring copies its ghost sites after each drift. Kick and drift make one loop over
+# their sites' values (site i, member j at i B + j), indexed from 0 in a view of the work array: from a variable
+# start, Numba's negative-index wraparound stays in the loop and LLVM does not vectorize it. As two loops (sites,
+# then a block's B members, unrolled), LLVM on AVX-512 vectorized the loop over sites, with gathers: a tenth of the
+# speed at n = 16 and 128.
+SPLITTING = '''SEQUENCE, FRACTIONS = {sequence}, {fractions}  # piece numbers (KICK or drift), fractions of the step
+TILED = {tiled}
+''' + SIGNATURE + '''    kinds, taus, lags = splitting_schedule(SEQUENCE, FRACTIONS, h, steps_per_save, TILE_PIECES)
+    count = len(kinds)
+    work = cache_line_array(works.shape[1])
+    for block in range(first_block, end_block):
+        if not fixed_start(work, works, state0, rate, block, samples, limit, status, failure_time, progress, start,
+                           N, HALO, B, PERIODIC):
+            continue
+        for save in range(max(start, 1), start + samples.shape[1]):
+            if TILED:
+                for c0 in range(0, count, TILE_PIECES):
+                    c1 = min(c0 + TILE_PIECES, count)
+                    refresh_halos(work, N, HALO, B)
+                    for t0 in range(0, M + lags[c1 - 1], TILE_ROWS):
+                        for p in range(c0, c1):
+                            lo = max(t0 - lags[p], 0)
+                            hi = min(t0 + TILE_ROWS - lags[p], M)
+                            if kinds[p] == KICK:
+                                kick(work, taus[p], lo, hi, M, B)
+                            else:
+                                drift(work, taus[p], lo, hi, M, B)
+            else:
+                for p in range(count):
+                    if kinds[p] == KICK:
+                        kick(work, taus[p], 0, N, N, B)
+                    else:
+                        drift(work, taus[p], 0, N, N, B)
+                        set_ghosts(work, X, N, B, PERIODIC)
+            if saved(work, samples, save - start, block, limit, status, failure_time, progress,
+                     save * steps_per_save * h, -1, N, HALO, B):
+                break
+        works[block] = work
+'''
+
+RUNGE_KUTTA = '''A, WEIGHTS = {a}, {b}  # the tableau: a (S x S, flat), b
+''' + SIGNATURE + '''    work = cache_line_array(works.shape[1])
+    for block in range(first_block, end_block):
+        if not fixed_start(work, works, state0, rate, block, samples, limit, status, failure_time, progress, start,
+                           N, 0, B, PERIODIC):
+            continue
+        for save in range(max(start, 1), start + samples.shape[1]):
+            for _ in range(steps_per_save):
+                for s in range(S):
+                    stage(work, s, A, h, -1)
+                for i in range(N):
+                    for j in range(B):
+                        dx, dv = stage_sums(work, WEIGHTS, S, KX, KV, i, j, N, B)
+                        work[(X + 1 + i) * B + j] += h * dx
+                        work[(V + i) * B + j] += h * dv
+            if saved(work, samples, save - start, block, limit, status, failure_time, progress,
+                     save * steps_per_save * h, -1, N, 0, B):
+                break
+        works[block] = work
+'''
+
+# As for a member of D values (ensemble.engine.templates.ADAPTIVE), every member of a block takes its own trial
+# step at once, clipped to land on the next saved time.
+ADAPTIVE = '''A = np.array({a})  # indexed by a loop variable: a constant array, not a tuple
+ERROR = {e}  # b - b_hat: h sum_s ERROR[s] k_s estimates the local error
+ALPHA, BETA, SAFETY, MIN_FACTOR, MAX_FACTOR = {control}
+
+
+@njit(nogil=True, cache=True, **FAST)
+def kernel(state0, rate, control, save_dt, limit, samples, counts, status, failure_time, progress, works, start,
+           first_block, end_block):
+    """state0, rate (blocks, 2n, B); control (3, M): first step (s; <= 0: estimate it), rtol, atol;
+    limit (M,) -> samples (members, count, 2n), counts (3, M): accepted, rejected, right-hand-side evaluations;
+    status (M,) and failure_time (M,; s, set only where a member fails)."""
+    work = cache_line_array(works.shape[1])
+    for block in range(first_block, end_block):
+        j0 = block * B
+        work[:] = works[block]
+        if start == 0:
+            load_block(work, state0, rate, block, samples, N, 0, B, PERIODIC)
+            slopes(work, X, V, KX, KV, N, B)
+            for j in range(B):
+                rtol, atol = control[1, j0 + j], control[2, j0 + j]
+                h = control[0, j0 + j]
+                if h <= 0.0:
+                    size = 0.0
+                    slope = 0.0
+                    for i in range(N):
+                        x, v = work[(X + 1 + i) * B + j], work[(V + i) * B + j]
+                        size = max(size, abs(x) / (atol + rtol * abs(x)), abs(v) / (atol + rtol * abs(v)))
+                        slope = max(slope, abs(v) / (atol + rtol * abs(x)),
+                                    abs(work[(KV + i) * B + j]) / (atol + rtol * abs(v)))
+                    h = first_step(size, slope, save_dt)
+                start_control(work, C0, B, j, rtol, atol, h)
+            # a non-finite start
+            check_members(work, X + 1, 2 * N + 1, B, j0, limit, status, failure_time, 0.0, C0 + H)
+        elif block_done(samples, status, progress, block, B):
+            continue
+        for save in range(max(start, 1), start + samples.shape[1]):
+            target = save * save_dt
+            while trial_steps(work, C0, B, target):
+                for s in range(1, S):  # FSAL: stage 0 is the last step's final stage
+                    stage(work, s, A, 0.0, C0 + STEP)
+                # FSAL: the last stage state ZX, ZV is the new state; estimate its error
+                for i in range(N):
+                    for j in range(B):
+                        ex, ev = stage_sums(work, ERROR, S, KX, KV, i, j, N, B)
+                        h = work[(C0 + STEP) * B + j]
+                        rtol, atol = work[(C0 + RTOL) * B + j], work[(C0 + ATOL) * B + j]
+                        x, z = work[(X + 1 + i) * B + j], work[(ZX + 1 + i) * B + j]
+                        qx = h * ex / (atol + rtol * max(abs(x), abs(z)))
+                        v, z = work[(V + i) * B + j], work[(ZV + i) * B + j]
+                        qv = h * ev / (atol + rtol * max(abs(v), abs(z)))
+                        work[(C0 + ERR) * B + j] += qx * qx + qv * qv
+                for j in range(B):
+                    work[(C0 + ERR) * B + j] = math.sqrt(work[(C0 + ERR) * B + j] / (2 * N))
+                control_step(work, C0, B, target, j0, status, failure_time, S - 1, ALPHA, BETA, SAFETY, MIN_FACTOR,
+                             MAX_FACTOR)
+                accept(work, X, V, ZX, ZV, KX, KV, C0, S, N, B)
+                set_ghosts(work, X, N, B, PERIODIC)
+            if saved(work, samples, save - start, block, limit, status, failure_time, progress, target, C0 + H, N, 0,
+                     B):
+                break
+        counts_out(work, C0, B, counts, j0)
+        works[block] = work
+'''
+
+
+def source(scene_name: str, where: str, physics_hash: str, method: Method, n: int, periodic: bool) -> tuple[str, int]:
+    """The kernel file's source for `method` over n sites (a ring if periodic) and its work rows; `where` names the
+    scene's physics module (its `acceleration`), physics_hash its file's SHA-256."""
+    B = block_size({"n": n}, method)
+    runge_kutta, S, a, b, _, sequence, fractions = method_constants(method)
+    tiled = not runge_kutta and tiles(n, B)
+    halo = ring_halo(method) if tiled and periodic else 0
+    rows = stage_rows(n + 2 * halo, S)
+    if method.adaptive:
+        S, a, e, *control = adaptive_constants(method)
+        family, body, count = "adaptive", ADAPTIVE.format(a=a, e=e, control=tuple(control)), rows[-1] + CONTROL_ROWS
+    elif runge_kutta:
+        family, body, count = "runge_kutta", RUNGE_KUTTA.format(a=a, b=b), rows[-1]
+    else:
+        body = SPLITTING.format(sequence=sequence, fractions=fractions, tiled=tiled)
+        family, count = "splitting", rows[2]  # a splitting's rows end with CR
+    head = HEADER.format(family=family, scene=scene_name, method=method.name, n=n,
+                         ring=" (a ring)" if periodic else "", physics_hash=physics_hash, helpers_hash=SITES_HELPERS,
+                         where=where, halo=halo, B=B, periodic=periodic, S=S, rows=rows)
+    return head + "\n\n" + body, count
