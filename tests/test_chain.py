@@ -11,7 +11,7 @@ import xarray as xr
 from scipy.linalg import expm
 
 from ensemble import cli, runner
-from ensemble.engine import kernels, launch, sites
+from ensemble.engine import launch, sites
 from ensemble.engine.sites import TILE_ROWS, block_size, tiles
 from ensemble.methods import METHODS
 from ensemble.scenes import applies, chain
@@ -222,13 +222,9 @@ def test_a_members_bits_do_not_depend_on_its_block(monkeypatch):
     constants = {"n": 16, "boundary": "fixed"}
     values = disordered(16, "fixed", members=20)
     samples = []
-    try:
-        for block in (4, 16):
-            monkeypatch.setattr(sites, "block_size", lambda constants, method, block=block: block)
-            kernels._sites_generated.cache_clear()
-            samples.append(run("verlet", values, constants, 0.05, 7, 3))
-    finally:
-        kernels._sites_generated.cache_clear()  # later tests must not get a kernel built for a forced block
+    for block in (4, 16):
+        monkeypatch.setattr(sites, "block_size", lambda constants, method, block=block: block)
+        samples.append(run("verlet", values, constants, 0.05, 7, 3))
     np.testing.assert_array_equal(samples[0], samples[1])
 
 
@@ -242,14 +238,10 @@ def test_a_chain_dopri5_member_does_not_depend_on_its_block_and_an_underflow_sto
     rtol = np.where(np.arange(20) == 5, 1e-300, 1e-9)
     atol = np.where(np.arange(20) == 5, 1e-300, 1e-12)
     outcomes = []
-    try:
-        for block in (8, 16):
-            monkeypatch.setattr(sites, "block_size", lambda constants, method, block=block: block)
-            kernels._sites_generated.cache_clear()
-            outcomes.append(launch.integrate(chain, METHODS["dopri5"], values, constants, n_save=4, save_dt=0.5,
-                                             rtol=rtol, atol=atol))
-    finally:
-        kernels._sites_generated.cache_clear()
+    for block in (8, 16):
+        monkeypatch.setattr(sites, "block_size", lambda constants, method, block=block: block)
+        outcomes.append(launch.integrate(chain, METHODS["dopri5"], values, constants, n_save=4, save_dt=0.5,
+                                         rtol=rtol, atol=atol))
     np.testing.assert_allclose(outcomes[0].samples, outcomes[1].samples, rtol=0, atol=1e-14)
     np.testing.assert_array_equal(outcomes[0].counts, outcomes[1].counts)
     out, running = outcomes[0], np.arange(20) != 5
@@ -320,7 +312,7 @@ def test_dataset_energy_and_parameters(write_runfile):
 
 @pytest.mark.parametrize("boundary", ["fixed", "free", "periodic"])
 def test_observed_energy_is_the_models_spring_sum(boundary):
-    """The run's compiled energy (kernels.sample_energy, from member-major samples) against model.energy (numpy,
+    """The run's compiled energy (physics.sample_energy, from member-major samples) against model.energy (numpy,
     its own extensions) on random states, masses and springs: the same sums in another order."""
     rng = np.random.default_rng(7)
     for n in (2, 3, 16, 129):

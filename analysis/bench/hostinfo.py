@@ -99,8 +99,8 @@ def host() -> str:
 
 def force_chain_block(block: int, adaptive_only: bool = False) -> None:
     """Run the chains' kernels (with adaptive_only, their adaptive ones alone) in blocks of `block` members instead
-    of the block ensemble.engine.sites.block_size picks for this host. Call it before any chain kernel is
-    built: each block size's kernel is a file of its own (ensemble.engine.kernels)."""
+    of the block ensemble.engine.sites.block_size picks for this host (each block's kernel is a file of its
+    own: ensemble.engine.kernels)."""
     from ensemble.engine import sites
 
     choose = sites.block_size

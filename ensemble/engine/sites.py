@@ -537,10 +537,10 @@ def kernel(state0, rate, control, save_dt, limit, samples, counts, status, failu
 '''
 
 
-def source(scene_name: str, where: str, physics_hash: str, method: Method, n: int, periodic: bool) -> tuple[str, int]:
-    """The kernel file's source for `method` over n sites (a ring if periodic) and its work rows; `where` names the
-    scene's physics module (its `acceleration`), physics_hash its file's SHA-256."""
-    B = block_size({"n": n}, method)
+def source(scene_name: str, where: str, physics_hash: str, method: Method, n: int, periodic: bool,
+           B: int) -> tuple[str, int]:
+    """The kernel file's source for `method` over n sites (a ring if periodic) in blocks of B members, and its work
+    rows; `where` names the scene's physics module (its `acceleration`), physics_hash its file's SHA-256."""
     runge_kutta, S, a, b, _, sequence, fractions = method_constants(method)
     tiled = not runge_kutta and tiles(n, B)
     halo = ring_halo(method) if tiled and periodic else 0
