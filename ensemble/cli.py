@@ -263,8 +263,7 @@ def _tune(args) -> int:
     print(f"tuning this machine: {tuning.host_key()['cpu']}")
     try:
         chosen, measured = tuning.tune(say=lambda line: print(line, flush=True))
-        print(f"chosen: vectors {tuning.width_name(chosen.vector_bits)}, generated kernels' blocks "
-              f"{chosen.block or 'the engine default'}")
+        print(f"chosen: {chosen.summary()}")
         if args.dry_run:
             print("kept nothing (--dry-run)")
         else:

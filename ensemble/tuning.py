@@ -4,16 +4,17 @@ LLVM picks a vector width for each CPU model: on recent Intel server cores it pr
 512-bit ones are there, and the hand-written C of ../shared/limit, compiled with gcc, uses 512. On an Intel Xeon
 (Emerald Rapids) the top's rk4 kernel ran at 0.64 of that C with 256-bit vectors and at 1.02 with 512
 (docs/speed.md). No rule fits every CPU, so `ensemble tune` times the candidates here: the vector width LLVM
-prefers (a process-wide setting of Numba's code generator), and the members per block of the kernels the engine
-generates from its templates. The winners go to tuning_path(), keyed by the CPU model, its vector extensions,
+prefers (a process-wide setting of Numba's code generator), the members per block of the kernels the engine
+generates from its templates, and a field of sites' splitting layout (its blocks, and its kicks and drifts fused
+in tiles or swept one at a time). The winners go to tuning_path(), keyed by the CPU model, its vector extensions,
 Numba's version and a hash of the engine's kernel sources; a file of another machine or engine is ignored with
 one line. Importing ensemble applies a valid file (`prepare`), before any Numba function of ours exists; a run
 without one uses the engine's rules and says once that `ensemble tune` may make runs faster. Nothing tunes on
 its own.
 
-Neither choice changes a member's arithmetic: every run file in runs/ and the method sweeps gave the same bits
-with 256- and 512-bit vectors on the Intel Xeon, and a block holds members side by side, each computed alone
-(tests/test_tuning.py checks both).
+No choice changes a member's arithmetic: every run file in runs/ and the method sweeps gave the same bits with
+256- and 512-bit vectors on the Intel Xeon, a block holds members side by side, each computed alone, and tiles
+keep each site's order of pieces (tests/test_tuning.py checks all three).
 """
 from __future__ import annotations
 
@@ -34,11 +35,24 @@ HINT = "ensemble: this machine's kernels are untuned; `ensemble tune` (once, abo
 class Tuning:
     """The choices: vector_bits (512 or 256: the width LLVM is told to prefer; None: its own choice for this CPU)
     and block (members per block of the kernels generated from the engine's templates; None: the engine's).
-    features: Numba's CPU features string that gives vector_bits here (kept in the file, so that applying it
-    needs no LLVM at import)."""
+    For a field of sites' splittings from 16 sites on (ensemble.engine.sites): sites_blocks, members per block
+    where a block's rows fit the L1 data cache and where they outgrow it (None: the rule's two SIMD vectors and
+    one), and fused_sweeps (False: long fields sweep one kick or drift at a time where the rule would run
+    TILE_PIECES of them fused in tiles; None: the rule). features: Numba's CPU features string that gives
+    vector_bits here (kept in the file, so that applying it needs no LLVM at import)."""
     vector_bits: int | None = None
     block: int | None = None
+    sites_blocks: tuple[int, int] | None = None
+    fused_sweeps: bool | None = None
     features: str | None = field(default=None, compare=False)
+
+    def summary(self) -> str:
+        """The choices in words."""
+        sites = f"{self.sites_blocks[0]} and {self.sites_blocks[1]}" if self.sites_blocks else "the engine's rule"
+        sweeps = "swept one piece at a time" if self.fused_sweeps is False else "in tiles"
+        return (f"vectors {width_name(self.vector_bits)}, generated kernels' blocks "
+                f"{self.block or 'the engine default'}, fields of sites' splitting blocks {sites}, "
+                f"long fields {sweeps}")
 
 
 def kernel_folder() -> Path:
@@ -102,10 +116,11 @@ def load(path: Path | None = None) -> tuple[Tuning | None, str | None]:
     try:
         found = json.loads(path.read_text())
         choices = found["choices"]
+        sites = choices.get("sites_blocks")
         tuning = Tuning(vector_bits=choices.get("vector_bits"), block=choices.get("block"),
+                        sites_blocks=None if sites is None else tuple(sites), fused_sweeps=choices.get("fused_sweeps"),
                         features=choices.get("features"))
-        if tuning.vector_bits not in (None, 256, 512) or (
-                tuning.block is not None and (not isinstance(tuning.block, int) or tuning.block not in BLOCKS)):
+        if not _known(tuning):
             raise ValueError("unknown choices")
     except (OSError, ValueError, KeyError, TypeError, AttributeError) as e:
         return None, f"ensemble: ignoring {path}: it cannot be read ({e}); `ensemble tune` writes a new one"
@@ -115,7 +130,20 @@ def load(path: Path | None = None) -> tuple[Tuning | None, str | None]:
     return tuning, None
 
 
-BLOCKS = (32, 64, 128, 256)  # the block sizes `ensemble tune` tries for generated kernels
+def _known(tuning: Tuning) -> bool:
+    """Whether a tuning read from a file holds only choices this version makes."""
+    def block_in(value, allowed) -> bool:
+        return type(value) is int and value in allowed
+
+    sites = tuning.sites_blocks
+    return (tuning.vector_bits in (None, 256, 512) and (tuning.block is None or block_in(tuning.block, BLOCKS))
+            and (sites is None or len(sites) == 2 and all(block_in(b, SITES_BLOCKS) for b in sites))
+            and tuning.fused_sweeps in (None, False) and type(tuning.fused_sweeps) is not int)
+
+
+BLOCKS = (32, 64, 128, 256)  # the block sizes a generated kernel may be tuned to
+TIMED_BLOCKS = (64, 128, 256)  # those `ensemble tune` times (32 was the slowest on the Intel Xeon: docs/speed.md)
+SITES_BLOCKS = (2, 4, 8, 16, 32, 64)  # the blocks a fields of sites' splitting may be tuned to
 _applied: Tuning | None = None
 _few_members: int | None = None  # members_block's
 
@@ -213,55 +241,109 @@ def tune(say=print) -> tuple[Tuning, dict]:
     """Time the candidates on this machine and return (the winning Tuning, the rates measured). Each vector width
     runs in a process of its own (it is fixed once Numba has compiled), ROUNDS times in turn; the top's rk4
     kernel at the engine's block and the chain's verlet at 16 masses vote with the geometric mean of their rates.
-    Then the blocks of the generated kernels are timed under the winning width, all in one process, ROUNDS times.
-    A candidate replaces the default only when CANDIDATE_MARGIN faster."""
-    widths = [None, 512, 256] if "avx512f" in host_key()["vectors"].split(",") else [None]
+    Then, under the winning width, all in one process, ROUNDS times: the blocks of the generated kernels (the
+    top's rk4), and a field of sites' splitting layouts (the chain's verlet at 16 and 1024 masses: blocks of one,
+    two or four SIMD vectors, fused sweeps in tiles or one piece at a time; sites_layouts). A candidate replaces
+    the default only when CANDIDATE_MARGIN faster."""
+    widths = [512, 256] if "avx512f" in host_key()["vectors"].split(",") else [None]
     from .engine.kernels import BLOCK
 
+    _compiled([(bits, [BLOCK], True, []) for bits in widths])
     rounds = [{bits: _measured(bits, [BLOCK]) for bits in widths} for _ in range(ROUNDS)]
     rates = {bits: {case: sum(r[bits][case] for r in rounds) / ROUNDS for case in rounds[0][bits]} for bits in widths}
     for bits in widths:
         say(f"  vectors {width_name(bits):>14}: " + ", ".join(f"{k} {v:.3g}" for k, v in rates[bits].items()))
     score = {bits: (rates[bits][f"top rk4, block {BLOCK}"] * rates[bits]["chain verlet N=16"]) ** 0.5
              for bits in widths}
-    bits = max(widths, key=lambda b: score[b] / (1.0 if b is None else CANDIDATE_MARGIN))
-    timed = [_measured(bits, list(BLOCKS), chain=False) for _ in range(ROUNDS)]  # all in one process, in turn
-    blocks = {b: sum(t[f"top rk4, block {b}"] for t in timed) / ROUNDS for b in BLOCKS}
+    # LLVM's own choice is one of the two widths: a width is kept only when clearly faster than the other
+    bits = _pick({None: min(score.values()), **score}, None)
+    layouts = sites_layouts()
+    timed_blocks = [b for b in TIMED_BLOCKS if b != BLOCK]  # BLOCK's kernel is compiled already
+    _compiled([(bits, timed_blocks, False, layouts[1:2]), (bits, [], False, layouts[2:])])
+    timed = [_measured(bits, list(TIMED_BLOCKS), chain=False, layouts=layouts) for _ in range(ROUNDS)]
+    mean = {name: sum(t[name] for t in timed) / ROUNDS for name in timed[0]}
+    blocks = {b: mean[f"top rk4, block {b}"] for b in TIMED_BLOCKS}
     say("  generated kernels' blocks under the chosen vectors: "
         + ", ".join(f"{b} members {v:.3g}" for b, v in sorted(blocks.items())))
-    block = max(blocks, key=lambda b: blocks[b] / (1.0 if b == BLOCK else CANDIDATE_MARGIN))
-    measured = {"vectors": {width_name(b): rates[b] for b in widths},
-                "blocks": {str(b): v for b, v in blocks.items()}, "units": "member-steps/s (top), mass-steps/s (chain)"}
-    return Tuning(vector_bits=bits, block=None if block == BLOCK else block), measured
+    say("  fields of sites under the chosen vectors: " + ", ".join(f"{layout_name(*lay)} {mean[layout_name(*lay)]:.3g}"
+                                                                    for lay in layouts))
+    block = _pick(blocks, BLOCK)
+    short = _pick({b: mean[layout_name(n, b, fused)] for n, b, fused in layouts if n == 16}, layouts[0][1])
+    fused = _pick({fused: mean[layout_name(n, b, fused)] for n, b, fused in layouts if n > 16}, True)
+    sites = (short, layouts[2][1])
+    measured = {"vectors": {width_name(b): rates[b] for b in widths}, "blocks": {str(b): v for b, v in blocks.items()},
+                "sites": {layout_name(*lay): mean[layout_name(*lay)] for lay in layouts},
+                "units": "member-steps/s (top), mass-steps/s (chain)"}
+    return Tuning(vector_bits=bits, block=None if block == BLOCK else block,
+                  sites_blocks=None if sites == (layouts[0][1], layouts[2][1]) else sites,
+                  fused_sweeps=None if fused else False), measured
+
+
+def _pick(rates: dict, default):
+    """The fastest candidate of `rates`, where any but `default` must be CANDIDATE_MARGIN faster to win."""
+    return max(rates, key=lambda c: rates[c] / (1.0 if c == default else CANDIDATE_MARGIN))
+
+
+def sites_layouts() -> list[tuple[int, int, bool]]:
+    """The fields of sites' layouts `ensemble tune` times, (sites, members per block, fused sweeps): at 16 sites,
+    whose blocks' rows fit the L1 cache, blocks of two SIMD vectors (the rule's) and four; at 1024, whose rows
+    outgrow it, blocks of one vector fused in tiles (the rule's) and swept one piece at a time. The rule's first
+    in each. (At 1024 sites blocks of two vectors in tiles ran within 5% of one on the Intel Xeon, 2026-11-26.)"""
+    from .engine.sites import vector_doubles
+
+    vector = vector_doubles()
+    return [(16, 2 * vector, True), (16, 4 * vector, True), (1024, vector, True), (1024, vector, False)]
+
+
+def layout_name(n: int, block: int, fused: bool) -> str:
+    return f"chain verlet N={n}, block {block}" + ("" if fused else ", one piece at a time")
 
 
 def width_name(bits: int | None) -> str:
     return "LLVM's choice" if bits is None else f"{bits}-bit"
 
 
-def _measured(bits: int | None, blocks: list[int], chain: bool = True) -> dict[str, float]:
+def _measured(bits: int | None, blocks: list[int], chain: bool = True, layouts: list = ()) -> dict[str, float]:
     """measure_here's rates, from a process of its own."""
+    return _in_processes([(bits, blocks, chain, list(layouts), False)])[0]
+
+
+def _compiled(asks: list[tuple]) -> None:
+    """Compile (into Numba's cache) the kernels of each of `asks`, (bits, blocks, chain, layouts) as _measured
+    takes them, in processes that run at once: the timed processes then load them. Compiling is most of
+    `ensemble tune`'s minute, and it needs no quiet machine."""
+    _in_processes([(*ask, True) for ask in asks])
+
+
+def _in_processes(asks: list[tuple]) -> list[dict]:
+    """measure_here's answer to each of `asks` (its arguments), each from a process of its own, started at once."""
     import subprocess
     import sys
 
-    asked = json.dumps({"bits": bits, "blocks": blocks, "chain": chain})
-    done = subprocess.run([sys.executable, "-c", f"from ensemble.tuning import _serve; _serve({asked!r})"],
-                          capture_output=True, text=True, check=False)
-    if done.returncode != 0:
-        raise RuntimeError(f"timing the {width_name(bits)} vectors failed: "
-                           f"{(done.stderr.strip().splitlines() or ['?'])[-1]}")
-    return json.loads(done.stdout.strip().splitlines()[-1])
+    started = [(ask[0], subprocess.Popen([sys.executable, "-c", "from ensemble.tuning import _serve; "
+                                          f"_serve({json.dumps(ask)!r})"],
+                                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True))
+               for ask in asks]
+    answers = []
+    for bits, process in started:
+        out, err = process.communicate()
+        if process.returncode != 0:
+            raise RuntimeError(f"timing the {width_name(bits)} vectors failed: "
+                               f"{(err.strip().splitlines() or ['?'])[-1]}")
+        answers.append(json.loads(out.strip().splitlines()[-1]))
+    return answers
 
 
 def _serve(asked: str) -> None:
-    asked = json.loads(asked)
-    print(json.dumps(measure_here(asked["bits"], asked["blocks"], asked["chain"])))
+    print(json.dumps(measure_here(*json.loads(asked))))
 
 
-def measure_here(bits: int | None, blocks: list[int], chain: bool = True) -> dict[str, float]:
-    """In a process that has compiled nothing yet: the top's rk4 kernel at each block (member-steps/s) and the
-    chain's verlet at 16 masses (mass-steps/s), with LLVM preferring `bits`-bit vectors; each the median of 5
-    calls, the kernels called in turn."""
+def measure_here(bits: int | None, blocks: list[int], chain: bool = True, layouts: list = (),
+                 compile_only: bool = False) -> dict[str, float]:
+    """In a process that has compiled nothing yet: the top's rk4 kernel at each block (member-steps/s), the
+    chain's verlet at 16 masses in the engine's layout (with chain) and in each of `layouts` (n, block, fused)
+    (mass-steps/s), with LLVM preferring `bits`-bit vectors; each the median of 5 calls, the kernels called in
+    turn. compile_only: call each once (compiling it or loading it from the cache), and measure nothing."""
     import numpy as np
 
     set_features(vector_features(bits))
@@ -279,13 +361,20 @@ def measure_here(bits: int | None, blocks: list[int], chain: bool = True) -> dic
         apply(Tuning(block=block))
         calls[f"top rk4, block {block}"] = (launch.Launch(SCENES["top"], METHODS["rk4"], top, {}, n_save=2,
                                                           save_dt=steps * 1e-3, dt=1e-3), members * steps)
-    if chain:
-        n, chains = 16, 4096
-        masses = {"m": np.ones((chains, n)), "k": np.ones((chains, n + 1)), "x0": rng.normal(0, 0.1, (chains, n)),
-                  "v0": np.zeros((chains, n))}
-        calls["chain verlet N=16"] = (launch.Launch(SCENES["chain"], METHODS["verlet"], masses,
-                                                    {"n": n, "boundary": "fixed"}, n_save=2, save_dt=steps * 0.01,
-                                                    dt=0.01), n * chains * steps)
+    chains = [(16, None, None)] if chain else []
+    for n, block, fused in chains + [tuple(layout) for layout in layouts]:
+        apply(Tuning(sites_blocks=block and (block, block), fused_sweeps=None if fused is not False else False))
+        count = 65536 // n  # chains
+        masses = {"m": np.ones((count, n)), "k": np.ones((count, n + 1)), "x0": rng.normal(0, 0.1, (count, n)),
+                  "v0": np.zeros((count, n))}
+        name = "chain verlet N=16" if block is None else layout_name(n, block, fused)
+        calls[name] = (launch.Launch(SCENES["chain"], METHODS["verlet"], masses, {"n": n, "boundary": "fixed"},
+                                     n_save=2, save_dt=steps * 0.01, dt=0.01), n * count * steps)
+    apply(None)
+    if compile_only:
+        for call, _ in calls.values():
+            call.run()
+        return {}
     seconds = _seconds_in_turn([call for call, _ in calls.values()])
     return {name: work / s for (name, (_, work)), s in zip(calls.items(), seconds)}
 
@@ -332,8 +421,6 @@ def pending_line() -> str | None:
 
 def describe() -> str:
     """What this process runs with, in words (benchmarks print it beside the host)."""
-    tuning = applied()
     if _applied is None or _applied == Tuning():
         return "untuned (the engine's rules and LLVM's vector width)"
-    return (f"vectors {width_name(tuning.vector_bits)}, generated kernels' blocks "
-            f"{tuning.block or 'the engine default'} (from {tuning_path()})")
+    return f"{applied().summary()} (from {tuning_path()})"

@@ -76,15 +76,15 @@ def kernel(scene, method: Method, constants: dict) -> Kernel:
     sites and boundary; every other scene the templates of ensemble.engine.templates."""
     if getattr(scene, "SITES", False):
         return _sites_generated(scene.NAME, scene.PHYSICS, method, constants["n"], constants["boundary"] == "periodic",
-                                sites.block_size(constants, method))
+                                *sites.layout(constants, method))
     D, P = scene.kernel_rows(constants)
     return _generated(scene.NAME, scene.PHYSICS, tuple(scene.PIECES), method, D, P,
                       block_size(scene, constants, method))
 
 
 @cache
-def _sites_generated(name: str, where: str, method: Method, n: int, periodic: bool, B: int) -> Kernel:
-    body, rows = sites.source(name, where, physics_hash(where), method, n, periodic, B)
+def _sites_generated(name: str, where: str, method: Method, n: int, periodic: bool, B: int, tiled: bool) -> Kernel:
+    body, rows = sites.source(name, where, physics_hash(where), method, n, periodic, B, tiled)
     return Kernel(load_source(body, f"{name}_{method.name}_{n}").kernel, rows)
 
 

@@ -32,6 +32,7 @@ from numba import njit
 
 from ..methods import Method
 from ..results import UNDERFLOWED
+from ..tuning import applied
 from .blocks import (
     CONTROL_ROWS,
     ERR,
@@ -90,6 +91,9 @@ def block_size(constants: dict, method: Method) -> int:
 
     A tableau's stage sums gain from longer rows; an adaptive block's members wait for the block's slowest, and
     its seven stages' rows outgrow the L1 cache in long blocks.
+
+    `ensemble tune` may replace a splitting's two blocks from 16 sites on (rows that fit the L1 cache, rows that
+    outgrow it) by measured ones (ensemble.tuning.Tuning.sites_blocks).
     """
     n = constants["n"]
     pair = 2 * vector_doubles()
@@ -100,7 +104,9 @@ def block_size(constants: dict, method: Method) -> int:
         return pair if member_bytes * pair <= l1_data_bytes() else max(pair // 2, 8)
     if method.tableau is not None:
         return 64
-    return pair if (4 * n + 2) * pair * 8 <= l1_data_bytes() else pair // 2
+    fits = (4 * n + 2) * pair * 8 <= l1_data_bytes()
+    tuned = applied().sites_blocks
+    return tuned[0 if fits else 1] if tuned else pair if fits else pair // 2
 
 
 @cache
@@ -130,10 +136,18 @@ def l1_data_bytes(cpu: Path = Path("/sys/devices/system/cpu/cpu0/cache")) -> int
 def tiles(n: int, B: int) -> bool:
     """Whether a splitting kernel runs a field of n sites in blocks of B members in tiles (see SPLITTING):
     when a block's 4n + 2 rows outgrow TILE_FROM_L1 times the L1 data cache, and the field is longer than two
-    tiles (so a ring is longer than its halos). On the AVX-512 host (48 KiB L1d, blocks of 8) one piece at a
+    tiles (so a ring is longer than its halos), unless `ensemble tune` found one piece at a time faster here
+    (ensemble.tuning.Tuning.fused_sweeps). On the AVX-512 host (48 KiB L1d, blocks of 8) one piece at a
     time was faster at n = 200 and 256, tiles from n = 288 on: 1.70, 1.43 and 1.12 times the C verlet against
     1.22, 1.21 and 1.33 in tiles (analysis/bench/README.md)."""
-    return n > 2 * TILE_ROWS and (4 * n + 2) * B * 8 > TILE_FROM_L1 * l1_data_bytes()
+    return (n > 2 * TILE_ROWS and (4 * n + 2) * B * 8 > TILE_FROM_L1 * l1_data_bytes()
+            and applied().fused_sweeps is not False)
+
+
+def layout(constants: dict, method: Method) -> tuple[int, bool]:
+    """(members per block, whether a splitting runs in tiles) of `method` over the constants' n sites."""
+    B = block_size(constants, method)
+    return B, method.splitting is not None and tiles(constants["n"], B)
 
 
 def ring_halo(method: Method) -> int:
@@ -537,12 +551,12 @@ def kernel(state0, rate, control, save_dt, limit, samples, counts, status, failu
 '''
 
 
-def source(scene_name: str, where: str, physics_hash: str, method: Method, n: int, periodic: bool,
-           B: int) -> tuple[str, int]:
-    """The kernel file's source for `method` over n sites (a ring if periodic) in blocks of B members, and its work
-    rows; `where` names the scene's physics module (its `acceleration`), physics_hash its file's SHA-256."""
+def source(scene_name: str, where: str, physics_hash: str, method: Method, n: int, periodic: bool, B: int,
+           tiled: bool) -> tuple[str, int]:
+    """The kernel file's source for `method` over n sites (a ring if periodic) in blocks of B members, in tiles or
+    not (see layout), and its work rows; `where` names the scene's physics module (its `acceleration`),
+    physics_hash its file's SHA-256."""
     runge_kutta, S, a, b, _, sequence, fractions = method_constants(method)
-    tiled = not runge_kutta and tiles(n, B)
     halo = ring_halo(method) if tiled and periodic else 0
     rows = stage_rows(n + 2 * halo, S)
     if method.adaptive:
