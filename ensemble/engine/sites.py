@@ -6,18 +6,20 @@ The scene's physics module gives one function, compiled with Numba:
     acceleration(x_left, x, x_right, c_left, c_right) -> acceleration of a site at x (m s-2)
 
 where c_left and c_right are the site's couplings to its left and right neighbour (the scene's `rate` rows 0 .. n-1
-and n .. 2n-1 of a member; a wall or a free end is a neighbour at rest with coupling 0 or the wall's). Its state
-is positions then velocities (2n rows), and its splittings are KICK_DRIFT (kick: v += tau a(x); drift: x += tau v).
+and n .. 2n-1 of a member). The neighbour beyond an end is a ghost site at rest (a wall, through the wall's
+coupling; a free end, through a coupling of 0) or, on a ring, a copy of the other end. The state is positions then
+velocities (2n rows), and the splittings are KICK_DRIFT (kick: v += tau a(x); drift: x += tau v). The scene's
+constants hold n and its boundary ("periodic" for a ring).
 
 As ensemble.engine.templates does for a member of D values, `source` fills in a family's template (explicit
 Runge-Kutta tableaus, kick/drift splittings, embedded adaptive pairs) with the scene's `acceleration`, imported
 by name; ensemble.engine.kernels writes it to a file that Numba keys its disk cache on. The helpers that do not
 call `acceleration` are here, compiled once and inlined; those that do are written into each kernel's file
-(FORCES). This file also holds the layout's rules: members per block (block_size) and when a long chain's
+(HEADER). This file also holds the layout's rules: members per block (block_size) and when a long chain's
 splitting runs in tiles (tiles, ring_halo).
 
 Work rows (B members each, row r of member j at r B + j): X (n + 2: ghost, sites 1..n, ghost), V (n), then CL and
-CR (n each: the couplings); in a tiled ring's rows, n + 2 halo sites stand where these have n (see SPLITTING).
+CR (n each: the couplings); a tiled ring's rows hold its n sites between two halos (ring_halo, see SPLITTING).
 Runge-Kutta adds the stage state ZX (n + 2), ZV (n) and slopes KX, KV (stages x n each); an adaptive pair then
 its control rows (blocks.CONTROL_ROWS). Forces come from neighbours only: O(n) per step.
 """
