@@ -4,17 +4,18 @@ LLVM picks a vector width for each CPU model: on recent Intel server cores it pr
 512-bit ones are there, and the hand-written C of ../shared/limit, compiled with gcc, uses 512. On an Intel Xeon
 (Emerald Rapids) the top's rk4 kernel ran at 0.64 of that C with 256-bit vectors and at 1.02 with 512
 (docs/speed.md). No rule fits every CPU, so `ensemble tune` times the candidates here: the vector width LLVM
-prefers (a process-wide setting of Numba's code generator), the members per block of the kernels the engine
-generates from its templates, and a field of sites' splitting layout (its blocks, and its kicks and drifts fused
-in tiles or swept one at a time). The winners go to tuning_path(), keyed by the CPU model, its vector extensions,
-Numba's version and a hash of the engine's kernel sources; a file of another machine or engine is ignored with
-one line. Importing ensemble applies a valid file (`prepare`), before any Numba function of ours exists; a run
-without one uses the engine's rules and says once that `ensemble tune` may make runs faster. Nothing tunes on
-its own.
+prefers (a process-wide setting of Numba's code generator), the members per block and the loop order of the
+kernels the engine generates from its templates, and a field of sites' splitting layout (its blocks, and its kicks
+and drifts fused in tiles or swept one at a time). The winners go to tuning_path(), keyed by the CPU model, its
+vector extensions, Numba's version and a hash of the engine's kernel sources; a file of another machine or
+engine is ignored with one line. Importing ensemble applies a valid file (`prepare`), before any Numba function
+of ours exists; a run without one uses the engine's rules and says once that `ensemble tune` may make runs
+faster. Nothing tunes on its own.
 
-No choice changes a member's arithmetic: every run file in runs/ and the method sweeps gave the same bits with
-256- and 512-bit vectors on the Intel Xeon, a block holds members side by side, each computed alone, and tiles
-keep each site's order of pieces (tests/test_tuning.py checks all three).
+No choice but one changes a member's arithmetic: every run file in runs/ and the method sweeps gave the same bits
+with 256- and 512-bit vectors on the Intel Xeon, a block holds members side by side, each computed alone, and
+tiles keep each site's order of pieces (tests/test_tuning.py checks all three). The Runge-Kutta kernels' other
+loop order moves results in the last bits (fast-math groups the stage sums otherwise; docs/speed.md says so).
 """
 from __future__ import annotations
 
@@ -34,7 +35,9 @@ HINT = "ensemble: this machine's kernels are untuned; `ensemble tune` (once, abo
 @dataclass(frozen=True)
 class Tuning:
     """The choices: vector_bits (512 or 256: the width LLVM is told to prefer; None: its own choice for this CPU)
-    and block (members per block of the kernels generated from the engine's templates; None: the engine's).
+    and block (members per block of the kernels generated from the engine's templates; None: the engine's);
+    stages_outside (True: their explicit Runge-Kutta kernels sweep a block's members once per stage, slopes in work
+    rows, instead of taking each member's whole step at once with its slopes in registers; None: the latter).
     For a field of sites' splittings from 16 sites on (ensemble.engine.sites): sites_blocks, members per block
     where a block's rows fit the L1 data cache and where they outgrow it (None: the rule's two SIMD vectors and
     one), and fused_sweeps (False: long fields sweep one kick or drift at a time where the rule would run
@@ -42,6 +45,7 @@ class Tuning:
     vector_bits here (kept in the file, so that applying it needs no LLVM at import)."""
     vector_bits: int | None = None
     block: int | None = None
+    stages_outside: bool | None = None
     sites_blocks: tuple[int, int] | None = None
     fused_sweeps: bool | None = None
     features: str | None = field(default=None, compare=False)
@@ -50,9 +54,10 @@ class Tuning:
         """The choices in words."""
         sites = f"{self.sites_blocks[0]} and {self.sites_blocks[1]}" if self.sites_blocks else "the engine's rule"
         sweeps = "swept one piece at a time" if self.fused_sweeps is False else "in tiles"
+        order = "stages outside members" if self.stages_outside else "members' steps whole"
         return (f"vectors {width_name(self.vector_bits)}, generated kernels' blocks "
-                f"{self.block or 'the engine default'}, fields of sites' splitting blocks {sites}, "
-                f"long fields {sweeps}")
+                f"{self.block or 'the engine default'}, Runge-Kutta {order}, fields of sites' splitting blocks "
+                f"{sites}, long fields {sweeps}")
 
 
 def kernel_folder() -> Path:
@@ -118,6 +123,7 @@ def load(path: Path | None = None) -> tuple[Tuning | None, str | None]:
         choices = found["choices"]
         sites = choices.get("sites_blocks")
         tuning = Tuning(vector_bits=choices.get("vector_bits"), block=choices.get("block"),
+                        stages_outside=choices.get("stages_outside"),
                         sites_blocks=None if sites is None else tuple(sites), fused_sweeps=choices.get("fused_sweeps"),
                         features=choices.get("features"))
         if not _known(tuning):
@@ -138,7 +144,8 @@ def _known(tuning: Tuning) -> bool:
     sites = tuning.sites_blocks
     return (tuning.vector_bits in (None, 256, 512) and (tuning.block is None or block_in(tuning.block, BLOCKS))
             and (sites is None or len(sites) == 2 and all(block_in(b, SITES_BLOCKS) for b in sites))
-            and tuning.fused_sweeps in (None, False) and type(tuning.fused_sweeps) is not int)
+            and tuning.fused_sweeps in (None, False) and type(tuning.fused_sweeps) is not int
+            and tuning.stages_outside in (None, True) and type(tuning.stages_outside) is not int)
 
 
 BLOCKS = (32, 64, 128, 256)  # the block sizes a generated kernel may be tuned to
@@ -241,15 +248,15 @@ def tune(say=print) -> tuple[Tuning, dict]:
     """Time the candidates on this machine and return (the winning Tuning, the rates measured). Each vector width
     runs in a process of its own (it is fixed once Numba has compiled), ROUNDS times in turn; the top's rk4
     kernel at the engine's block and the chain's verlet at 16 masses vote with the geometric mean of their rates.
-    Then, under the winning width, all in one process, ROUNDS times: the blocks of the generated kernels (the
-    top's rk4), and a field of sites' splitting layouts (the chain's verlet at 16 and 1024 masses: blocks of one,
-    two or four SIMD vectors, fused sweeps in tiles or one piece at a time; sites_layouts). A candidate replaces
-    the default only when CANDIDATE_MARGIN faster."""
+    Then, under the winning width, all in one process, ROUNDS times: the blocks and the loop order of the
+    generated kernels (the top's rk4, top_layouts), and a field of sites' splitting layouts (the chain's verlet
+    at 16 and 1024 masses: blocks of one, two or four SIMD vectors, fused sweeps in tiles or one piece at a time;
+    sites_layouts). A candidate replaces the default only when CANDIDATE_MARGIN faster."""
     widths = [512, 256] if "avx512f" in host_key()["vectors"].split(",") else [None]
     from .engine.kernels import BLOCK
 
-    _compiled([(bits, [BLOCK], True, []) for bits in widths])
-    rounds = [{bits: _measured(bits, [BLOCK]) for bits in widths} for _ in range(ROUNDS)]
+    _compiled([(bits, [(BLOCK, False)], True, []) for bits in widths])
+    rounds = [{bits: _measured(bits, [(BLOCK, False)]) for bits in widths} for _ in range(ROUNDS)]
     rates = {bits: {case: sum(r[bits][case] for r in rounds) / ROUNDS for case in rounds[0][bits]} for bits in widths}
     for bits in widths:
         say(f"  vectors {width_name(bits):>14}: " + ", ".join(f"{k} {v:.3g}" for k, v in rates[bits].items()))
@@ -257,24 +264,23 @@ def tune(say=print) -> tuple[Tuning, dict]:
              for bits in widths}
     # LLVM's own choice is one of the two widths: a width is kept only when clearly faster than the other
     bits = _pick({None: min(score.values()), **score}, None)
-    layouts = sites_layouts()
-    timed_blocks = [b for b in TIMED_BLOCKS if b != BLOCK]  # BLOCK's kernel is compiled already
-    _compiled([(bits, timed_blocks, False, layouts[1:2]), (bits, [], False, layouts[2:])])
-    timed = [_measured(bits, list(TIMED_BLOCKS), chain=False, layouts=layouts) for _ in range(ROUNDS)]
+    tops, layouts = top_layouts(BLOCK), sites_layouts()
+    _compiled([(bits, tops[1:], False, layouts[1:2]), (bits, [], False, layouts[2:])])  # tops[0] is compiled
+    timed = [_measured(bits, tops, chain=False, layouts=layouts) for _ in range(ROUNDS)]
     mean = {name: sum(t[name] for t in timed) / ROUNDS for name in timed[0]}
-    blocks = {b: mean[f"top rk4, block {b}"] for b in TIMED_BLOCKS}
-    say("  generated kernels' blocks under the chosen vectors: "
-        + ", ".join(f"{b} members {v:.3g}" for b, v in sorted(blocks.items())))
+    say("  generated kernels under the chosen vectors: " + ", ".join(f"{top_name(*top)} {mean[top_name(*top)]:.3g}"
+                                                                     for top in tops))
     say("  fields of sites under the chosen vectors: " + ", ".join(f"{layout_name(*lay)} {mean[layout_name(*lay)]:.3g}"
                                                                     for lay in layouts))
+    blocks = {b: mean[top_name(b, False)] for b, outside in tops if not outside}
     block = _pick(blocks, BLOCK)
+    outside = _pick({outside: mean[top_name(BLOCK, outside)] for b, outside in tops if b == BLOCK}, False)
     short = _pick({b: mean[layout_name(n, b, fused)] for n, b, fused in layouts if n == 16}, layouts[0][1])
     fused = _pick({fused: mean[layout_name(n, b, fused)] for n, b, fused in layouts if n > 16}, True)
     sites = (short, layouts[2][1])
-    measured = {"vectors": {width_name(b): rates[b] for b in widths}, "blocks": {str(b): v for b, v in blocks.items()},
-                "sites": {layout_name(*lay): mean[layout_name(*lay)] for lay in layouts},
+    measured = {"vectors": {width_name(b): rates[b] for b in widths}, "layouts": mean,
                 "units": "member-steps/s (top), mass-steps/s (chain)"}
-    return Tuning(vector_bits=bits, block=None if block == BLOCK else block,
+    return Tuning(vector_bits=bits, block=None if block == BLOCK else block, stages_outside=outside or None,
                   sites_blocks=None if sites == (layouts[0][1], layouts[2][1]) else sites,
                   fused_sweeps=None if fused else False), measured
 
@@ -282,6 +288,16 @@ def tune(say=print) -> tuple[Tuning, dict]:
 def _pick(rates: dict, default):
     """The fastest candidate of `rates`, where any but `default` must be CANDIDATE_MARGIN faster to win."""
     return max(rates, key=lambda c: rates[c] / (1.0 if c == default else CANDIDATE_MARGIN))
+
+
+def top_layouts(block: int) -> list[tuple[int, bool]]:
+    """The generated kernels' layouts `ensemble tune` times on the top's rk4, (members per block, stages outside):
+    the engine's block first, then the other TIMED_BLOCKS, then the engine's block with the stages outside."""
+    return [(block, False), *((b, False) for b in TIMED_BLOCKS if b != block), (block, True)]
+
+
+def top_name(block: int, outside: bool) -> str:
+    return f"top rk4, block {block}" + (", stages outside" if outside else "")
 
 
 def sites_layouts() -> list[tuple[int, int, bool]]:
@@ -303,13 +319,13 @@ def width_name(bits: int | None) -> str:
     return "LLVM's choice" if bits is None else f"{bits}-bit"
 
 
-def _measured(bits: int | None, blocks: list[int], chain: bool = True, layouts: list = ()) -> dict[str, float]:
+def _measured(bits: int | None, tops: list, chain: bool = True, layouts: list = ()) -> dict[str, float]:
     """measure_here's rates, from a process of its own."""
-    return _in_processes([(bits, blocks, chain, list(layouts), False)])[0]
+    return _in_processes([(bits, tops, chain, list(layouts), False)])[0]
 
 
 def _compiled(asks: list[tuple]) -> None:
-    """Compile (into Numba's cache) the kernels of each of `asks`, (bits, blocks, chain, layouts) as _measured
+    """Compile (into Numba's cache) the kernels of each of `asks`, (bits, tops, chain, layouts) as _measured
     takes them, in processes that run at once: the timed processes then load them. Compiling is most of
     `ensemble tune`'s minute, and it needs no quiet machine."""
     _in_processes([(*ask, True) for ask in asks])
@@ -338,9 +354,10 @@ def _serve(asked: str) -> None:
     print(json.dumps(measure_here(*json.loads(asked))))
 
 
-def measure_here(bits: int | None, blocks: list[int], chain: bool = True, layouts: list = (),
+def measure_here(bits: int | None, tops: list, chain: bool = True, layouts: list = (),
                  compile_only: bool = False) -> dict[str, float]:
-    """In a process that has compiled nothing yet: the top's rk4 kernel at each block (member-steps/s), the
+    """In a process that has compiled nothing yet: the top's rk4 kernel in each of `tops` (block, stages
+    outside) (member-steps/s), the
     chain's verlet at 16 masses in the engine's layout (with chain) and in each of `layouts` (n, block, fused)
     (mass-steps/s), with LLVM preferring `bits`-bit vectors; each the median of 5 calls, the kernels called in
     turn. compile_only: call each once (compiling it or loading it from the cache), and measure nothing."""
@@ -357,9 +374,9 @@ def measure_here(bits: int | None, blocks: list[int], chain: bool = True, layout
            "spin0": np.full(members, 60.0), "tilt0": rng.uniform(0.02, 0.2, members),
            "azimuth0": rng.uniform(0.0, 6.28, members)}
     calls = {}  # name: (launch, steps it makes)
-    for block in blocks:
-        apply(Tuning(block=block))
-        calls[f"top rk4, block {block}"] = (launch.Launch(SCENES["top"], METHODS["rk4"], top, {}, n_save=2,
+    for block, outside in tops:
+        apply(Tuning(block=block, stages_outside=outside or None))
+        calls[top_name(block, outside)] = (launch.Launch(SCENES["top"], METHODS["rk4"], top, {}, n_save=2,
                                                           save_dt=steps * 1e-3, dt=1e-3), members * steps)
     chains = [(16, None, None)] if chain else []
     for n, block, fused in chains + [tuple(layout) for layout in layouts]:

@@ -21,7 +21,7 @@ from numba.core.registry import CPUDispatcher
 
 from ..methods import Method
 from ..scenes.contract import load, python_function
-from ..tuning import generated_block, kernel_folder
+from ..tuning import applied, generated_block, kernel_folder
 from . import sites, templates
 from .blocks import FAST, HELPERS, Kernel
 
@@ -79,7 +79,7 @@ def kernel(scene, method: Method, constants: dict) -> Kernel:
                                 *sites.layout(constants, method))
     D, P = scene.kernel_rows(constants)
     return _generated(scene.NAME, scene.PHYSICS, tuple(scene.PIECES), method, D, P,
-                      block_size(scene, constants, method))
+                      block_size(scene, constants, method), bool(applied().stages_outside))
 
 
 @cache
@@ -89,11 +89,12 @@ def _sites_generated(name: str, where: str, method: Method, n: int, periodic: bo
 
 
 @cache
-def _generated(name: str, where: str, pieces: tuple[str, ...], method: Method, D: int, P: int, B: int) -> Kernel:
+def _generated(name: str, where: str, pieces: tuple[str, ...], method: Method, D: int, P: int, B: int,
+               stages_outside: bool) -> Kernel:
     if method.adaptive:
         family, (body, rows), used = "adaptive", templates.adaptive(method, D, P), ("rhs",)
     elif method.tableau is not None:
-        family, (body, rows), used = "runge_kutta", templates.runge_kutta(method, D, P), ("rhs",)
+        family, (body, rows), used = "runge_kutta", templates.runge_kutta(method, D, P, stages_outside), ("rhs",)
     else:
         module = load(where)
         factors = factor_counts(where, pieces, P)

@@ -91,6 +91,27 @@ RUNGE_KUTTA_STEPS = '''            for step in range(steps_per_save):
 {add_sums}
 {store_step}'''
 
+# The other loop order (a tuning candidate, ensemble.tuning.Tuning.stages_outside): each stage sweeps the block's
+# members, its slopes in work rows from K = D + P on, and a last sweep adds the weighted slopes to the state.
+RUNGE_KUTTA_STAGES_OUTSIDE = '''            for step in range(steps_per_save):
+                t = ((i - 1) * steps_per_save + step) * h
+                for s in range(S):
+                    for j in range(B):
+{load_y}
+{load_p}
+{stage_state}
+                        for r in range(s):  # a is zero from column s on
+                            ha = h * A[s * S + r]
+{stage_add}
+                        {d} = rhs(t + NODES[s] * h, {z}, {p})
+{store_slopes}
+                for j in range(B):
+{load_y_sums}
+{zero_sums}
+                    for s in range(S):
+{add_sums}
+{store_step}'''
+
 # Splittings of at most UNROLLED pieces loop over their sequence, which LLVM unrolls; longer ones are written out
 # piece by piece: the body's rotations4 (19 pieces) ran 4.8 times faster so (analysis/bench/README.md). Written out, the
 # top's split4 (7 pieces) took other last bits than its loop gives, so shorter sequences keep the loop.
@@ -192,9 +213,22 @@ def header(family: str, scene_name: str, method: Method, physics_import: str, ph
                          physics_hash=physics_hash, helpers_hash=helpers_hash, D=D, P=P, B=B)
 
 
-def runge_kutta(method: Method, D: int, P: int) -> tuple[str, int]:
-    """The explicit Runge-Kutta kernel's source and its work rows (state and parameters only)."""
+def runge_kutta(method: Method, D: int, P: int, stages_outside: bool = False) -> tuple[str, int]:
+    """The explicit Runge-Kutta kernel's source and its work rows: state and parameters, and with stages_outside
+    (the other loop order) each stage's slopes."""
     _, S, a, b, _, _, _ = method_constants(method)
+    head = RUNGE_KUTTA.format(S=S, slopes=D * S, a=a, b=b, c=tuple(float(x) for x in method.tableau.c))
+    if stages_outside:
+        steps = RUNGE_KUTTA_STAGES_OUTSIDE.format(
+            load_y=_loads("y", D, "", 24), load_p=_loads("p", P, "D", 24), stage_state=_lines("z{c} = y{c}", D, 24),
+            stage_add="\n".join(" " * 28 + f"z{c} += ha * work[(K + D * r + {c}) * B + j]" for c in range(D)),
+            d=_names("d", D), z=_names("z", D).rstrip(","), p=_names("p", P).rstrip(","),
+            store_slopes="\n".join(" " * 24 + f"work[(K + D * s + {c}) * B + j] = d{c}" for c in range(D)),
+            load_y_sums=_loads("y", D, "", 20), zero_sums=_lines("s{c} = 0.0", D, 20),
+            add_sums="\n".join(" " * 24 + f"s{c} += WEIGHTS[s] * work[(K + D * s + {c}) * B + j]" for c in range(D)),
+            store_step="\n".join(" " * 20 + f"work[{_row(c)}] = y{c} + h * s{c}" for c in range(D)))
+        return (head + "K = D + P  # first row of the stage slopes\n"
+                + FIXED_STEP.format(block_start="", first_call="", save_interval=steps)), D + P + D * S
     steps = RUNGE_KUTTA_STEPS.format(
         load_y=_loads("y", D, "", 20), load_p=_loads("p", P, "D", 20),
         zero_sums=_lines("s{c} = 0.0", D, 20),
@@ -204,9 +238,7 @@ def runge_kutta(method: Method, D: int, P: int) -> tuple[str, int]:
         store_slopes=_lines("slopes[D * s + {c}] = d{c}", D, 24),
         add_sums=_lines("s{c} += WEIGHTS[s] * d{c}", D, 24),
         store_step="\n".join(" " * 20 + f"work[{_row(c)}] = y{c} + h * s{c}" for c in range(D)))
-    source = (RUNGE_KUTTA.format(S=S, slopes=D * S, a=a, b=b, c=tuple(float(x) for x in method.tableau.c))
-              + FIXED_STEP.format(block_start=RUNGE_KUTTA_BLOCK, first_call="", save_interval=steps))
-    return source, D + P
+    return head + FIXED_STEP.format(block_start=RUNGE_KUTTA_BLOCK, first_call="", save_interval=steps), D + P
 
 
 def splitting(method: Method, D: int, P: int, pieces: tuple[str, ...], factors: dict[str, int],
