@@ -74,6 +74,13 @@ A = {a}  # the tableau: a (S x S, flat), b, c
 WEIGHTS = {b}
 NODES = {c}
 '''
+# Runge-Kutta stage s of member j: its state from the step's start and the earlier stages' slopes, its slope.
+RUNGE_KUTTA_STAGE = '''{stage_state}
+                        for r in range(s):  # a is zero from column s on
+                            ha = h * A[s * S + r]
+{stage_add}
+                        {d} = rhs(t + NODES[s] * h, {z}, {p})
+{store_slopes}'''
 RUNGE_KUTTA_BLOCK = '''        slopes = stack_array(SLOPES)  # stage s's slope of state row c at D s + c'''
 RUNGE_KUTTA_STEPS = '''            for step in range(steps_per_save):
                 t = ((i - 1) * steps_per_save + step) * h
@@ -82,12 +89,7 @@ RUNGE_KUTTA_STEPS = '''            for step in range(steps_per_save):
 {load_p}
 {zero_sums}
                     for s in range(S):
-{stage_state}
-                        for r in range(s):  # a is zero from column s on
-                            ha = h * A[s * S + r]
-{stage_add}
-                        {d} = rhs(t + NODES[s] * h, {z}, {p})
-{store_slopes}
+{stage}
 {add_sums}
 {store_step}'''
 
@@ -99,12 +101,7 @@ RUNGE_KUTTA_STAGES_OUTSIDE = '''            for step in range(steps_per_save):
                     for j in range(B):
 {load_y}
 {load_p}
-{stage_state}
-                        for r in range(s):  # a is zero from column s on
-                            ha = h * A[s * S + r]
-{stage_add}
-                        {d} = rhs(t + NODES[s] * h, {z}, {p})
-{store_slopes}
+{stage}
                 for j in range(B):
 {load_y_sums}
 {zero_sums}
@@ -218,12 +215,14 @@ def runge_kutta(method: Method, D: int, P: int, stages_outside: bool = False) ->
     (the other loop order) each stage's slopes."""
     _, S, a, b, _, _, _ = method_constants(method)
     head = RUNGE_KUTTA.format(S=S, slopes=D * S, a=a, b=b, c=tuple(float(x) for x in method.tableau.c))
+    stage = dict(stage_state=_lines("z{c} = y{c}", D, 24), d=_names("d", D), z=_names("z", D).rstrip(","),
+                 p=_names("p", P).rstrip(","))
     if stages_outside:
         steps = RUNGE_KUTTA_STAGES_OUTSIDE.format(
-            load_y=_loads("y", D, "", 24), load_p=_loads("p", P, "D", 24), stage_state=_lines("z{c} = y{c}", D, 24),
-            stage_add="\n".join(" " * 28 + f"z{c} += ha * work[(K + D * r + {c}) * B + j]" for c in range(D)),
-            d=_names("d", D), z=_names("z", D).rstrip(","), p=_names("p", P).rstrip(","),
-            store_slopes="\n".join(" " * 24 + f"work[(K + D * s + {c}) * B + j] = d{c}" for c in range(D)),
+            load_y=_loads("y", D, "", 24), load_p=_loads("p", P, "D", 24), stage=RUNGE_KUTTA_STAGE.format(
+                **stage, stage_add="\n".join(" " * 28 + f"z{c} += ha * work[(K + D * r + {c}) * B + j]"
+                                             for c in range(D)),
+                store_slopes="\n".join(" " * 24 + f"work[(K + D * s + {c}) * B + j] = d{c}" for c in range(D))),
             load_y_sums=_loads("y", D, "", 20), zero_sums=_lines("s{c} = 0.0", D, 20),
             add_sums="\n".join(" " * 24 + f"s{c} += WEIGHTS[s] * work[(K + D * s + {c}) * B + j]" for c in range(D)),
             store_step="\n".join(" " * 20 + f"work[{_row(c)}] = y{c} + h * s{c}" for c in range(D)))
@@ -232,10 +231,8 @@ def runge_kutta(method: Method, D: int, P: int, stages_outside: bool = False) ->
     steps = RUNGE_KUTTA_STEPS.format(
         load_y=_loads("y", D, "", 20), load_p=_loads("p", P, "D", 20),
         zero_sums=_lines("s{c} = 0.0", D, 20),
-        stage_state=_lines("z{c} = y{c}", D, 24),
-        stage_add=_lines("z{c} += ha * slopes[D * r + {c}]", D, 28),
-        d=_names("d", D), z=_names("z", D).rstrip(","), p=_names("p", P).rstrip(","),
-        store_slopes=_lines("slopes[D * s + {c}] = d{c}", D, 24),
+        stage=RUNGE_KUTTA_STAGE.format(**stage, stage_add=_lines("z{c} += ha * slopes[D * r + {c}]", D, 28),
+                                       store_slopes=_lines("slopes[D * s + {c}] = d{c}", D, 24)),
         add_sums=_lines("s{c} += WEIGHTS[s] * d{c}", D, 24),
         store_step="\n".join(" " * 20 + f"work[{_row(c)}] = y{c} + h * s{c}" for c in range(D)))
     return head + FIXED_STEP.format(block_start=RUNGE_KUTTA_BLOCK, first_call="", save_interval=steps), D + P
