@@ -38,21 +38,21 @@ class Tuning:
     and block (members per block of the kernels generated from the engine's templates; None: the engine's);
     stages_outside (True: their explicit Runge-Kutta kernels sweep a block's members once per stage, slopes in work
     rows, instead of taking each member's whole step at once with its slopes in registers; None: the latter).
-    For a field of sites' splittings from 16 sites on (ensemble.engine.sites): sites_blocks, members per block
-    where a block's rows fit the L1 data cache and where they outgrow it (None: the rule's two SIMD vectors and
-    one), and fused_sweeps (False: long fields sweep one kick or drift at a time where the rule would run
-    TILE_PIECES of them fused in tiles; None: the rule). features: Numba's CPU features string that gives
+    For a field of sites' splittings from 16 sites on (ensemble.engine.sites): sites_block, members per block
+    where a block's rows fit the L1 data cache (None: the rule's two SIMD vectors; where they outgrow it the rule's
+    one vector stays), and fused_sweeps (False: long fields sweep one kick or drift at a time where the rule would
+    run TILE_PIECES of them fused in tiles; None: the rule). features: Numba's CPU features string that gives
     vector_bits here (kept in the file, so that applying it needs no LLVM at import)."""
     vector_bits: int | None = None
     block: int | None = None
     stages_outside: bool | None = None
-    sites_blocks: tuple[int, int] | None = None
+    sites_block: int | None = None
     fused_sweeps: bool | None = None
     features: str | None = field(default=None, compare=False)
 
     def summary(self) -> str:
         """The choices in words."""
-        sites = f"{self.sites_blocks[0]} and {self.sites_blocks[1]}" if self.sites_blocks else "the engine's rule"
+        sites = self.sites_block or "the engine's rule"
         sweeps = "swept one piece at a time" if self.fused_sweeps is False else "in tiles"
         order = "stages outside members" if self.stages_outside else "members' steps whole"
         return (f"vectors {width_name(self.vector_bits)}, generated kernels' blocks "
@@ -121,11 +121,9 @@ def load(path: Path | None = None) -> tuple[Tuning | None, str | None]:
     try:
         found = json.loads(path.read_text())
         choices = found["choices"]
-        sites = choices.get("sites_blocks")
         tuning = Tuning(vector_bits=choices.get("vector_bits"), block=choices.get("block"),
-                        stages_outside=choices.get("stages_outside"),
-                        sites_blocks=None if sites is None else tuple(sites), fused_sweeps=choices.get("fused_sweeps"),
-                        features=choices.get("features"))
+                        stages_outside=choices.get("stages_outside"), sites_block=choices.get("sites_block"),
+                        fused_sweeps=choices.get("fused_sweeps"), features=choices.get("features"))
         if not _known(tuning):
             raise ValueError("unknown choices")
     except (OSError, ValueError, KeyError, TypeError, AttributeError) as e:
@@ -141,9 +139,8 @@ def _known(tuning: Tuning) -> bool:
     def block_in(value, allowed) -> bool:
         return type(value) is int and value in allowed
 
-    sites = tuning.sites_blocks
     return (tuning.vector_bits in (None, 256, 512) and (tuning.block is None or block_in(tuning.block, BLOCKS))
-            and (sites is None or len(sites) == 2 and all(block_in(b, SITES_BLOCKS) for b in sites))
+            and (tuning.sites_block is None or block_in(tuning.sites_block, SITES_BLOCKS))
             and tuning.fused_sweeps in (None, False) and type(tuning.fused_sweeps) is not int
             and tuning.stages_outside in (None, True) and type(tuning.stages_outside) is not int)
 
@@ -277,11 +274,10 @@ def tune(say=print) -> tuple[Tuning, dict]:
     outside = _pick({outside: mean[top_name(BLOCK, outside)] for b, outside in tops if b == BLOCK}, False)
     short = _pick({b: mean[layout_name(n, b, fused)] for n, b, fused in layouts if n == 16}, layouts[0][1])
     fused = _pick({fused: mean[layout_name(n, b, fused)] for n, b, fused in layouts if n > 16}, True)
-    sites = (short, layouts[2][1])
     measured = {"vectors": {width_name(b): rates[b] for b in widths}, "layouts": mean,
                 "units": "member-steps/s (top), mass-steps/s (chain)"}
     return Tuning(vector_bits=bits, block=None if block == BLOCK else block, stages_outside=outside or None,
-                  sites_blocks=None if sites == (layouts[0][1], layouts[2][1]) else sites,
+                  sites_block=None if short == layouts[0][1] else short,
                   fused_sweeps=None if fused else False), measured
 
 
@@ -380,7 +376,8 @@ def measure_here(bits: int | None, tops: list, chain: bool = True, layouts: list
                                                           save_dt=steps * 1e-3, dt=1e-3), members * steps)
     chains = [(16, None, None)] if chain else []
     for n, block, fused in chains + [tuple(layout) for layout in layouts]:
-        apply(Tuning(sites_blocks=block and (block, block), fused_sweeps=None if fused is not False else False))
+        # sites_block sets the block where rows fit the L1 cache; at 1024 sites the rule gives the layout's own
+        apply(Tuning(sites_block=block, fused_sweeps=None if fused is not False else False))
         count = 65536 // n  # chains
         masses = {"m": np.ones((count, n)), "k": np.ones((count, n + 1)), "x0": rng.normal(0, 0.1, (count, n)),
                   "v0": np.zeros((count, n))}

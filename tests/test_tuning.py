@@ -51,7 +51,7 @@ def test_an_untuned_machine_is_told_once(fresh, tmp_path, write_runfile, capsys)
 @pytest.mark.parametrize("text, why", [
     ("{not json", "it cannot be read"),
     (json.dumps({"format": 1, "choices": {"block": 48}}), "it cannot be read (unknown choices)"),
-    (json.dumps({"format": 1, "choices": {"sites_blocks": [3, 8]}}), "it cannot be read (unknown choices)"),
+    (json.dumps({"format": 1, "choices": {"sites_block": 3}}), "it cannot be read (unknown choices)"),
     (json.dumps({"format": 1, "choices": {"fused_sweeps": 0}}), "it cannot be read (unknown choices)"),
     ("other machine", "it was tuned on another machine, Numba or engine")])
 def test_a_corrupt_or_foreign_tuning_file_is_ignored_in_one_line(fresh, tmp_path, write_runfile, capsys, text, why):
@@ -156,7 +156,7 @@ def test_tune_chooses_a_field_of_sites_layout_only_when_it_is_clearly_faster(fre
     assert tuning.tune(say=lambda line: None)[0] == tuning.Tuning()
     sites.update({tuning.layout_name(*short): 1.2, tuning.layout_name(*separate): 1.2})
     chosen, table = tuning.tune(say=lambda line: None)
-    assert chosen == tuning.Tuning(sites_blocks=(short[1], long[1]), fused_sweeps=False)
+    assert chosen == tuning.Tuning(sites_block=short[1], fused_sweeps=False)
     tuning.save(chosen, table)
     assert tuning.load() == (chosen, None)
     tuning.apply(chosen)
@@ -201,15 +201,15 @@ def test_stages_outside_are_kept_only_when_clearly_faster_and_agree_to_rounding(
 
 
 def test_a_tuned_field_of_sites_layout_gives_the_same_bits(fresh, tmp_path, write_runfile):
-    """A 300-mass chain (verlet, blocks of 8 in tiles by the rule here) and a 16-mass ring (yoshida4): tuned to
-    blocks of 4 and 32 swept one piece at a time, the same bits."""
+    """A 300-mass chain (verlet, in tiles by the rule here) and a 16-mass ring (yoshida4): tuned to sweep one piece
+    at a time and to blocks of 32 where rows fit the L1 cache, the same bits."""
     disorder = {"m": "{ loguniform = [0.5, 2.0] }", "x0": "{ normal = [0.0, 0.1] }"}
     chains = chain_runfile({"n": 300, **disorder}, members=9, t_end=0.4, save_dt=0.2, dt=0.01)
     rings = chain_runfile({"n": 16, "boundary": '"periodic"', **disorder}, members=9, t_end=0.4, save_dt=0.2,
                           dt=0.01, method='"yoshida4"')
     from ensemble.engine import sites as engine_sites
 
-    tuned = tuning.Tuning(sites_blocks=(32, 4), fused_sweeps=False)
+    tuned = tuning.Tuning(sites_block=32, fused_sweeps=False)
     for name, text, n, boundary in (("chains", chains, 300, "fixed"), ("rings", rings, 16, "periodic")):
         spec = load(write_runfile(text, name=f"{name}.toml"))
         method = METHODS[spec.method]

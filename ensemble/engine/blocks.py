@@ -440,16 +440,23 @@ def state_load(work, state0, rate, block, samples, D, P, B):
 
 
 @njit(inline="always", **FAST)
+def block_stopped(samples, progress, running, save, block, B):
+    """After a block stored sample `save` with `running` members still running: whether none runs any more, its
+    later samples then filled with NaN. progress[block] becomes the last sample the block has stored."""
+    if running == 0:
+        fill_failed(samples, save + 1, block, B)
+    progress[block] = samples.shape[1] - 1 if running == 0 else save
+    return running == 0
+
+
+@njit(inline="always", **FAST)
 def state_saved(work, samples, save, block, limit, status, failure_time, progress, t, step_row, D, B):
     """End of a save interval at time t (s): fail the members that blew up, store sample `save`; when no member
     of the block runs any more, fill its later samples with NaN and return True (the block is done). progress[block]
     becomes the last sample the block has stored."""
     running = check_members(work, 0, D, B, block * B, limit, status, failure_time, t, step_row)
     sample_out(work, 0, samples, save, block, 0, D, B)
-    if running == 0:
-        fill_failed(samples, save + 1, block, B)
-    progress[block] = samples.shape[1] - 1 if running == 0 else save
-    return running == 0
+    return block_stopped(samples, progress, running, save, block, B)
 
 
 @njit(inline="always", **FAST)

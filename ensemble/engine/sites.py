@@ -43,8 +43,8 @@ from .blocks import (
     REJECTED_LAST,
     adaptive_constants,
     block_done,
+    block_stopped,
     check_members,
-    fill_failed,
     method_constants,
     rows_in,
     sample_out,
@@ -94,8 +94,8 @@ def block_size(constants: dict, method: Method) -> int:
     A tableau's stage sums gain from longer rows; an adaptive block's members wait for the block's slowest, and
     its seven stages' rows outgrow the L1 cache in long blocks.
 
-    `ensemble tune` may replace a splitting's two blocks from 16 sites on (rows that fit the L1 cache, rows that
-    outgrow it) by measured ones (ensemble.tuning.Tuning.sites_blocks).
+    `ensemble tune` may replace a splitting's block from 16 sites on, where its rows fit the L1 cache, by a
+    measured one (ensemble.tuning.Tuning.sites_block).
     """
     n = constants["n"]
     pair = 2 * vector_doubles()
@@ -106,9 +106,9 @@ def block_size(constants: dict, method: Method) -> int:
         return pair if member_bytes * pair <= l1_data_bytes() else max(pair // 2, 8)
     if method.tableau is not None:
         return 64
-    fits = (4 * n + 2) * pair * 8 <= l1_data_bytes()
-    tuned = applied().sites_blocks
-    return tuned[0 if fits else 1] if tuned else pair if fits else pair // 2
+    if (4 * n + 2) * pair * 8 <= l1_data_bytes():
+        return applied().sites_block or pair
+    return pair // 2
 
 
 @cache
@@ -282,10 +282,7 @@ def saved(work, samples, save, block, limit, status, failure_time, progress, t, 
     m = n + 2 * halo
     running = check_members(work, 1, 2 * m + 1, B, block * B, limit, status, failure_time, t, step_row)
     _store_sample(work, samples, save, block, n, halo, B)
-    if running == 0:
-        fill_failed(samples, save + 1, block, B)
-    progress[block] = samples.shape[1] - 1 if running == 0 else save
-    return running == 0
+    return block_stopped(samples, progress, running, save, block, B)
 
 
 @njit(inline="always", **FAST)
