@@ -46,8 +46,8 @@ def _parser() -> argparse.ArgumentParser:
     tune = commands.add_parser("tune", help="time this machine's kernel layouts and keep the fastest (once per "
                                             "machine, about a minute)",
                                description="Time the candidate kernel layouts on this machine (vector width, "
-                                           "members per block) and keep the winners for every later run; see "
-                                           "docs/speed.md.")
+                                           "members per block, loop order, a chain's sweeps) and keep the winners "
+                                           "for every later run; see docs/speed.md.")
     tune.add_argument("--dry-run", action="store_true", help="measure and print, but keep nothing")
     _analysis_parsers(commands)
     _inertia_parser(commands)
