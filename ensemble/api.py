@@ -30,7 +30,7 @@ class NotAResult(EnsembleError, ValueError):
 
 
 def run(spec, output=None, *, chunk: int | None = None, progress: bool = True, force: bool = False,
-        resume: bool = False, device: str | None = None) -> xr.Dataset:
+        resume: bool = False, device: str | None = None, precision: str | None = None) -> xr.Dataset:
     """Integrate every member of a run and return its dataset.
 
     spec: a run file's path (a Path, or a str ending in .toml), run-file TOML text, or the same as a dict.
@@ -46,7 +46,7 @@ def run(spec, output=None, *, chunk: int | None = None, progress: bool = True, f
     folder = Path(tempfile.mkdtemp(prefix="ensemble-")) if output is None else None
     out = folder / "result.nc" if folder else Path(output)
     spec, rounded, problem = preflight.check(spec, out, runfile, device=device, chunk=chunk, force=force,
-                                             resume=resume)
+                                             resume=resume, precision=precision)
     if rounded != chunk:
         warnings.warn(f"chunk {chunk} is rounded up to {rounded}, whole kernel blocks", stacklevel=2)
         chunk = rounded

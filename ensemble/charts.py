@@ -209,26 +209,33 @@ def draw_energy_drift(plt, ds: xr.Dataset, points: xr.Dataset, drift_step: float
 
 def draw_work_precision(plt, table: xr.Dataset, stem: Path, title: str) -> Path:
     """Error against kernel seconds per member (this machine), against right-hand-side evaluations per member
-    (any machine) and against the step with reference slopes dt^order, one line per method."""
+    (any machine) and against the step with reference slopes dt^order, one line per method (and per precision or
+    device where the table combines results: a method's colour, a result's line style)."""
     fig, (cost, evaluations, steps) = plt.subplots(1, 3, figsize=(17, 5), layout="constrained")
     unevaluated = []
-    for method in dict.fromkeys(table["method"].values):
-        chosen = table["method"].values == method
+    methods = list(dict.fromkeys(table["method"].values))
+    suffixes = list(dict.fromkeys(line[len(method):] for line, method in zip(table["line"].values,
+                                                                               table["method"].values)))
+    for line in dict.fromkeys(table["line"].values):
+        chosen = table["line"].values == line
+        method = str(table["method"].values[chosen][0])
+        style = dict(color=f"C{methods.index(method) % 10}", label=line,
+                     linestyle=("-", "--", "-.", ":")[suffixes.index(line[len(method):]) % 4], marker="o")
         error, dt, seconds, rhs = (table[name].values[chosen] for name in ("error", "dt", "seconds", "rhs_evals"))
         order = np.argsort(dt)
-        line, = steps.loglog(dt[order], error[order], "o-", label=method)
+        steps.loglog(dt[order], error[order], **style)
         if np.any(rhs > 0):
-            evaluations.loglog(rhs[order], error[order], "o-", color=line.get_color(), label=method)
+            evaluations.loglog(rhs[order], error[order], **style)
         else:
-            unevaluated.append(method)
+            unevaluated.append(line)
         if np.isfinite(seconds).any():
-            cost.loglog(seconds[order], error[order], "o-", color=line.get_color(), label=method)
+            cost.loglog(seconds[order], error[order], **style)
         nominal = METHODS[method].order
         usable = np.isfinite(error) & (error < fitting.ASYMPTOTIC) & (error > 0)
-        if usable.any() and nominal:  # reference slope dt^order through the method's most accurate asymptotic point
-            anchor = np.flatnonzero(usable)[np.argmax(dt[usable])]
+        if usable.any() and nominal and suffixes.index(line[len(method):]) == 0:  # reference slope dt^order
+            anchor = np.flatnonzero(usable)[np.argmax(dt[usable])]  # through the most accurate asymptotic point
             span = np.array([dt[usable].min(), dt[usable].max()])
-            steps.loglog(span, error[anchor] * (span / dt[anchor]) ** nominal, ":", color=line.get_color(),
+            steps.loglog(span, error[anchor] * (span / dt[anchor]) ** nominal, ":", color=style["color"],
                          label=f"dt^{nominal}")
     cost.set_xlabel("kernel seconds per member to t_end")
     cost.set_title("work against precision: this machine's kernel time")

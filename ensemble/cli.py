@@ -33,6 +33,9 @@ def _parser() -> argparse.ArgumentParser:
     run.add_argument("--device", choices=("cpu", "cuda"),
                      help="where the kernels run: this machine's cores, or an NVIDIA GPU (default: the run file's "
                           "device, else cpu); see docs/gpu.md")
+    run.add_argument("--precision", choices=("float64", "float32"),
+                     help="the kernels' float type: float32 runs on a GPU only (default: the run file's "
+                          "precision, else float64); see docs/gpu.md")
     run.add_argument("--resume", action="store_true",
                      help="finish a run that stopped midway: keep the parts it finished (OUTPUT.parts/), compute "
                           "the rest")
@@ -78,8 +81,13 @@ def _analysis_parsers(commands) -> None:
     for sub, passes in ((fit, "a fitted sweep point disagrees with its reference"),
                         (stability, "a measured limit disagrees with theory (the table's `agree` column)")):
         sub.add_argument("--check", action="store_true", help=f"exit 1 when {passes}")
-    for sub in (fit, stability, work):
+    for sub in (fit, stability):
         sub.add_argument("result", type=Path, help="a result file written by `ensemble run`")
+    work.add_argument("results", type=Path, nargs="+", metavar="RESULT",
+                      help="result files written by `ensemble run`, of one scene: several are charted together (a "
+                           "line per method and precision or device where they differ); the table goes beside the "
+                           "first")
+    for sub in (fit, stability, work):
         sub.add_argument("--charts", type=Path, metavar="DIR",
                          help="draw the charts as PNG files in DIR (needs the plot extra)")
 
@@ -195,7 +203,8 @@ def _run(args) -> int:
         return EXIT_INTERRUPTED
     out = args.output or Path("results") / f"{args.runfile.stem}.nc"
     spec, chunk, refusal = preflight.check(spec, out, args.runfile, device=args.device, chunk=args.chunk,
-                                           force=args.force, resume=args.resume, chunk_option="--chunk")
+                                           force=args.force, resume=args.resume, chunk_option="--chunk",
+                                           precision=args.precision)
     if refusal:
         return _error(refusal)
     if chunk != args.chunk and not args.quiet:

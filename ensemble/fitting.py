@@ -328,11 +328,12 @@ def dataset(ds: xr.Dataset, data: dict, dims, *, noise: float, fit: str,
 def work_precision(ds: xr.Dataset) -> xr.Dataset:
     """Per sweep point of a run with [measure] error (and timing): method, dt, rtol, median error and work.
 
-    Returns over `point`: method (name), dt (s; for adaptive methods the mean
-    step t_end / steps), rtol, error (median over members of error_max),
-    steps (median steps taken per member), rhs_evals (median) and seconds
-    (median kernel seconds per member to t_end: seconds_per_step x steps;
-    NaN without timing).
+    Returns over `point`: method (name), line (the chart's line: the method's
+    name; see combined_work_precision), precision (the run's float type),
+    dt (s; for adaptive methods the mean step t_end / steps), rtol, error
+    (median over members of error_max), steps (median steps taken per
+    member), rhs_evals (median) and seconds (median kernel seconds per member
+    to t_end: seconds_per_step x steps; NaN without timing).
     """
     if "error_max" not in ds:
         raise FitError("work_precision needs a result of a run with [measure] error = true (no error_max in it)")
@@ -355,6 +356,9 @@ def work_precision(ds: xr.Dataset) -> xr.Dataset:
     out = xr.Dataset(coords={"point": np.arange(len(rows))})
     for name, values, units, long_name in (
             ("method", np.array(columns[0]), "", "integration method"),
+            ("line", np.array(columns[0]), "", "the chart's line: the method, and where results differ their "
+                                              "precision and device"),
+            ("precision", np.full(len(rows), ds.attrs.get("precision", "float64")), "", "the kernels' float type"),
             ("dt", np.array(columns[1]), "s", "step (adaptive methods: mean step t_end / steps accepted)"),
             ("rtol", np.array(columns[2]), "1", "relative tolerance (adaptive methods)"),
             ("error", np.array(columns[3]), "1", "median over members of error_max"),
@@ -365,19 +369,40 @@ def work_precision(ds: xr.Dataset) -> xr.Dataset:
     return out
 
 
-ROUNDOFF = 1e3 * np.finfo(float).eps  # errors below ROUNDOFF sqrt(steps) are round-off, not truncation
+ROUNDOFF = 1e3  # machine epsilons: errors below ROUNDOFF eps sqrt(steps) are round-off, not truncation
 ASYMPTOTIC = 1e-2  # errors above this are not yet in the asymptotic regime
 
 
-def convergence_order(table: xr.Dataset, method: str) -> tuple[float, int]:
+def combined_work_precision(tables: list[xr.Dataset], results: list[dict]) -> xr.Dataset:
+    """Work-precision tables of several results (their attributes `results`) as one over `point`. Where the
+    results differ in precision or device, each line is named by them too: `rk4 float32 cuda`."""
+    differ = [key for key in ("precision", "device") if len({_kind(r, key) for r in results}) > 1]
+    for table, attrs in zip(tables, results):
+        suffix = "".join(f" {_kind(attrs, key)}" for key in differ)
+        table["line"] = ("point", np.array([f"{method}{suffix}" for method in table["method"].values]),
+                         table["line"].attrs)
+    combined = xr.concat(tables, dim="point")
+    return combined.assign_coords(point=np.arange(combined.sizes["point"]))
+
+
+def _kind(attrs: dict, key: str) -> str:
+    """A result's precision, or its device's kind (cpu or cuda, without the GPU's name)."""
+    default = "float64" if key == "precision" else "cpu"
+    return str(attrs.get(key, default)).split(":")[0]
+
+
+def convergence_order(table: xr.Dataset, line: str) -> tuple[float, int]:
     """Measured order of a fixed-step method from a work_precision table: (slope of log error on log dt, points).
+    `line`: the method's name, or the table's line of it (combined_work_precision).
 
     Uses the points in the asymptotic range: error below ASYMPTOTIC and above
-    round-off (ROUNDOFF sqrt(steps)). NaN with fewer than 3 such points.
+    round-off (ROUNDOFF eps sqrt(steps), eps that of the run's precision). NaN
+    with fewer than 3 such points.
     """
-    chosen = table["method"].values == method
+    chosen = table["line"].values == line
     error, dt, steps = (table[name].values[chosen] for name in ("error", "dt", "steps"))
-    usable = np.isfinite(error) & (error < ASYMPTOTIC) & (error > ROUNDOFF * np.sqrt(steps))
+    eps = np.finfo(str(table["precision"].values[chosen][0])).eps if chosen.any() else np.finfo(float).eps
+    usable = np.isfinite(error) & (error < ASYMPTOTIC) & (error > ROUNDOFF * eps * np.sqrt(steps))
     if usable.sum() < 3:
         return np.nan, int(usable.sum())
     return float(np.polyfit(np.log(dt[usable]), np.log(error[usable]), 1)[0]), int(usable.sum())

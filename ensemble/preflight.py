@@ -15,10 +15,10 @@ class RunRefused(EnsembleError):
 
 
 def check(spec, out: Path, runfile: Path | None, *, device: str | None, chunk: int | None, force: bool,
-          resume: bool, chunk_option: str = "chunk"):
-    """(the spec on `device`, or the run file's; the chunk, rounded up to whole kernel blocks; why the run is
-    refused before it starts, or None): on_device, then refusal, then whole_blocks."""
-    spec, problem = on_device(spec, device, str(runfile or "the run"))
+          resume: bool, chunk_option: str = "chunk", precision: str | None = None):
+    """(the spec on `device` in `precision`, or the run file's; the chunk, rounded up to whole kernel blocks; why
+    the run is refused before it starts, or None): on_device, then refusal, then whole_blocks."""
+    spec, problem = on_device(spec, device, str(runfile or "the run"), precision)
     problem = problem or refusal(spec, out, runfile, chunk=chunk, force=force, resume=resume,
                                  chunk_option=chunk_option)
     return spec, (whole_blocks(spec, chunk) if chunk and not problem else chunk), problem
@@ -33,10 +33,13 @@ def whole_blocks(spec, chunk: int) -> int:
     return min(-(-chunk // block) * block, max(chunk, spec.n_members))
 
 
-def on_device(spec, device: str | None, where: str):
-    """The spec on `device` (None: the run file's), and why it cannot run there (None if it can)."""
+def on_device(spec, device: str | None, where: str, precision: str | None = None):
+    """The spec on `device` in `precision` (None: the run file's), and why it cannot run there (None if it
+    can)."""
     if device:
         spec = dataclasses.replace(spec, device=device)
+    if precision:
+        spec = dataclasses.replace(spec, precision=precision)
     if spec.precision == "float32" and spec.device != "cuda":
         return spec, f"{where}: precision: float32 runs on a GPU only (--device cuda)"
     if spec.device == "cuda":

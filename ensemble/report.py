@@ -282,17 +282,28 @@ def stability_command(args) -> int:
 
 def work_precision_command(args) -> int:
     """`ensemble work-precision`: per method, its points and measured convergence order; the table beside the
-    result, the chart with --charts."""
+    (first) result, the chart with --charts. Several results of one scene (a GPU run in float64 and in float32,
+    say) are charted together, a line per method and result."""
     from . import fitting
 
-    loaded = load_result(args.result, fitting.work_precision)
-    if loaded is None:
+    loaded = [load_result(path, fitting.work_precision) for path in args.results]
+    if None in loaded:
         return EXIT_BAD_INPUT
-    ds, table = loaded
-    print(f"work against precision in {args.result} ({ds.attrs['scene']}, t_end = {ds.attrs['t_end']} s)")
+    scenes = [ds.attrs["scene"] for ds, _ in loaded]
+    for path, scene in zip(args.results, scenes):
+        if scene != scenes[0]:
+            print(f"ensemble: error: {path}: a {scene} result, charted with {args.results[0]}'s {scenes[0]}: "
+                  f"work-precision compares runs of one scene", file=sys.stderr)
+            return EXIT_BAD_INPUT
+    args.result = args.results[0]
+    table = fitting.combined_work_precision([t for _, t in loaded], [ds.attrs for ds, _ in loaded])
+    for path, (ds, _) in zip(args.results, loaded):
+        print(f"work against precision in {path} ({ds.attrs['scene']}, t_end = {ds.attrs['t_end']} s, "
+              f"{ds.attrs.get('precision', 'float64')} on {ds.attrs.get('device', 'cpu')})")
+        if "seconds_per_step" not in ds:
+            print("  no timing in this result ([measure] timing = true): its cost panel is empty")
     print_work_precision(table)
-    if "seconds_per_step" not in ds:
-        print("no timing in this result ([measure] timing = true): the cost panel is empty")
+    ds = loaded[0][0]
 
     def draw(plt, stem):
         from . import charts
@@ -309,14 +320,15 @@ def print_work_precision(table: xr.Dataset) -> None:
     from .fitting import convergence_order
     from .methods import METHODS
 
-    for method in dict.fromkeys(table["method"].values):
-        m = METHODS[method]
-        order, used = convergence_order(table, method)
+    for line in dict.fromkeys(table["line"].values):
+        chosen = np.flatnonzero(table["line"].values == line)
+        m = METHODS[str(table["method"].values[chosen[0]])]
+        order, used = convergence_order(table, line)
         against = "mean step" if m.adaptive else "dt"
-        print(f"{method}: nominal order {m.order}, measured {order:.3f} "
+        print(f"{line}: nominal order {m.order}, measured {order:.3f} "
               f"(slope of log error on log {against} over {used} points in the asymptotic range)")
         print(f"  {'dt (s)':>10} {'rtol':>9} {'error':>10} {'steps':>10} {'rhs evals':>10} {'s/member':>10}")
-        for i in np.flatnonzero(table["method"].values == method):
+        for i in chosen:
             row = {name: table[name].values[i] for name in ("dt", "rtol", "error", "steps", "rhs_evals", "seconds")}
             print(f"  {row['dt']:>10.3g} {row['rtol']:>9.2g} {row['error']:>10.3g} {row['steps']:>10.0f} "
                   f"{row['rhs_evals']:>10.0f} {row['seconds']:>10.3g}")

@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from ensemble import cli, runner
+from ensemble import cli, fitting, runner
 from ensemble.engine import launch
 from ensemble.methods import METHODS
 from ensemble.results import Status
@@ -55,12 +55,17 @@ CASES = [(TOP, ("rk4", "split4", "dopri5")), (BODY, ("rk4", "rotations4", "dopri
          (CHAIN, ("verlet", "yoshida4", "rk4", "dopri5")), (RING, ("verlet", "dopri5")), (USER, ("rk4", "dopri5"))]
 
 
-def spec_of(case: dict, method: str, **extra):
+def spec_text(case: dict, method: str, **extra) -> str:
+    """A case's run file text with `method` (and `extra` keys)."""
     case = {**case, **extra}
     head = "\n".join(f"{k} = {v!r}" if not isinstance(v, str) else f'{k} = "{v}"'
                      for k, v in case.items() if k != "parameters")
     tolerances = "rtol = 1e-7\natol = 1e-9\n" if METHODS[method].adaptive else ""
-    return loads(f'{head}\nmethod = "{method}"\n{tolerances}[parameters]\n{case["parameters"]}\n')
+    return f'{head}\nmethod = "{method}"\n{tolerances}[parameters]\n{case["parameters"]}\n'
+
+
+def spec_of(case: dict, method: str, **extra):
+    return loads(spec_text(case, method, **extra))
 
 
 def both(spec, **settings):
@@ -213,3 +218,45 @@ def test_a_long_record_on_the_gpu_continues_from_its_last_segment(tmp_path, monk
     assert len(list(tmp_path.glob("out.nc.parts/segment-*.npz"))) == 2
     runner.run(spec, out, progress=False, resume=True)
     same_bits(out, whole)
+
+
+def test_work_precision_charts_float32_beside_float64(tmp_path, capsys):
+    """Issue 42: one run file run on the GPU in float64 and (--precision) in float32, charted together: a line
+    each; where rk4's own error is large both agree, where it is small float32's round-off is far above it."""
+    path = tmp_path / "wp.toml"
+    path.write_text(top_runfile(members=1, t_end=1.0, save_dt=0.5, dt=None, method="rk4", device="cuda",
+                                parameters={"tilt0": 0.3, "azimuth0": 1.0, "spin0": 20.0, "c": 2e-3},
+                                sweep={"dt": [0.05, 0.025, 0.0125, 0.005, 0.0025, 0.001]})
+                    + "[measure]\nerror = true\n")
+    double, single = tmp_path / "double.nc", tmp_path / "single.nc"
+    assert cli.main(["run", str(path), "-o", str(double), "--quiet"]) == 0
+    assert cli.main(["run", str(path), "-o", str(single), "--quiet", "--precision", "float32"]) == 0
+    capsys.readouterr()
+    assert cli.main(["work-precision", str(double), str(single), "--charts", str(tmp_path)]) == 0
+    out = capsys.readouterr().out
+    assert "rk4 float64: nominal order 4" in out and "rk4 float32: nominal order 4" in out
+    import xarray as xr
+
+    table = xr.load_dataset(tmp_path / "double_work_precision.nc")
+    error = {line: table["error"].values[table["line"].values == line] for line in ("rk4 float64", "rk4 float32")}
+    assert error["rk4 float32"][0] == pytest.approx(error["rk4 float64"][0], rel=1e-3)  # dt 0.05: truncation
+    assert error["rk4 float32"][-1] > 30 * error["rk4 float64"][-1]  # dt 1e-3: float32's round-off
+    assert fitting.convergence_order(table, "rk4 float64")[0] == pytest.approx(4, abs=0.2)
+    assert (tmp_path / "double_work_precision.png").stat().st_size > 20_000
+
+
+def test_work_precision_refuses_results_of_two_scenes_and_float32_on_the_cpu(tmp_path, capsys):
+    top_path, chain_path = tmp_path / "top.toml", tmp_path / "chain.toml"
+    top_path.write_text(top_runfile(members=1, t_end=0.2) + "[measure]\nerror = true\n")
+    chain_path.write_text(spec_text(CHAIN, "verlet") + "[measure]\nerror = true\n")
+    for path in (top_path, chain_path):
+        assert cli.main(["run", str(path), "-o", str(path.with_suffix(".nc")), "--quiet"]) == 0
+    capsys.readouterr()
+    assert cli.main(["work-precision", str(tmp_path / "top.nc"), str(tmp_path / "chain.nc")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "chain.nc: a chain result, charted with" in err
+    assert not list(tmp_path.glob("*_work_precision.nc"))
+    assert cli.main(["run", str(top_path), "-o", str(tmp_path / "f32.nc"), "--quiet", "--precision", "float32"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "precision: float32 runs on a GPU only" in err
+    assert not list(tmp_path.glob("f32.nc*"))
