@@ -25,7 +25,7 @@ sys.path.insert(0, str(Path(__file__).parent))
 from hostinfo import host  # noqa: E402
 
 from ensemble.engine import launch  # noqa: E402
-from ensemble.engine.gpu import require_gpu  # noqa: E402
+from ensemble.engine.gpu import require_gpu, simulated  # noqa: E402
 from ensemble.methods import METHODS  # noqa: E402
 from ensemble.runner import members_table  # noqa: E402
 from ensemble.scenes import resolve  # noqa: E402
@@ -37,15 +37,29 @@ CHAIN_DT = 0.05  # s: h omega_max about 0.1 for the disordered chains below
 TARGET_SECONDS = 0.4  # a timed launch's length, once calibrated
 STEPS = (1e-2, 4e-3, 2e-3, 1e-3, 5e-4, 2.5e-4, 1e-4)  # s: float32's error against float64's, over 1 s
 CROSSOVER = (10**2, 10**3, 10**4, 10**5, 10**6)
-SIZES = {  # members per workload; --quick and --smoke (a check of this script under the simulator) use fewer
-    "full": dict(top=(10**4, 10**5, 10**6, 10**7), chain=((16, (10**4, 10**5, 10**6)), (128, (10**4, 10**5)),
-                                                           (1024, (10**3, 10**4, 10**5))),
+SIZES = {  # members per workload, each run where the GPU's memory allows (fits); --quick and --smoke (a check of
+    # this script under the simulator) use fewer
+    "full": dict(top=(10**4, 10**5, 10**6, 10**7, 10**8),
+                 chain=((16, (10**4, 10**5, 10**6, 10**7)), (128, (10**4, 10**5, 10**6)),
+                        (1024, (10**3, 10**4, 10**5))),
                  crossover=CROSSOVER, float32=10**4, dts=STEPS),
-    "quick": dict(top=(10**4, 10**5, 10**6), chain=((16, (10**4, 10**5, 10**6)), (128, (10**4, 10**5)),
-                                                     (1024, (10**3, 10**4))),
+    "quick": dict(top=(10**4, 10**6, 10**8), chain=((16, (10**4, 10**6)), (128, (10**4, 10**5)),
+                                                    (1024, (10**3, 10**4))),
                   crossover=CROSSOVER, float32=10**4, dts=STEPS),
     "smoke": dict(top=(2,), chain=((3, (2,)),), crossover=(1,), float32=1, dts=(1e-2,)),
 }
+WHOLE_STEPS = 2_000_000  # steps per top in the whole run: about 70 s of integration for 10^7 tops on an H100
+
+
+def fits(members: int, rows: int) -> bool:
+    """Whether `members` with `rows` float64 values each (inputs, works, two segments of samples, and the host's
+    copies) fit in the GPU's free memory, with a quarter to spare."""
+    from numba import cuda
+
+    if simulated():
+        return True
+    free, _ = cuda.current_context().get_memory_info()
+    return members * rows * 8 <= 0.75 * free
 
 
 def synchronize():
@@ -105,7 +119,11 @@ def kernel_rates(sizes: dict, repeats: int) -> list[dict]:
     rows = []
     top, chain = resolve("top"), resolve("chain")
     for members in sizes["top"]:
+        if not fits(members, 3 * 8):  # state, rates, limits, works, two segments of samples: about 8 times D
+            print(f"top members {members:,d}: not run, more than this GPU's free memory", flush=True)
+            continue
         values = top_values(members)
+        rows.append(closed_form_rate(top, values))
         for name, extra in (("rk4", {}), ("dopri5", {"rtol": 1e-8, "atol": 1e-10})):
             probe = 200 if name == "rk4" else 20
             rate, steps, seconds = calibrated(top, METHODS[name], values, {}, dt=TOP_DT, probe_steps=probe,
@@ -116,6 +134,9 @@ def kernel_rates(sizes: dict, repeats: int) -> list[dict]:
                   flush=True)
     for n, chains in sizes["chain"]:
         for members in chains:
+            if not fits(members, 2 * n * 8):
+                print(f"chain N={n} members {members:,d}: not run, more than this GPU's free memory", flush=True)
+                continue
             values = chain_values(n, members)
             for name in ("verlet", "yoshida4", *(("dopri5",) if n == 16 else ())):
                 tolerances = {"rtol": 1e-8, "atol": 1e-10} if METHODS[name].adaptive else {}
@@ -127,6 +148,19 @@ def kernel_rates(sizes: dict, repeats: int) -> list[dict]:
                 print(f"chain N={n:<5d} {name:8s} members {members:>9,d}: {rate * n:.3g} mass-steps/s ({steps} steps, "
                       f"{seconds:.3f} s)", flush=True)
     return rows
+
+
+def closed_form_rate(top, values: dict) -> dict:
+    """The closed form (method exact), which runs on the host with NumPy on either device: member-samples/s of 11
+    saved samples."""
+    members = len(values["c"])
+    start = time.perf_counter()
+    launch.integrate(top, METHODS["exact"], values, {}, n_save=11, save_dt=0.1, device="cuda")
+    seconds = time.perf_counter() - start
+    print(f"top exact   members {members:>9,d}: {11 * members / seconds:.3g} member-samples/s (NumPy on the host, "
+          f"{seconds:.3f} s)", flush=True)
+    return dict(scene="top", method="exact", members=members, seconds=seconds, rate=11 * members / seconds,
+                unit="member-samples/s (host)")
 
 
 def crossover(sizes: dict, repeats: int) -> list[dict]:
@@ -173,9 +207,10 @@ def float32_error(sizes: dict) -> list[dict]:
     return rows
 
 
-def whole_run(members: int, kernel_rate: float | None, dt: float = TOP_DT) -> dict:
-    """`ensemble run --device cuda` of `members` aerobie tops over 10 s in steps dt, saving 101 samples of omega
-    and tilt, against the kernel's rate."""
+def whole_run(members: int, steps: int, kernel_rate: float | None) -> dict:
+    """`ensemble run --device cuda` of `members` aerobie tops over 10 s in `steps` steps, saving 101 samples of
+    omega and tilt, against the kernel's rate."""
+    dt = 10.0 / steps
     text = (ROOT / "runs" / "aerobie.toml").read_text().replace("members = 200", f"members = {members}")
     text = text.replace("dt = 2.5e-4", f"dt = {dt!r}")
     text = text.replace("c = [5e-5, 1e-4, 2e-4]", "c = [1e-4]").replace("t_end = 30.0", "t_end = 10.0")
@@ -188,15 +223,14 @@ def whole_run(members: int, kernel_rate: float | None, dt: float = TOP_DT) -> di
                                "--device", "cuda", "--quiet"], capture_output=True, text=True)
         seconds = time.perf_counter() - start
         size = (Path(folder) / "out.nc").stat().st_size if done.returncode == 0 else 0
-    steps = members * round(10.0 / dt)
     said = re.search(r" in ([0-9.e+-]+) s:", done.stdout + done.stderr)  # the run's own time, start-up excluded
     run_seconds = float(said.group(1)) if said else float("nan")
-    row = dict(members=members, dt=dt, seconds=seconds, run_seconds=run_seconds, rate=steps / run_seconds, bytes=size,
+    rate = members * steps / run_seconds
+    row = dict(members=members, dt=dt, seconds=seconds, run_seconds=run_seconds, rate=rate, bytes=size,
                returncode=done.returncode, output=(done.stdout + done.stderr)[-600:], kernel_rate=kernel_rate,
-               share_of_kernel=(steps / run_seconds) / kernel_rate if kernel_rate else None)
-    print(f"whole run, {members:,d} tops, {round(10.0 / dt)} steps each, x 101 samples of omega and tilt "
-          f"({size / 1e9:.2f} GB): {seconds:.1f} s in all, {run_seconds:.2f} s its own, "
-          f"{steps / run_seconds:.3g} member-steps/s"
+               share_of_kernel=rate / kernel_rate if kernel_rate else None)
+    print(f"whole run, {members:,d} tops, {steps} steps each, x 101 samples of omega and tilt "
+          f"({size / 1e9:.2f} GB): {seconds:.1f} s in all, {run_seconds:.2f} s its own, {rate:.3g} member-steps/s"
           + (f", {row['share_of_kernel']:.2f} of the kernel's {kernel_rate:.3g}" if kernel_rate else ""), flush=True)
     print(row["output"].strip(), flush=True)
     return row
@@ -208,7 +242,10 @@ def main() -> None:
     parser.add_argument("--smoke", action="store_true", help="tiny sizes: checks this script (simulator)")
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--json", type=Path, help="write the figures here")
-    parser.add_argument("--whole-members", type=int, default=10**6, help="tops in the whole run (0: none)")
+    parser.add_argument("--only", choices=("kernels", "whole"), help="only the kernels' figures (rates, crossover, "
+                                                                    "float32), or only the whole run")
+    parser.add_argument("--whole-members", type=int, default=10**7, help="tops in the whole run (0: none)")
+    parser.add_argument("--whole-steps", type=int, default=WHOLE_STEPS, help="steps per top in the whole run")
     args = parser.parse_args()
     figures = {"gpu": require_gpu(), "host": host(), "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())}
     print(f"gpu: {figures['gpu']}\n{figures['host']}", flush=True)
@@ -216,13 +253,15 @@ def main() -> None:
     if args.smoke:
         global TARGET_SECONDS
         TARGET_SECONDS = 1e-3
-    figures["kernels"] = kernel_rates(sizes, args.repeats)
-    figures["crossover"] = crossover(sizes, args.repeats)
-    figures["float32"] = float32_error(sizes)
-    if args.whole_members:
-        rk4 = [r["rate"] for r in figures["kernels"] if r["scene"] == "top" and r["method"] == "rk4"]
-        figures["whole_run"] = [whole_run(args.whole_members, max(rk4) if rk4 else None, dt)
-                                for dt in (TOP_DT, TOP_DT / 100)]  # writing-bound, then integration-bound
+    if args.only != "whole":
+        figures["kernels"] = kernel_rates(sizes, args.repeats)
+        figures["crossover"] = crossover(sizes, args.repeats)
+        figures["float32"] = float32_error(sizes)
+    if args.whole_members and args.only != "kernels":
+        top = resolve("top")  # the kernel's rate at the whole run's size, for the share
+        kernel_rate, _, _ = calibrated(top, METHODS["rk4"], top_values(args.whole_members), {}, dt=TOP_DT,
+                                       probe_steps=200, device="cuda", repeats=args.repeats)
+        figures["whole_run"] = whole_run(args.whole_members, args.whole_steps, kernel_rate)
     if args.json:
         args.json.write_text(json.dumps(figures, indent=1))
 
