@@ -220,6 +220,38 @@ def test_a_long_record_on_the_gpu_continues_from_its_last_segment(tmp_path, monk
     same_bits(out, whole)
 
 
+@pytest.mark.parametrize("boundary", ["fixed", "periodic"])
+def test_a_long_chain_as_a_block_of_threads_gives_the_bits_of_one_thread_per_chain(monkeypatch, boundary):
+    """Chains of gpu.SHARED_SITES masses or more run as a block of threads each, a thread owning a few sites and
+    the positions in shared memory. Here 5 masses on 2 threads (the second owning one site fewer) give the bits
+    of one thread per chain, unstable members failing at the same saved time, for splittings and Runge-Kutta;
+    adaptive methods keep one thread per chain (their step control is the chain's)."""
+    from ensemble.engine import gpu
+    from ensemble.scenes import resolve
+
+    chain, n = resolve("chain"), 5
+    rng = np.random.default_rng(5)
+    values = {"m": np.repeat([[0.05], [0.1], [10.0], [20.0]], n, axis=1), "k": rng.uniform(0.5, 2.0, (4, n + 1)),
+              "x0": rng.normal(0.0, 0.3, (4, n)), "v0": rng.normal(0.0, 0.1, (4, n))}
+    constants = {"n": n, "boundary": boundary}
+    for method in ("verlet", "yoshida4", "rk4"):
+        settings = dict(n_save=7, save_dt=1.0, dt=0.5)
+        one = launch.integrate(chain, METHODS[method], values, constants, **settings, device="cuda")
+        with monkeypatch.context() as patch:
+            patch.setattr(gpu, "SHARED_SITES", 2)
+            patch.setattr(gpu, "MOST_SITE_THREADS", 2)
+            patch.setattr(gpu, "WARP", 1)
+            assert gpu.kernel(chain, METHODS[method], constants).threads == 2
+            assert gpu.kernel(chain, METHODS["dopri5"], constants).threads == 1
+            block = launch.integrate(chain, METHODS[method], values, constants, **settings, device="cuda")
+            segments = launch.Launch(chain, METHODS[method], values, constants, **settings, device="cuda", segment=2)
+            segments.run()  # each call continues from where the block's threads left their sites in works
+        assert segments.samples.tobytes() == block.samples.tobytes()
+        assert list(one.status) == [Status.BLEW_UP] * 2 + [Status.OK] * 2, method  # dt 0.5: the light fail
+        for name in ("samples", "counts", "status", "failure_time"):
+            assert np.array_equal(getattr(one, name), getattr(block, name), equal_nan=True), (method, name)
+
+
 def test_work_precision_charts_float32_beside_float64(tmp_path, capsys):
     """Issue 42: one run file run on the GPU in float64 and (--precision) in float32, charted together: a line
     each; where rk4's own error is large both agree, where it is small float32's round-off is far above it."""

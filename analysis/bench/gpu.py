@@ -24,7 +24,10 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).parent))
 from hostinfo import host  # noqa: E402
 
-from ensemble.engine import launch  # noqa: E402
+from ensemble.engine import (
+    gpu,  # noqa: E402
+    launch,  # noqa: E402
+)
 from ensemble.engine.gpu import require_gpu, simulated  # noqa: E402
 from ensemble.methods import METHODS  # noqa: E402
 from ensemble.runner import members_table  # noqa: E402
@@ -40,13 +43,13 @@ CROSSOVER = (10**2, 10**3, 10**4, 10**5, 10**6)
 SIZES = {  # members per workload, each run where the GPU's memory allows (fits); --quick and --smoke (a check of
     # this script under the simulator) use fewer
     "full": dict(top=(10**4, 10**5, 10**6, 10**7, 10**8),
-                 chain=((16, (10**4, 10**5, 10**6, 10**7)), (128, (10**4, 10**5, 10**6)),
+                 chain=((16, (10**4, 10**5, 10**6, 10**7)), (64, (10**4, 10**5)), (128, (10**4, 10**5, 10**6)),
                         (1024, (10**3, 10**4, 10**5))),
                  crossover=CROSSOVER, float32=10**4, dts=STEPS),
     "quick": dict(top=(10**4, 10**6, 10**8), chain=((16, (10**4, 10**6)), (128, (10**4, 10**5)),
                                                     (1024, (10**3, 10**4))),
                   crossover=CROSSOVER, float32=10**4, dts=STEPS),
-    "smoke": dict(top=(2,), chain=((3, (2,)),), crossover=(1,), float32=1, dts=(1e-2,)),
+    "smoke": dict(top=(2,), chain=((3, (2,)), (64, (2,))), crossover=(1,), float32=1, dts=(1e-2,)),
 }
 WHOLE_STEPS = 2_000_000  # steps per top in the whole run: about 70 s of integration for 10^7 tops on an H100
 
@@ -116,8 +119,11 @@ def calibrated(scene, method, values, constants, *, dt, probe_steps, device, rep
 
 
 def kernel_rates(sizes: dict, repeats: int) -> list[dict]:
-    rows = []
-    top, chain = resolve("top"), resolve("chain")
+    return top_rates(sizes, repeats) + chain_rates(sizes, repeats)
+
+
+def top_rates(sizes: dict, repeats: int) -> list[dict]:
+    rows, top = [], resolve("top")
     for members in sizes["top"]:
         if not fits(members, 3 * 8):  # state, rates, limits, works, two segments of samples: about 8 times D
             print(f"top members {members:,d}: not run, more than this GPU's free memory", flush=True)
@@ -132,6 +138,13 @@ def kernel_rates(sizes: dict, repeats: int) -> list[dict]:
                              rate=rate, unit="member-steps/s"))
             print(f"top {name:7s} members {members:>9,d}: {rate:.3g} member-steps/s ({steps} steps, {seconds:.3f} s)",
                   flush=True)
+    return rows
+
+
+def chain_rates(sizes: dict, repeats: int) -> list[dict]:
+    """Chains of N masses. Where N >= gpu.SHARED_SITES, each fixed-step method is timed in both layouts, a block
+    of threads per chain (the default there) and one thread per chain, so that the threshold is measured."""
+    rows, chain, shared_sites = [], resolve("chain"), gpu.SHARED_SITES
     for n, chains in sizes["chain"]:
         for members in chains:
             if not fits(members, 2 * n * 8):
@@ -139,14 +152,18 @@ def kernel_rates(sizes: dict, repeats: int) -> list[dict]:
                 continue
             values = chain_values(n, members)
             for name in ("verlet", "yoshida4", *(("dopri5",) if n == 16 else ())):
-                tolerances = {"rtol": 1e-8, "atol": 1e-10} if METHODS[name].adaptive else {}
-                rate, steps, seconds = calibrated(chain, METHODS[name], values, {"n": n, "boundary": "fixed"},
-                                                  dt=CHAIN_DT, probe_steps=20, device="cuda", repeats=repeats,
-                                                  **tolerances)
-                rows.append(dict(scene=f"chain N={n}", method=name, members=members, steps=steps, seconds=seconds,
-                                 rate=rate * n, unit="mass-steps/s"))
-                print(f"chain N={n:<5d} {name:8s} members {members:>9,d}: {rate * n:.3g} mass-steps/s ({steps} steps, "
-                      f"{seconds:.3f} s)", flush=True)
+                for layout in ("block", "thread") if n >= shared_sites and not METHODS[name].adaptive else ("",):
+                    gpu.SHARED_SITES = n + 1 if layout == "thread" else shared_sites
+                    tolerances = {"rtol": 1e-8, "atol": 1e-10} if METHODS[name].adaptive else {}
+                    rate, steps, seconds = calibrated(chain, METHODS[name], values, {"n": n, "boundary": "fixed"},
+                                                      dt=CHAIN_DT, probe_steps=20, device="cuda", repeats=repeats,
+                                                      **tolerances)
+                    threads = gpu.site_threads(n, METHODS[name])
+                    rows.append(dict(scene=f"chain N={n}", method=name, members=members, steps=steps,
+                                     seconds=seconds, rate=rate * n, unit="mass-steps/s", threads_per_chain=threads))
+                    print(f"chain N={n:<5d} {name:8s} members {members:>9,d}, {threads:3d} threads per chain: "
+                          f"{rate * n:.3g} mass-steps/s ({steps} steps, {seconds:.3f} s)", flush=True)
+    gpu.SHARED_SITES = shared_sites
     return rows
 
 

@@ -363,9 +363,11 @@ def adaptive(method: Method, D: int, P: int) -> dict:
 
 
 class GpuKernel(NamedTuple):
-    """A scene's CUDA kernel for one method and the rows of its works array (rows x members)."""
+    """A scene's CUDA kernel for one method, the rows of its works array (rows x members) and its threads per
+    member (1: a thread per member, THREADS to a block; more: a block per member)."""
     function: object
     rows: int
+    threads: int = 1
 
 
 def kernel(scene, method: Method, constants: dict, precision: str = "float64") -> GpuKernel:
@@ -373,7 +375,7 @@ def kernel(scene, method: Method, constants: dict, precision: str = "float64") -
     D, P = scene.kernel_rows(constants)
     if getattr(scene, "SITES", False):
         return _sites_kernel(scene.NAME, scene.PHYSICS, tuple(scene.PIECES), method, constants["n"],
-                             constants["boundary"] == "periodic", precision)
+                             constants["boundary"] == "periodic", precision, site_threads(constants["n"], method))
     return _member_kernel(scene.NAME, scene.PHYSICS, tuple(scene.PIECES), method, D, P, precision)
 
 
@@ -395,10 +397,11 @@ def _member_kernel(name: str, where: str, pieces: tuple[str, ...], method: Metho
                      common["work_rows"])
 
 
-def _compiled(family, name, method, precision, physics_import, physics, D, P, body):
+def _compiled(family, name, method, precision, physics_import, physics, D, P, body, threads: int = 1):
     source = HEADER.format(family=family, scene=name, method=method.name, precision=precision,
                            physics_import=physics_import, physics_hash=physics, D=D, P=P) + body
-    return load_source(source, f"cuda_{name}_{method.name}_{precision}").kernel
+    layout = f"_{threads}threads" if threads > 1 else ""
+    return load_source(source, f"cuda_{name}_{method.name}_{precision}{layout}").kernel
 
 
 class GpuLaunch:
@@ -444,7 +447,7 @@ class GpuLaunch:
         for name, value in start.items():
             setattr(self, name, cuda.to_device(value))
         tail = ((self.counts,) if self.method.adaptive else ()) + (self.status, self.failure_time, self.works)
-        grid = max(1, -(-n // THREADS))
+        grid, block = (n, self.kernel.threads) if self.kernel.threads > 1 else (max(1, -(-n // THREADS)), THREADS)
         copied, waiting = {}, None
         for k, first in enumerate(range(resume[0] if resume else 0, self.n_save, self.segment)):
             count = min(self.segment, self.n_save - first)
@@ -452,7 +455,7 @@ class GpuLaunch:
             if k >= 2:
                 copied[k - 2].wait(compute)  # its buffer is copied out before this segment overwrites it
             samples = self._buffer(("device", k % 2, shape), lambda: cuda.device_array(shape, dtype=self.real))
-            self.kernel.function[grid, THREADS, compute](*self.head, samples, *tail, first, n)
+            self.kernel.function[grid, block, compute](*self.head, samples, *tail, first, n)
             snapshot = {name: getattr(self, name).copy_to_host(
                 self._buffer(("state", k % 2, name), lambda name=name: cuda.pinned_array_like(start[name])),
                 stream=compute) for name in start} if self.segment < self.n_save else {}  # state() of a
@@ -516,84 +519,122 @@ class GpuLaunch:
 
 SITES_HEADER = '''
 N, D = {N}, 2 * {N}  # sites, state values
-# x has a ghost site at each end (0 and N + 1), at rest or (a ring) copies of the other end
 PERIODIC = {periodic}
+# A chain's T threads each own J sites: thread `lane` owns sites lane, lane + T, ... (T = 1: one thread holds the
+# chain in its local arrays). Site q's position is x[q + 1]: x has a ghost site at rest at each end (0 and N + 1);
+# the ends of a ring are each other's neighbours.
+T, J = {T}, {J}
 
 
 @cuda.jit(device=True)
-def set_ghosts(x):
+def lane():
+    return {lane}
+
+
+@cuda.jit(device=True)
+def neighbours(q):
+    """Where in x site q's left and right neighbours are."""
     if PERIODIC:
-        x[0], x[N + 1] = x[N], x[1]
+        return N if q == 0 else q, 1 if q == N - 1 else q + 2
+    return q, q + 2
 
 
 @cuda.jit(device=True)
 def failed(x, v, limit):
-    for i in range(N):  # subnormals to zeros of their sign first, as the CPU's check_members
-        x[i + 1] = x[i + 1] if abs(x[i + 1]) >= {SMALLEST_NORMAL!r} else x[i + 1] * 0.0
-        v[i] = v[i] if abs(v[i]) >= {SMALLEST_NORMAL!r} else v[i] * 0.0
-    for i in range(N):
-        if not (abs(x[i + 1]) <= limit and abs(v[i]) <= limit) or math.isinf(x[i + 1]) or math.isinf(v[i]):
-            return True
-    return False
+    """Whether any site of the chain is not finite or beyond `limit`; subnormals become zeros of their sign first,
+    as the CPU's check_members makes them."""
+    bad = 0
+    for j in range(J):
+        q = lane() + j * T
+        if q < N:
+            x[q + 1] = x[q + 1] if abs(x[q + 1]) >= {SMALLEST_NORMAL!r} else x[q + 1] * 0.0
+            v[j] = v[j] if abs(v[j]) >= {SMALLEST_NORMAL!r} else v[j] * 0.0
+            if not (abs(x[q + 1]) <= limit and abs(v[j]) <= limit) or math.isinf(x[q + 1]) or math.isinf(v[j]):
+                bad = 1
+    return {any_lane}
 
 
 @cuda.jit(device=True)
 def fail(x, v):
-    for i in range(N):
-        x[i + 1], v[i] = NAN, NAN
+    for j in range(J):
+        q = lane() + j * T
+        if q < N:
+            x[q + 1], v[j] = NAN, NAN
 
 
 @cuda.jit(device=True)
 def store(samples, i, m, x, v):
-    for c in range(N):
-        samples[i, c, m], samples[i, N + c, m] = x[c + 1], v[c]
+    for j in range(J):
+        q = lane() + j * T
+        if q < N:
+            samples[i, q, m], samples[i, N + q, m] = x[q + 1], v[j]
 
 
 @cuda.jit(device=True)
 def kick(tau, x, v, cl, cr):
-    set_ghosts(x)
-    for i in range(N):
-        v[i] += tau * acceleration(x[i], x[i + 1], x[i + 2], cl[i], cr[i])
+    for j in range(J):
+        q = lane() + j * T
+        if q < N:
+            left, right = neighbours(q)
+            v[j] += tau * acceleration(x[left], x[q + 1], x[right], cl[j], cr[j])
+    {sync}
 
 
 @cuda.jit(device=True)
 def drift(tau, x, v, cl, cr):
-    for i in range(N):
-        x[i + 1] += tau * v[i]
+    for j in range(J):
+        q = lane() + j * T
+        if q < N:
+            x[q + 1] += tau * v[j]
+    {sync}
 
 
 '''
 
-SITES_FIXED = FIXED_HEAD + '''
-    x = cuda.local.array({N2}, REAL)  # sizes written as numbers: cuda.local.array takes constants only
-    v = cuda.local.array({N}, REAL)
-    cl = cuda.local.array({N}, REAL)
-    cr = cuda.local.array({N}, REAL)
+# A chain's start: its sites' springs and state, from state0 (first call) or works (later calls).
+SITES_LOAD = '''    if lane() == 0:
+        x[0], x[N + 1] = REAL(0.0), REAL(0.0)
+    for j in range(J):
+        q = lane() + j * T
+        if q < N:
+            cl[j], cr[j] = REAL(rate[q, m]), REAL(rate[N + q, m])
+            if start == 0:
+                x[q + 1], v[j] = REAL(state0[q, m]), REAL(state0[N + q, m])
+            else:
+                x[q + 1], v[j] = REAL(works[q, m]), REAL(works[N + q, m])
+'''
+
+SITES_FIXED = FIXED_HEAD.replace("m = cuda.grid(1)", "m = {member}") + '''
+    x = cuda.{x_memory}.array({N2}, REAL)  # sizes written as numbers: the arrays take constants only
+    v = cuda.local.array({J}, REAL)
+    cl = cuda.local.array({J}, REAL)
+    cr = cuda.local.array({J}, REAL)
 {arrays}
-    x[0], x[N + 1] = REAL(0.0), REAL(0.0)
-    for i in range(N):
-        cl[i], cr[i] = REAL(rate[i, m]), REAL(rate[N + i, m])
-        if start == 0:
-            x[i + 1], v[i] = REAL(state0[i, m]), REAL(state0[N + i, m])
-        else:
-            x[i + 1], v[i] = REAL(works[i, m]), REAL(works[N + i, m])
+    alive = status[m] == {OK}
+''' + SITES_LOAD + '''    {sync}
     first = 0
     if start == 0:
         if failed(x, v, limit[m]):
-            status[m], failure_time[m] = {BLEW_UP}, 0.0
+            alive = False
+            if lane() == 0:
+                status[m], failure_time[m] = {BLEW_UP}, 0.0
             fail(x, v)
         store(samples, 0, m, x, v)
         first = 1
     for i in range(first, samples.shape[0]):
-        if status[m] == {OK}:
+        if alive:
             for step in range(steps_per_save):
 {step}
             if failed(x, v, limit[m]):
-                status[m], failure_time[m] = {BLEW_UP}, (start + i) * steps_per_save * h
+                alive = False
+                if lane() == 0:
+                    status[m], failure_time[m] = {BLEW_UP}, (start + i) * steps_per_save * h
                 fail(x, v)
         store(samples, i, m, x, v)
-    for i in range(N):
-        works[i, m], works[N + i, m] = x[i + 1], v[i]
+    for j in range(J):
+        q = lane() + j * T
+        if q < N:
+            works[q, m], works[N + q, m] = x[q + 1], v[j]
 '''
 
 
@@ -616,9 +657,9 @@ SITES_ADAPTIVE = ADAPTIVE_HEAD + '''    x = cuda.local.array({N2}, REAL)
             kx[q], kv[q] = REAL(works[2 * N + q, m]), REAL(works[3 * N + q, m])
     first = 0
     if start == 0:
-        set_ghosts(x)
         for q in range(N):
-            kx[q], kv[q] = v[q], acceleration(x[q], x[q + 1], x[q + 2], cl[q], cr[q])
+            left, right = neighbours(q)
+            kx[q], kv[q] = v[q], acceleration(x[left], x[q + 1], x[right], cl[q], cr[q])
         h = REAL(control[0, m])
         if h <= 0.0:  # Hairer's guess, from |y| and |y'| in units of the tolerance
             size, slope = REAL(0.0), REAL(0.0)
@@ -667,29 +708,36 @@ SITES_ADAPTIVE = ADAPTIVE_HEAD + '''    x = cuda.local.array({N2}, REAL)
 '''
 
 
-def _sites_stages(S: int, a: tuple, h: str, first: int) -> list[str]:
+def _sites_loop(lines: list[str]) -> list[str]:
+    """`lines` for each site j of this thread's (site q), in a loop over them."""
+    return ["for j in range(J):", "    q = lane() + j * T", "    if q < N:", *("        " + line for line in lines)]
+
+
+def _sites_stages(S: int, a: tuple, h: str, first: int, sync: str) -> list[str]:
     """Runge-Kutta stages first .. S - 1 over a field of sites: stage s's state into zx, zv, its slopes into kx,
-    kv at s N + q. Coefficients that are zero are left out."""
+    kv at s J + j (site q = lane + j T). Coefficients that are zero are left out."""
     lines = []
     for s in range(first, S):
-        terms_x = "".join(f" + ({h} * REAL({a[s * S + r]!r})) * kx[{r} * N + q]" for r in range(s) if a[s * S + r])
-        lines += ["for q in range(N):", f"    zx[q + 1] = x[q + 1]{terms_x}",
-                  f"    zv[q] = v[q]{terms_x.replace('kx[', 'kv[')}", "set_ghosts(zx)", "for q in range(N):",
-                  f"    kx[{s} * N + q] = zv[q]",
-                  f"    kv[{s} * N + q] = acceleration(zx[q], zx[q + 1], zx[q + 2], cl[q], cr[q])"]
+        terms_x = "".join(f" + ({h} * REAL({a[s * S + r]!r})) * kx[{r} * J + j]" for r in range(s) if a[s * S + r])
+        lines += _sites_loop([f"zx[q + 1] = x[q + 1]{terms_x}", f"zv[j] = v[j]{terms_x.replace('kx[', 'kv[')}"])
+        lines += [sync, *_sites_loop(["left, right = neighbours(q)", f"kx[{s} * J + j] = zv[j]",
+                                      f"kv[{s} * J + j] = acceleration(zx[left], zx[q + 1], zx[right], cl[j], cr[j])"]),
+                  sync]  # every site's slopes read its neighbours' zx before the next stage writes it
     return lines
 
 
-def sites_adaptive(method: Method, n: int) -> dict:
-    """An embedded pair over a field of sites: as the member template's, with the state in local arrays."""
+def sites_adaptive(method: Method, n: int, layout: dict) -> dict:
+    """An embedded pair over a field of sites: as the member template's, with the state in local arrays (one
+    thread per chain)."""
     S, a, e, alpha, beta, safety, min_factor, max_factor = adaptive_constants(method)
     error_x = " + ".join(f"REAL({e[s]!r}) * kx[{s} * N + q]" for s in range(S) if e[s])
     return dict(S=S, SN=S * n, control=(alpha, beta, safety, min_factor, max_factor),
-                first_log2=f"REAL({FIRST_LOG2_ERR_PREVIOUS!r})", stages=_block(_sites_stages(S, a, "step", 1), 12),
-                error_x=error_x, error_v=error_x.replace("kx[", "kv["))
+                first_log2=f"REAL({FIRST_LOG2_ERR_PREVIOUS!r})",
+                stages=_block(_sites_stages(S, a, "step", 1, layout["sync"]), 12), error_x=error_x,
+                error_v=error_x.replace("kx[", "kv["))
 
 
-def sites_splitting(method: Method, pieces: tuple[str, ...]) -> dict:
+def sites_splitting(method: Method, pieces: tuple[str, ...], layout: dict) -> dict:
     """A kick/drift splitting's step over a field of sites. As on the CPU (blocks.splitting_schedule), a step that
     ends with the piece the next begins with (verlet's half kicks) merges the two."""
     _, _, _, _, E, sequence, fractions = method_constants(method)
@@ -707,31 +755,59 @@ def sites_splitting(method: Method, pieces: tuple[str, ...]) -> dict:
     return dict(arrays="", step=_block(lines, 16))
 
 
-def sites_runge_kutta(method: Method, n: int) -> dict:
-    """An explicit Runge-Kutta step over a field of sites: stage slopes in local arrays kx, kv (S N each)."""
+def sites_runge_kutta(method: Method, n: int, layout: dict) -> dict:
+    """An explicit Runge-Kutta step over a field of sites: the stage state zx (shared by the chain's threads) and
+    zv, and the stage slopes kx, kv (S J each) of this thread's sites."""
     _, S, a, b, _, _, _ = method_constants(method)
-    lines = _sites_stages(S, a, "h", 0)  # the chain's forces do not depend on time: no stage times
-    sums_x = " + ".join(f"REAL({b[s]!r}) * kx[{s} * N + q]" for s in range(S) if b[s])
-    lines += ["for q in range(N):", f"    x[q + 1] += h * ({sums_x})",
-              f"    v[q] += h * ({sums_x.replace('kx[', 'kv[')})"]
-    arrays = [f"zx = cuda.local.array({n + 2}, REAL)", f"zv = cuda.local.array({n}, REAL)",
-              f"kx = cuda.local.array({S * n}, REAL)", f"kv = cuda.local.array({S * n}, REAL)",
-              "zx[0], zx[N + 1] = REAL(0.0), REAL(0.0)"]
+    lines = _sites_stages(S, a, "h", 0, layout["sync"])  # the chain's forces do not depend on time: no stage times
+    sums_x = " + ".join(f"REAL({b[s]!r}) * kx[{s} * J + j]" for s in range(S) if b[s])
+    lines += _sites_loop([f"x[q + 1] += h * ({sums_x})", f"v[j] += h * ({sums_x.replace('kx[', 'kv[')})"])
+    J = layout["J"]
+    arrays = [f"zx = cuda.{layout['x_memory']}.array({n + 2}, REAL)", f"zv = cuda.local.array({J}, REAL)",
+              f"kx = cuda.local.array({S * J}, REAL)", f"kv = cuda.local.array({S * J}, REAL)",
+              "if lane() == 0:", "    zx[0], zx[N + 1] = REAL(0.0), REAL(0.0)"]
     return dict(arrays=_block(arrays, 4), step=_block(lines, 16))
+
+
+WARP = 32  # threads that run in lockstep on an NVIDIA GPU
+SHARED_SITES = 64  # fields of at least this many sites run as a block of threads each (not yet timed on a GPU)
+MOST_SITE_THREADS = 256  # threads per field of sites, at most
+SHARED_BYTES = 48 * 1024  # the shared memory a block may hold without asking for more
+
+
+def site_threads(n: int, method: Method) -> int:
+    """Threads per member for a field of n sites: 1 (the member in one thread's local arrays) for short fields,
+    adaptive methods and fields whose positions outgrow SHARED_BYTES, else a block of whole warps, up to
+    MOST_SITE_THREADS, each thread owning a few sites with the positions in the block's shared memory."""
+    shared = (n + 2) * 8 * (2 if method.tableau is not None else 1)  # x, and a Runge-Kutta stage's zx
+    if n < SHARED_SITES or method.adaptive or shared > SHARED_BYTES:
+        return 1
+    return min(MOST_SITE_THREADS, WARP * -(-n // WARP))
+
+
+def sites_layout(n: int, threads: int) -> dict:
+    """The template fields that place a field of n sites: in one thread (threads = 1) or a block of threads."""
+    shared = threads > 1
+    return dict(T=threads, J=-(-n // threads), lane="cuda.threadIdx.x" if shared else "0",
+                member="cuda.blockIdx.x" if shared else "cuda.grid(1)", x_memory="shared" if shared else "local",
+                sync="cuda.syncthreads()" if shared else "pass",
+                any_lane="cuda.syncthreads_or(bad)" if shared else "bad")
 
 
 @cache
 def _sites_kernel(name: str, where: str, pieces: tuple[str, ...], method: Method, n: int, periodic: bool,
-                  precision: str) -> GpuKernel:
+                  precision: str, threads: int) -> GpuKernel:
+    layout = sites_layout(n, threads)
     if method.adaptive:
-        family, template, fields, rows = "adaptive", SITES_ADAPTIVE, sites_adaptive(method, n), 4 * n + 7
+        assert threads == 1, "an adaptive field of sites runs in one thread"
+        family, template, fields, rows = "adaptive", SITES_ADAPTIVE, sites_adaptive(method, n, layout), 4 * n + 7
     elif method.tableau is not None:
-        family, template, fields, rows = "runge_kutta", SITES_FIXED, sites_runge_kutta(method, n), 2 * n
+        family, template, fields, rows = "runge_kutta", SITES_FIXED, sites_runge_kutta(method, n, layout), 2 * n
     else:
-        family, template, fields, rows = "splitting", SITES_FIXED, sites_splitting(method, pieces), 2 * n
+        family, template, fields, rows = "splitting", SITES_FIXED, sites_splitting(method, pieces, layout), 2 * n
     numbers = dict(N=n, N2=n + 2, periodic=periodic, OK=OK, BLEW_UP=BLEW_UP, UNDERFLOW=UNDERFLOW,
-                   SMALLEST_NORMAL=SMALLEST_NORMAL)
+                   SMALLEST_NORMAL=SMALLEST_NORMAL, **layout)
     body = SITES_HEADER.format(**numbers) + template.format(**numbers, **fields)
     physics_import = f"acceleration, = device_functions({where!r}, ('acceleration',))"
     return GpuKernel(_compiled(f"sites {family}", name, method, precision, physics_import, physics_hash(where),
-                               2 * n, 2 * n, body), rows)
+                               2 * n, 2 * n, body, threads), rows, threads)
