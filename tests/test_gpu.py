@@ -221,11 +221,12 @@ def test_a_long_record_on_the_gpu_continues_from_its_last_segment(tmp_path, monk
 
 
 @pytest.mark.parametrize("boundary", ["fixed", "periodic"])
-def test_a_long_chain_as_a_block_of_threads_gives_the_bits_of_one_thread_per_chain(monkeypatch, boundary):
+def test_a_long_chain_as_a_block_of_threads_gives_the_results_of_one_thread_per_chain(monkeypatch, boundary):
     """Chains of gpu.SHARED_SITES masses or more run as a block of threads each, a thread owning a few sites and
     the positions in shared memory. Here 5 masses on 2 threads (the second owning one site fewer) give the bits
-    of one thread per chain, unstable members failing at the same saved time, for splittings and Runge-Kutta;
-    adaptive methods keep one thread per chain (their step control is the chain's)."""
+    of one thread per chain for splittings and Runge-Kutta, unstable members failing at the same saved time, also
+    in segments. dopri5 adds its error norm over the threads in another order: the same steps, to rounding (the
+    simulator's barriers are slow: dopri5 on the fixed chain's heavy members, which take few steps)."""
     from ensemble.engine import gpu
     from ensemble.scenes import resolve
 
@@ -234,21 +235,27 @@ def test_a_long_chain_as_a_block_of_threads_gives_the_bits_of_one_thread_per_cha
     values = {"m": np.repeat([[0.05], [0.1], [10.0], [20.0]], n, axis=1), "k": rng.uniform(0.5, 2.0, (4, n + 1)),
               "x0": rng.normal(0.0, 0.3, (4, n)), "v0": rng.normal(0.0, 0.1, (4, n))}
     constants = {"n": n, "boundary": boundary}
-    for method in ("verlet", "yoshida4", "rk4"):
-        settings = dict(n_save=7, save_dt=1.0, dt=0.5)
-        one = launch.integrate(chain, METHODS[method], values, constants, **settings, device="cuda")
+    for method in ("verlet", "yoshida4", "rk4", *(("dopri5",) if boundary == "fixed" else ())):
+        settings = dict(device="cuda", **(dict(n_save=3, save_dt=0.5, rtol=1e-6, atol=1e-8)
+                                          if METHODS[method].adaptive else dict(n_save=7, save_dt=1.0, dt=0.5)))
+        if METHODS[method].adaptive:
+            values = {name: value[2:] for name, value in values.items()}
+        one = launch.integrate(chain, METHODS[method], values, constants, **settings)
         with monkeypatch.context() as patch:
             patch.setattr(gpu, "SHARED_SITES", 2)
             patch.setattr(gpu, "MOST_SITE_THREADS", 2)
             patch.setattr(gpu, "WARP", 1)
             assert gpu.kernel(chain, METHODS[method], constants).threads == 2
-            assert gpu.kernel(chain, METHODS["dopri5"], constants).threads == 1
-            block = launch.integrate(chain, METHODS[method], values, constants, **settings, device="cuda")
-            segments = launch.Launch(chain, METHODS[method], values, constants, **settings, device="cuda", segment=2)
+            block = launch.integrate(chain, METHODS[method], values, constants, **settings)
+            segments = launch.Launch(chain, METHODS[method], values, constants, **settings, segment=2)
             segments.run()  # each call continues from where the block's threads left their sites in works
         assert segments.samples.tobytes() == block.samples.tobytes()
+        assert np.array_equal(one.counts, block.counts) and np.array_equal(one.status, block.status), method
+        if METHODS[method].adaptive:
+            assert np.abs(block.samples - one.samples).max() <= 1e-12 * np.abs(one.samples).max()
+            continue
         assert list(one.status) == [Status.BLEW_UP] * 2 + [Status.OK] * 2, method  # dt 0.5: the light fail
-        for name in ("samples", "counts", "status", "failure_time"):
+        for name in ("samples", "failure_time"):
             assert np.array_equal(getattr(one, name), getattr(block, name), equal_nan=True), (method, name)
 
 

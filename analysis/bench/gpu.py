@@ -142,8 +142,8 @@ def top_rates(sizes: dict, repeats: int) -> list[dict]:
 
 
 def chain_rates(sizes: dict, repeats: int) -> list[dict]:
-    """Chains of N masses. Where N >= gpu.SHARED_SITES, each fixed-step method is timed in both layouts, a block
-    of threads per chain (the default there) and one thread per chain, so that the threshold is measured."""
+    """Chains of N masses. Where N >= gpu.SHARED_SITES, each method is timed in both layouts, a block of threads
+    per chain (the default there) and one thread per chain, so that the threshold is measured."""
     rows, chain, shared_sites = [], resolve("chain"), gpu.SHARED_SITES
     for n, chains in sizes["chain"]:
         for members in chains:
@@ -151,8 +151,8 @@ def chain_rates(sizes: dict, repeats: int) -> list[dict]:
                 print(f"chain N={n} members {members:,d}: not run, more than this GPU's free memory", flush=True)
                 continue
             values = chain_values(n, members)
-            for name in ("verlet", "yoshida4", *(("dopri5",) if n == 16 else ())):
-                for layout in ("block", "thread") if n >= shared_sites and not METHODS[name].adaptive else ("",):
+            for name in ("verlet", "yoshida4", *(("dopri5",) if n in (16, 128) else ())):
+                for layout in ("block", "thread") if n >= shared_sites else ("",):
                     gpu.SHARED_SITES = n + 1 if layout == "thread" else shared_sites
                     tolerances = {"rtol": 1e-8, "atol": 1e-10} if METHODS[name].adaptive else {}
                     rate, steps, seconds = calibrated(chain, METHODS[name], values, {"n": n, "boundary": "fixed"},

@@ -7,7 +7,8 @@ What differs from the CPU is where a member lives: a thread (cuda.grid) instead 
 scalar variables, and the arrays in (rows, members) order so that neighbouring threads touch neighbouring memory.
 
 A scene whose state is a field of sites (the chain: positions and velocities of n masses joined to their
-neighbours) keeps it in the thread's local arrays (`sites_*` templates).
+neighbours) keeps it in one thread's local arrays, or, from SHARED_SITES sites on, spreads it over a block of
+threads with the positions in shared memory (`SITES_*` templates, site_threads).
 
 Without a GPU the kernels run under numba-cuda's simulator (NUMBA_ENABLE_CUDASIM=1), which the tests use.
 """
@@ -121,12 +122,12 @@ D, P = {D}, {P}  # state rows, parameter rows
 NAN = REAL(math.nan)
 '''
 
-# Every fixed-step kernel's start: a thread's member. FIXED_STEP goes on with its start (or where the last call
-# left it) and its save intervals.
+# Every fixed-step kernel's start: its member (a thread's; a block's, for a long field of sites). FIXED_STEP goes
+# on with its start (or where the last call left it) and its save intervals.
 FIXED_HEAD = '''
 @cuda.jit(fastmath=False)
 def kernel(state0, rate, h, steps_per_save, limit, samples, status, failure_time, works, start, members):
-    m = cuda.grid(1)
+    m = {member}
     if m >= members:
         return
     h = REAL(h)
@@ -175,7 +176,8 @@ CONTROL_STEP = '''            err = math.sqrt(estimate / D)
             if accepted:
 '''
 
-# Every adaptive kernel's start: the pair's constants, a thread's member.
+# Every adaptive kernel's start: the pair's constants, its member (a thread's; a block's, for a long field of
+# sites).
 ADAPTIVE_HEAD = '''
 S = {S}
 ALPHA, BETA, SAFETY, MIN_FACTOR, MAX_FACTOR = {control}
@@ -183,7 +185,7 @@ ALPHA, BETA, SAFETY, MIN_FACTOR, MAX_FACTOR = {control}
 
 @cuda.jit(fastmath=False)
 def kernel(state0, rate, control, save_dt, limit, samples, counts, status, failure_time, works, start, members):
-    m = cuda.grid(1)
+    m = {member}
     if m >= members:
         return
 '''
@@ -393,7 +395,8 @@ def _member_kernel(name: str, where: str, pieces: tuple[str, ...], method: Metho
     used = fields.pop("used")
     physics_import = f"{', '.join(used)}, = device_functions({where!r}, {used!r})"
     return GpuKernel(_compiled(family, name, method, precision, physics_import, physics_hash(where), D, P,
-                               template.format(**common, **fields, OK=OK, BLEW_UP=BLEW_UP, UNDERFLOW=UNDERFLOW)),
+                               template.format(**common, **fields, OK=OK, BLEW_UP=BLEW_UP, UNDERFLOW=UNDERFLOW,
+                                               member="cuda.grid(1)")),
                      common["work_rows"])
 
 
@@ -571,6 +574,19 @@ def store(samples, i, m, x, v):
 
 
 @cuda.jit(device=True)
+def over_lanes(value, scratch, largest):
+    """The sum (largest: the largest) of every thread's `value` >= 0 over the chain's threads, in lane order, in
+    each of them."""
+    scratch[lane()] = value
+    cuda.syncthreads()
+    out = REAL(0.0)
+    for t in range(T):
+        out = max(out, scratch[t]) if largest else out + scratch[t]
+    cuda.syncthreads()
+    return out
+
+
+@cuda.jit(device=True)
 def kick(tau, x, v, cl, cr):
     for j in range(J):
         q = lane() + j * T
@@ -604,7 +620,7 @@ SITES_LOAD = '''    if lane() == 0:
                 x[q + 1], v[j] = REAL(works[q, m]), REAL(works[N + q, m])
 '''
 
-SITES_FIXED = FIXED_HEAD.replace("m = cuda.grid(1)", "m = {member}") + '''
+SITES_FIXED = FIXED_HEAD + '''
     x = cuda.{x_memory}.array({N2}, REAL)  # sizes written as numbers: the arrays take constants only
     v = cuda.local.array({J}, REAL)
     cl = cuda.local.array({J}, REAL)
@@ -638,40 +654,42 @@ SITES_FIXED = FIXED_HEAD.replace("m = cuda.grid(1)", "m = {member}") + '''
 '''
 
 
-SITES_ADAPTIVE = ADAPTIVE_HEAD + '''    x = cuda.local.array({N2}, REAL)
-    v = cuda.local.array({N}, REAL)
-    cl = cuda.local.array({N}, REAL)
-    cr = cuda.local.array({N}, REAL)
-    zx = cuda.local.array({N2}, REAL)
-    zv = cuda.local.array({N}, REAL)
-    kx = cuda.local.array({SN}, REAL)  # stage s's slopes at s N + q; stage 0's are the last step's last (FSAL)
-    kv = cuda.local.array({SN}, REAL)
-    x[0], x[N + 1], zx[0], zx[N + 1] = REAL(0.0), REAL(0.0), REAL(0.0), REAL(0.0)
+SITES_ADAPTIVE = ADAPTIVE_HEAD + '''    x = cuda.{x_memory}.array({N2}, REAL)
+    v = cuda.local.array({J}, REAL)
+    cl = cuda.local.array({J}, REAL)
+    cr = cuda.local.array({J}, REAL)
+    zx = cuda.{x_memory}.array({N2}, REAL)
+    zv = cuda.local.array({J}, REAL)
+    kx = cuda.local.array({SJ}, REAL)  # stage s's slopes at s J + j; stage 0's are the last step's last (FSAL)
+    kv = cuda.local.array({SJ}, REAL)
+    scratch = cuda.{x_memory}.array({T}, REAL)  # where the chain's threads add up the error norm
     rtol, atol = REAL(control[1, m]), REAL(control[2, m])
-    for q in range(N):
-        cl[q], cr[q] = REAL(rate[q, m]), REAL(rate[N + q, m])
-        if start == 0:
-            x[q + 1], v[q] = REAL(state0[q, m]), REAL(state0[N + q, m])
-        else:
-            x[q + 1], v[q] = REAL(works[q, m]), REAL(works[N + q, m])
-            kx[q], kv[q] = REAL(works[2 * N + q, m]), REAL(works[3 * N + q, m])
+    alive = status[m] == {OK}
+    if lane() == 0:
+        zx[0], zx[N + 1] = REAL(0.0), REAL(0.0)
+''' + SITES_LOAD + '''            if start != 0:
+                kx[j], kv[j] = REAL(works[2 * N + q, m]), REAL(works[3 * N + q, m])
+    {sync}
     first = 0
     if start == 0:
-        for q in range(N):
-            left, right = neighbours(q)
-            kx[q], kv[q] = v[q], acceleration(x[left], x[q + 1], x[right], cl[q], cr[q])
+        size, slope = REAL(0.0), REAL(0.0)  # Hairer's guess of a first step, from |y| and |y'| in tolerances
+        for j in range(J):
+            q = lane() + j * T
+            if q < N:
+                left, right = neighbours(q)
+                kx[j], kv[j] = v[j], acceleration(x[left], x[q + 1], x[right], cl[j], cr[j])
+                size = max(size, abs(x[q + 1]) / (atol + rtol * abs(x[q + 1])), abs(v[j]) / (atol + rtol * abs(v[j])))
+                slope = max(slope, abs(v[j]) / (atol + rtol * abs(x[q + 1])), abs(kv[j]) / (atol + rtol * abs(v[j])))
+        size, slope = {max_size}, {max_slope}
         h = REAL(control[0, m])
-        if h <= 0.0:  # Hairer's guess, from |y| and |y'| in units of the tolerance
-            size, slope = REAL(0.0), REAL(0.0)
-            for q in range(N):
-                size = max(size, abs(x[q + 1]) / (atol + rtol * abs(x[q + 1])), abs(v[q]) / (atol + rtol * abs(v[q])))
-                slope = max(slope, abs(v[q]) / (atol + rtol * abs(x[q + 1])),
-                            abs(kv[q]) / (atol + rtol * abs(v[q])))
+        if h <= 0.0:
             h = REAL(min(0.01 * size / slope if size > 1e-5 and slope > 1e-5 else 1e-6, save_dt))
         time, log2_previous, rejected_last = REAL(0.0), {first_log2}, False
         accepted_count, rejected_count, evaluations = 0.0, 0.0, 1.0
         if failed(x, v, limit[m]):
-            status[m], failure_time[m] = {BLEW_UP}, 0.0
+            alive = False
+            if lane() == 0:
+                status[m], failure_time[m] = {BLEW_UP}, 0.0
             fail(x, v)
         store(samples, 0, m, x, v)
         first = 1
@@ -681,30 +699,42 @@ SITES_ADAPTIVE = ADAPTIVE_HEAD + '''    x = cuda.local.array({N2}, REAL)
         accepted_count, rejected_count, evaluations = works[4 * N + 4, m], works[4 * N + 5, m], works[4 * N + 6, m]
     for i in range(first, samples.shape[0]):
         target = (start + i) * save_dt
-        while status[m] == {OK} and time < target:
+        while alive and time < target:
             step = min(h, REAL(target - time))
 {stages}
             estimate = REAL(0.0)
-            for q in range(N):
-                qx = step * ({error_x}) / (atol + rtol * max(abs(x[q + 1]), abs(zx[q + 1])))
-                qv = step * ({error_v}) / (atol + rtol * max(abs(v[q]), abs(zv[q])))
-                estimate += qx * qx + qv * qv
-''' + CONTROL_STEP + '''                for q in range(N):
-                    x[q + 1], v[q] = zx[q + 1], zv[q]
-                    kx[q], kv[q] = kx[(S - 1) * N + q], kv[(S - 1) * N + q]
+            for j in range(J):
+                q = lane() + j * T
+                if q < N:
+                    qx = step * ({error_x}) / (atol + rtol * max(abs(x[q + 1]), abs(zx[q + 1])))
+                    qv = step * ({error_v}) / (atol + rtol * max(abs(v[j]), abs(zv[j])))
+                    estimate += qx * qx + qv * qv
+            estimate = {sum_estimate}
+''' + CONTROL_STEP + '''                for j in range(J):
+                    q = lane() + j * T
+                    if q < N:
+                        x[q + 1], v[j] = zx[q + 1], zv[j]
+                        kx[j], kv[j] = kx[(S - 1) * J + j], kv[(S - 1) * J + j]
             elif underflowed:
-                status[m], failure_time[m] = {UNDERFLOW}, time
+                alive = False
+                if lane() == 0:
+                    status[m], failure_time[m] = {UNDERFLOW}, time
                 fail(x, v)
-        if status[m] == {OK} and failed(x, v, limit[m]):
-            status[m], failure_time[m] = {BLEW_UP}, target
+        if alive and failed(x, v, limit[m]):
+            alive = False
+            if lane() == 0:
+                status[m], failure_time[m] = {BLEW_UP}, target
             fail(x, v)
         store(samples, i, m, x, v)
-    for q in range(N):
-        works[q, m], works[N + q, m], works[2 * N + q, m], works[3 * N + q, m] = x[q + 1], v[q], kx[q], kv[q]
-    works[4 * N, m], works[4 * N + 1, m], works[4 * N + 2, m] = time, h, log2_previous
-    works[4 * N + 3, m] = 1.0 if rejected_last else 0.0
-    works[4 * N + 4, m], works[4 * N + 5, m], works[4 * N + 6, m] = accepted_count, rejected_count, evaluations
-    counts[0, m], counts[1, m], counts[2, m] = accepted_count, rejected_count, evaluations
+    for j in range(J):
+        q = lane() + j * T
+        if q < N:
+            works[q, m], works[N + q, m], works[2 * N + q, m], works[3 * N + q, m] = x[q + 1], v[j], kx[j], kv[j]
+    if lane() == 0:
+        works[4 * N, m], works[4 * N + 1, m], works[4 * N + 2, m] = time, h, log2_previous
+        works[4 * N + 3, m] = 1.0 if rejected_last else 0.0
+        works[4 * N + 4, m], works[4 * N + 5, m], works[4 * N + 6, m] = accepted_count, rejected_count, evaluations
+        counts[0, m], counts[1, m], counts[2, m] = accepted_count, rejected_count, evaluations
 '''
 
 
@@ -727,11 +757,15 @@ def _sites_stages(S: int, a: tuple, h: str, first: int, sync: str) -> list[str]:
 
 
 def sites_adaptive(method: Method, n: int, layout: dict) -> dict:
-    """An embedded pair over a field of sites: as the member template's, with the state in local arrays (one
-    thread per chain)."""
+    """An embedded pair over a field of sites: as the member template's, the error norm and the first step's
+    guess taken over the chain's threads (all of them then choose the same step)."""
     S, a, e, alpha, beta, safety, min_factor, max_factor = adaptive_constants(method)
-    error_x = " + ".join(f"REAL({e[s]!r}) * kx[{s} * N + q]" for s in range(S) if e[s])
-    return dict(S=S, SN=S * n, control=(alpha, beta, safety, min_factor, max_factor),
+    error_x = " + ".join(f"REAL({e[s]!r}) * kx[{s} * J + j]" for s in range(S) if e[s])
+    shared = layout["T"] > 1
+    return dict(S=S, SJ=S * layout["J"], control=(alpha, beta, safety, min_factor, max_factor),
+                sum_estimate="over_lanes(estimate, scratch, False)" if shared else "estimate",
+                max_size="over_lanes(size, scratch, True)" if shared else "size",
+                max_slope="over_lanes(slope, scratch, True)" if shared else "slope",
                 first_log2=f"REAL({FIRST_LOG2_ERR_PREVIOUS!r})",
                 stages=_block(_sites_stages(S, a, "step", 1, layout["sync"]), 12), error_x=error_x,
                 error_v=error_x.replace("kx[", "kv["))
@@ -776,11 +810,11 @@ SHARED_BYTES = 48 * 1024  # the shared memory a block may hold without asking fo
 
 
 def site_threads(n: int, method: Method) -> int:
-    """Threads per member for a field of n sites: 1 (the member in one thread's local arrays) for short fields,
-    adaptive methods and fields whose positions outgrow SHARED_BYTES, else a block of whole warps, up to
+    """Threads per member for a field of n sites: 1 (the member in one thread's local arrays) for short fields
+    and for fields whose positions outgrow SHARED_BYTES, else a block of whole warps, up to
     MOST_SITE_THREADS, each thread owning a few sites with the positions in the block's shared memory."""
     shared = (n + 2) * 8 * (2 if method.tableau is not None else 1)  # x, and a Runge-Kutta stage's zx
-    if n < SHARED_SITES or method.adaptive or shared > SHARED_BYTES:
+    if n < SHARED_SITES or shared > SHARED_BYTES:
         return 1
     return min(MOST_SITE_THREADS, WARP * -(-n // WARP))
 
@@ -799,7 +833,6 @@ def _sites_kernel(name: str, where: str, pieces: tuple[str, ...], method: Method
                   precision: str, threads: int) -> GpuKernel:
     layout = sites_layout(n, threads)
     if method.adaptive:
-        assert threads == 1, "an adaptive field of sites runs in one thread"
         family, template, fields, rows = "adaptive", SITES_ADAPTIVE, sites_adaptive(method, n, layout), 4 * n + 7
     elif method.tableau is not None:
         family, template, fields, rows = "runge_kutta", SITES_FIXED, sites_runge_kutta(method, n, layout), 2 * n
