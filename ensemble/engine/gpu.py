@@ -814,6 +814,7 @@ def site_threads(n: int, method: Method) -> int:
     and for fields whose positions outgrow SHARED_BYTES, else a block of whole warps, up to
     MOST_SITE_THREADS, each thread owning a few sites with the positions in the block's shared memory."""
     shared = (n + 2) * 8 * (2 if method.tableau is not None else 1)  # x, and a Runge-Kutta stage's zx
+    shared += 8 * MOST_SITE_THREADS if method.adaptive else 0  # where the threads add up the error norm
     if n < SHARED_SITES or shared > SHARED_BYTES:
         return 1
     return min(MOST_SITE_THREADS, WARP * -(-n // WARP))
