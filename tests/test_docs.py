@@ -29,13 +29,14 @@ def python_examples() -> list[str]:
 
 
 def commands(text: str) -> list[str]:
-    """The commands a document gives: each line of its sh blocks and each inline code span, whitespace made one
-    space, cut at a comment or a `&&`."""
+    """The commands a document gives: each line of its sh blocks (a line ending in a backslash joined to the next)
+    and each inline code span, whitespace made one space, cut at a comment or a `&&`."""
     blocks = re.findall(r"^```sh\n(.*?)^```", text, re.S | re.M)
-    lines = [line for block in blocks for line in block.splitlines()]
+    lines = [line for block in blocks for line in block.replace("\\\n", " ").splitlines()]
     spans = [" ".join(span.split()) for span in re.findall(r"(?<!`)`([^`]+)`(?!`)", re.sub(r"```.*?```", "", text,
                                                                                           flags=re.S))]
-    return [part.split(" #")[0].strip() for line in lines + spans for part in line.split("&&")]
+    parts = [part.split(" #")[0].strip() for line in lines + spans for part in line.split("&&")]
+    return [part for part in parts if part]
 
 
 def test_every_python_example_in_the_readme_runs_and_gives_what_it_says(tmp_path, monkeypatch):
