@@ -450,7 +450,8 @@ class GpuLaunch:
         for name, value in start.items():
             setattr(self, name, cuda.to_device(value))
         tail = ((self.counts,) if self.method.adaptive else ()) + (self.status, self.failure_time, self.works)
-        grid, block = (n, self.kernel.threads) if self.kernel.threads > 1 else (max(1, -(-n // THREADS)), THREADS)
+        per_block = THREADS if self.kernel.threads == 1 else 1  # members per block of threads
+        grid, block = max(1, -(-n // per_block)), THREADS if per_block > 1 else self.kernel.threads
         copied, waiting = {}, None
         for k, first in enumerate(range(resume[0] if resume else 0, self.n_save, self.segment)):
             count = min(self.segment, self.n_save - first)
