@@ -377,11 +377,12 @@ def combined_work_precision(tables: list[xr.Dataset], results: list[dict]) -> xr
     """Work-precision tables of several results (their attributes `results`) as one over `point`. Where the
     results differ in precision or device, each line is named by them too: `rk4 float32 cuda`."""
     differ = [key for key in ("precision", "device") if len({_kind(r, key) for r in results}) > 1]
+    named = []
     for table, attrs in zip(tables, results):
         suffix = "".join(f" {_kind(attrs, key)}" for key in differ)
-        table["line"] = ("point", np.array([f"{method}{suffix}" for method in table["method"].values]),
-                         table["line"].attrs)
-    combined = xr.concat(tables, dim="point")
+        lines = np.array([f"{method}{suffix}" for method in table["method"].values])
+        named.append(table.assign(line=table["line"].copy(data=lines)))  # the callers' tables stay as they are
+    combined = xr.concat(named, dim="point")
     return combined.assign_coords(point=np.arange(combined.sizes["point"]))
 
 

@@ -222,7 +222,7 @@ def fit_command(args) -> int:
         print(f"{fits.attrs['members_failed']} members could not be fitted and are left out")
     if not table:
         print("no member could be fitted: nothing to compare with the theory")
-    _write(args, fits, fits.attrs.get("fit", "fit"), "fits",
+    _write(args.result, args.charts, fits, fits.attrs.get("fit", "fit"), "fits",
            lambda plt, stem: _fit_charts(plt, ds, fits, table, stem, args))
     return EXIT_CHECK_FAILED if args.check and not (table and all(r.checked for r in table)) else EXIT_OK
 
@@ -236,25 +236,26 @@ def _fit_charts(plt, ds, fits, table, stem, args) -> list[Path]:
     return [*paths, charts.draw_misses(plt, fits, stem, args.against, fits.attrs.get("fit", "fit"))]
 
 
-def _write(args, table: xr.Dataset, name: str, what: str, draw) -> None:
-    """Write `table` beside the result as RESULT_<name>.nc and, with --charts DIR, draw(plt, stem) there."""
-    out, stem = outputs(args.result, name, args.charts)
+def _write(result: Path, charts: Path | None, table: xr.Dataset, name: str, what: str, draw) -> None:
+    """Write `table` beside the result as RESULT_<name>.nc and, with --charts DIR (`charts`), draw(plt, stem)
+    there."""
+    out, stem = outputs(result, name, charts)
     try:
         table.to_netcdf(out)
     except OSError as e:
         return cannot_write(out.parent, e)
     print(f"{what}: {out}")
-    if args.charts is None:
+    if charts is None:
         return None
     from .charts import pyplot
 
     plt = pyplot()
     try:
         if plt is not None:
-            args.charts.mkdir(parents=True, exist_ok=True)
+            charts.mkdir(parents=True, exist_ok=True)
             print("charts:", *[path for path in draw(plt, stem) if path is not None])
     except OSError as e:
-        cannot_write(args.charts, e)
+        cannot_write(charts, e)
 
 
 def stability_command(args) -> int:
@@ -276,7 +277,7 @@ def stability_command(args) -> int:
         return [charts.draw_stability_map(plt, points, limits, stem),
                 charts.draw_energy_drift(plt, ds, points, args.drift_step, stem)]
 
-    _write(args, points, "stability", "map", draw)
+    _write(args.result, args.charts, points, "stability", "map", draw)
     return EXIT_CHECK_FAILED if args.check and not all(stability.limit_agrees(r) for r in limits) else EXIT_OK
 
 
@@ -286,16 +287,17 @@ def work_precision_command(args) -> int:
     say) are charted together, a line per method and result."""
     from . import fitting
 
-    loaded = [load_result(path, fitting.work_precision) for path in args.results]
-    if None in loaded:
-        return EXIT_BAD_INPUT
+    loaded = []
+    for path in args.results:  # the first that cannot be read is the one line
+        loaded.append(load_result(path, fitting.work_precision))
+        if loaded[-1] is None:
+            return EXIT_BAD_INPUT
     scenes = [ds.attrs["scene"] for ds, _ in loaded]
     for path, scene in zip(args.results, scenes):
         if scene != scenes[0]:
             print(f"ensemble: error: {path}: a {scene} result, charted with {args.results[0]}'s {scenes[0]}: "
                   f"work-precision compares runs of one scene", file=sys.stderr)
             return EXIT_BAD_INPUT
-    args.result = args.results[0]
     table = fitting.combined_work_precision([t for _, t in loaded], [ds.attrs for ds, _ in loaded])
     for path, (ds, _) in zip(args.results, loaded):
         print(f"work against precision in {path} ({ds.attrs['scene']}, t_end = {ds.attrs['t_end']} s, "
@@ -310,7 +312,7 @@ def work_precision_command(args) -> int:
 
         return [charts.draw_work_precision(plt, table, stem, f"{ds.attrs['scene']}: {ds.attrs.get('title', '')}")]
 
-    _write(args, table, "work_precision", "table", draw)
+    _write(args.results[0], args.charts, table, "work_precision", "table", draw)
     return EXIT_OK
 
 

@@ -296,6 +296,9 @@ def test_work_precision_refuses_results_of_two_scenes_and_float32_on_the_cpu(tmp
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "chain.nc: a chain result, charted with" in err
     assert not list(tmp_path.glob("*_work_precision.nc"))
+    assert cli.main(["work-precision", str(tmp_path / "x.nc"), str(tmp_path / "y.nc")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "x.nc" in err  # the first that cannot be read, in one line
     assert cli.main(["run", str(top_path), "-o", str(tmp_path / "f32.nc"), "--quiet", "--precision", "float32"]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "precision: float32 runs on a GPU only" in err
