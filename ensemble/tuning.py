@@ -141,8 +141,8 @@ def _known(tuning: Tuning) -> bool:
 
     return (tuning.vector_bits in (None, 256, 512) and (tuning.block is None or block_in(tuning.block, BLOCKS))
             and (tuning.sites_block is None or block_in(tuning.sites_block, SITES_BLOCKS))
-            and tuning.fused_sweeps in (None, False) and type(tuning.fused_sweeps) is not int
-            and tuning.stages_outside in (None, True) and type(tuning.stages_outside) is not int)
+            and (tuning.fused_sweeps is None or tuning.fused_sweeps is False)
+            and (tuning.stages_outside is None or tuning.stages_outside is True))
 
 
 BLOCKS = (32, 64, 128, 256)  # the block sizes a generated kernel may be tuned to
@@ -352,11 +352,11 @@ def _serve(asked: str) -> None:
 
 def measure_here(bits: int | None, tops: list, chain: bool = True, layouts: list = (),
                  compile_only: bool = False) -> dict[str, float]:
-    """In a process that has compiled nothing yet: the top's rk4 kernel in each of `tops` (block, stages
-    outside) (member-steps/s), the
-    chain's verlet at 16 masses in the engine's layout (with chain) and in each of `layouts` (n, block, fused)
-    (mass-steps/s), with LLVM preferring `bits`-bit vectors; each the median of 5 calls, the kernels called in
-    turn. compile_only: call each once (compiling it or loading it from the cache), and measure nothing."""
+    """In a process that has compiled nothing yet, with LLVM preferring `bits`-bit vectors: the top's rk4 kernel
+    in each of `tops`, (block, stages outside), in member-steps/s; the chain's verlet at 16 masses in the engine's
+    layout (with chain) and in each of `layouts`, (n, block, fused), in mass-steps/s. Each the median of 5 calls,
+    the kernels called in turn. compile_only: call each once (compiling it or loading it from the cache), and
+    measure nothing."""
     import numpy as np
 
     set_features(vector_features(bits))

@@ -142,10 +142,22 @@ def top_rates(sizes: dict, repeats: int) -> list[dict]:
     return rows
 
 
+def chain_layouts(n: int):
+    """Each layout a chain of n masses is timed in, by name: from gpu.SHARED_SITES masses on, a block of threads
+    per chain (the engine's choice there) and one thread per chain; below, the engine's one (""). While a name is
+    yielded, gpu.SHARED_SITES makes its layout the engine's; after, it is as it was."""
+    shared_sites = gpu.SHARED_SITES
+    try:
+        for layout in ("block", "thread") if n >= shared_sites else ("",):
+            gpu.SHARED_SITES = n + 1 if layout == "thread" else shared_sites
+            yield layout
+    finally:
+        gpu.SHARED_SITES = shared_sites
+
+
 def chain_rates(sizes: dict, repeats: int) -> list[dict]:
-    """Chains of N masses. Where N >= gpu.SHARED_SITES, each method is timed in both layouts, a block of threads
-    per chain (the default there) and one thread per chain, so that the threshold is measured."""
-    rows, chain, shared_sites = [], resolve("chain"), gpu.SHARED_SITES
+    """Chains of N masses, in each of chain_layouts(N), so that the layouts' threshold is measured."""
+    rows, chain = [], resolve("chain")
     for n, chains in sizes["chain"]:
         for members in chains:
             if not fits(members, 2 * n * 8):
@@ -153,8 +165,7 @@ def chain_rates(sizes: dict, repeats: int) -> list[dict]:
                 continue
             values = chain_values(n, members)
             for name in ("verlet", "yoshida4", *(("dopri5",) if n in (16, 128) else ())):
-                for layout in ("block", "thread") if n >= shared_sites else ("",):
-                    gpu.SHARED_SITES = n + 1 if layout == "thread" else shared_sites
+                for _ in chain_layouts(n):
                     tolerances = {"rtol": 1e-8, "atol": 1e-10} if METHODS[name].adaptive else {}
                     rate, steps, seconds = calibrated(chain, METHODS[name], values, {"n": n, "boundary": "fixed"},
                                                       dt=CHAIN_DT, probe_steps=20, device="cuda", repeats=repeats,
@@ -164,7 +175,6 @@ def chain_rates(sizes: dict, repeats: int) -> list[dict]:
                                      seconds=seconds, rate=rate * n, unit="mass-steps/s", threads_per_chain=threads))
                     print(f"chain N={n:<5d} {name:8s} members {members:>9,d}, {threads:3d} threads per chain: "
                           f"{rate * n:.3g} mass-steps/s ({steps} steps, {seconds:.3f} s)", flush=True)
-    gpu.SHARED_SITES = shared_sites
     return rows
 
 

@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[2]
+sys.path.insert(0, str(Path(__file__).parent))
 CHAINS = (16, 128, 1024)  # masses: registers, one thread per chain, and the block layouts
 
 
@@ -74,21 +75,20 @@ def resources(ptx: str, cc: tuple[int, int], assembler: str | None) -> str:
 def kernels(precisions: tuple[str, ...]):
     """(what, GpuKernel, method) for every built-in scene and the user example, every method with a kernel,
     chains of CHAINS masses in each layout."""
+    from gpu import chain_layouts  # analysis/bench/gpu.py, beside this file
+
     from ensemble.engine import gpu
     from ensemble.scenes import methods_for, resolve
 
     cases = [(resolve(name), {}) for name in ("top", "body")]
     cases.append((resolve(str(ROOT / "examples" / "driven_oscillator.py")), {}))
     cases += [(resolve("chain"), {"n": n, "boundary": "fixed"}) for n in CHAINS]
-    shared_sites = gpu.SHARED_SITES
     for scene, constants in cases:
         for method in (m for m in methods_for(scene) if not m.closed_form):
-            layouts = ("block", "thread") if constants.get("n", 0) >= shared_sites else ("",)
-            for layout, precision in ((lay, p) for lay in layouts for p in precisions):
-                gpu.SHARED_SITES = constants["n"] + 1 if layout == "thread" else shared_sites
-                what = f"{scene.NAME} {constants.get('n', '')} {method.name} {precision}".replace("  ", " ")
-                yield what, gpu.kernel(scene, method, constants, precision), method
-    gpu.SHARED_SITES = shared_sites
+            for _ in chain_layouts(constants.get("n", 0)):
+                for precision in precisions:
+                    what = f"{scene.NAME} {constants.get('n', '')} {method.name} {precision}".replace("  ", " ")
+                    yield what, gpu.kernel(scene, method, constants, precision), method
 
 
 def main() -> int:

@@ -757,7 +757,7 @@ def _sites_stages(S: int, a: tuple, h: str, first: int, sync: str) -> list[str]:
     return lines
 
 
-def sites_adaptive(method: Method, n: int, layout: dict) -> dict:
+def sites_adaptive(method: Method, layout: dict) -> dict:
     """An embedded pair over a field of sites: as the member template's, the error norm and the first step's
     guess taken over the chain's threads (all of them then choose the same step)."""
     S, a, e, alpha, beta, safety, min_factor, max_factor = adaptive_constants(method)
@@ -772,7 +772,7 @@ def sites_adaptive(method: Method, n: int, layout: dict) -> dict:
                 error_v=error_x.replace("kx[", "kv["))
 
 
-def sites_splitting(method: Method, pieces: tuple[str, ...], layout: dict) -> dict:
+def sites_splitting(method: Method, pieces: tuple[str, ...]) -> dict:
     """A kick/drift splitting's step over a field of sites. As on the CPU (blocks.splitting_schedule), a step that
     ends with the piece the next begins with (verlet's half kicks) merges the two."""
     _, _, _, _, E, sequence, fractions = method_constants(method)
@@ -835,11 +835,11 @@ def _sites_kernel(name: str, where: str, pieces: tuple[str, ...], method: Method
                   precision: str, threads: int) -> GpuKernel:
     layout = sites_layout(n, threads)
     if method.adaptive:
-        family, template, fields, rows = "adaptive", SITES_ADAPTIVE, sites_adaptive(method, n, layout), 4 * n + 7
+        family, template, fields, rows = "adaptive", SITES_ADAPTIVE, sites_adaptive(method, layout), 4 * n + 7
     elif method.tableau is not None:
         family, template, fields, rows = "runge_kutta", SITES_FIXED, sites_runge_kutta(method, n, layout), 2 * n
     else:
-        family, template, fields, rows = "splitting", SITES_FIXED, sites_splitting(method, pieces, layout), 2 * n
+        family, template, fields, rows = "splitting", SITES_FIXED, sites_splitting(method, pieces), 2 * n
     numbers = dict(N=n, N2=n + 2, periodic=periodic, OK=OK, BLEW_UP=BLEW_UP, UNDERFLOW=UNDERFLOW,
                    SMALLEST_NORMAL=SMALLEST_NORMAL, **layout)
     body = SITES_HEADER.format(**numbers) + template.format(**numbers, **fields)
