@@ -27,15 +27,19 @@ Numba's parallel lowering made compiling a kernel take twice as long
 from __future__ import annotations
 
 import math
+import sys
 import threading
+from pathlib import Path
 
 import numba
 import numpy as np
 
+from ..errors import EXIT_FAILED, EnsembleError
 from ..methods import Method
 from ..results import DEFAULT_BLOWUP_FACTOR, Outcome
 from ..scenes.contract import SceneError
 from . import kernels
+from .blocks import flush_subnormals, restore_float_mode
 
 
 def work_rows(scene, method: Method, constants: dict) -> int:
@@ -91,8 +95,8 @@ class Launch:
         self.members = len(next(iter(values.values())))
         if method.closed_form:
             step = save_dt if dt is None or not np.isfinite(dt) else float(dt)
-            times = np.arange(n_save) * (round(save_dt / step) * step)
-            self.exact = lambda first, count: scene.exact(values, constants, times[first:first + count])
+            spacing = round(save_dt / step) * step
+            self.exact = lambda first, count: scene.exact(values, constants, np.arange(first, first + count) * spacing)
             return
         state0, rate = scene.inputs(values, constants)
         block = kernels.block_size(scene, constants, method)
@@ -145,7 +149,12 @@ class Launch:
             self.progress[:] = 0
             done = None if watch is None else (
                 lambda: watch(min(1.0, (first + self.progress.mean()) / max(self.n_save - 1, 1))))
-            run_blocks(self.kernel.function, (*head, samples, *tail, first), self.state0.shape[0], threads, done)
+            try:
+                run_blocks(self.kernel.function, (*head, samples, *tail, first), self.state0.shape[0], threads, done)
+            except Exception as error:  # noqa: BLE001 (only a scene's own code raises inside a kernel)
+                stop = min(first + self.segment, self.n_save) - 1
+                raise SceneRaised(f"{self.scene.PHYSICS}: raised {type(error).__name__}: {error}, between "
+                                  f"t = {first * self.save_dt:g} and {stop * self.save_dt:g} s") from None
             yield first, lambda samples=samples: samples.transpose(1, 2, 0)
 
     def state(self) -> dict[str, np.ndarray]:
@@ -184,6 +193,12 @@ class Launch:
         return Outcome(samples, counts, self.status[:n].astype(np.int8), failure_time)
 
 
+class SceneRaised(EnsembleError):
+    """A scene's own code raised an exception inside a kernel, during the run (exit status 3)."""
+
+    exit_status = EXIT_FAILED
+
+
 def thread_count() -> int:
     """Threads a launch runs on unless told otherwise: NUMBA_NUM_THREADS, by default the cores Numba sees."""
     return numba.config.NUMBA_NUM_THREADS
@@ -208,15 +223,19 @@ def run_blocks(kernel, arguments: tuple, blocks: int, threads: int | None = None
     lock, failures = threading.Lock(), []
 
     def work():
-        while not failures:
-            with lock:
-                group = next(groups, None)
-            if group is None:
-                return
-            try:
-                kernel(*arguments, *group)
-            except BaseException as error:  # noqa: BLE001 (handed to the caller)
-                failures.append(error)
+        mode = flush_subnormals()
+        try:
+            while not failures:
+                with lock:
+                    group = next(groups, None)
+                if group is None:
+                    return
+                try:
+                    kernel(*arguments, *group)
+                except BaseException as error:  # noqa: BLE001 (handed to the caller)
+                    failures.append(error)
+        finally:
+            restore_float_mode(mode)
 
     workers = [threading.Thread(target=work, daemon=True, name="ensemble-kernel") for _ in range(threads)]
     for worker in workers:
@@ -251,7 +270,7 @@ def prepare(scene, method: Method, constants: dict, device: str = "cpu", precisi
             Launch(scene, method, values, constants, n_save=1, save_dt=1.0, dt=values["dt"] if method.adaptive
                    else 1.0, rtol=values["rtol"], atol=values["atol"], device=device, precision=precision).run()
             return
-        _call_once(scene, method, constants)
+        _call_fresh(scene, method, constants)
     except Exception as error:  # Numba's errors (numba-cuda has classes of its own)
         if not type(error).__module__.startswith("numba"):
             raise
@@ -265,6 +284,31 @@ def _numba_cause(message: str) -> str:
     lines = [line.strip() for line in message.splitlines()]
     useful = [line for line in lines if line and not line.startswith(skip)]
     return (useful[0] if useful else lines[0])[:300]
+
+
+def _call_fresh(scene, method: Method, constants: dict) -> None:
+    """_call_once; where Numba's disk cache of the kernel cannot be loaded (a truncated or damaged file), its
+    cache files are deleted, with one line said, and the kernel compiled again."""
+    try:
+        _call_once(scene, method, constants)
+    except Exception as error:  # noqa: BLE001 (unpickling and LLVM's parser raise many kinds)
+        files = cache_files(kernels.kernel(scene, method, constants).function)
+        if not files:  # nothing was cached: the kernel does not compile
+            raise
+        for file in files:
+            file.unlink(missing_ok=True)
+        print(f"ensemble: Numba's cache of the {method.name} kernel in {files[0].parent} could not be loaded "
+              f"({type(error).__name__}); compiling it again", file=sys.stderr, flush=True)
+        _call_once(scene, method, constants)
+
+
+def cache_files(dispatcher) -> list[Path]:
+    """The files of Numba's disk cache of a compiled function (its index and its data)."""
+    files = getattr(getattr(dispatcher, "_cache", None), "_cache_file", None)  # numba.core.caching's
+    if not hasattr(files, "_index_name"):
+        return []
+    folder, stem = Path(files._cache_path), files._index_name.removesuffix(".nbi")
+    return sorted([*folder.glob(f"{stem}.nbi"), *folder.glob(f"{stem}.*.nbc")])
 
 
 def _call_once(scene, method: Method, constants: dict) -> None:

@@ -93,6 +93,17 @@ RUNGE_KUTTA_STEPS = '''            for step in range(steps_per_save):
 {add_sums}
 {store_step}'''
 
+# Stage s of an adaptive pair's trial step, for every member of a block (stages outside, members inside; FSAL:
+# stage 0 is the last step's last). Written out stage by stage, with the tableau's entries a[s, r], r < s, one a
+# line: as loops over s and r, LLVM vectorized the members' loop only when fast-math let it reorder the sums.
+ADAPTIVE_STAGE = '''                for j in range(B):  # stage {s}
+                    h = work[(C0 + STEP) * B + j]
+{trial_state}
+{trial_add}
+{load_p_trial}
+                    {d} = rhs(work[(C0 + TIME) * B + j] + NODES[{s}] * h, {z}, {p})
+{store_stage}'''
+
 # The other loop order (a tuning candidate, ensemble.tuning.Tuning.stages_outside): each stage sweeps the block's
 # members, its slopes in work rows from K = D + P on, and a last sweep adds the weighted slopes to the state.
 RUNGE_KUTTA_STAGES_OUTSIDE = '''            for step in range(steps_per_save):
@@ -134,7 +145,7 @@ SPLITTING_STEPS = '''{enter_pieces}
 
 ADAPTIVE = '''
 S = {S}
-A = np.array({a})  # indexed by a loop variable: constant arrays, not tuples
+A = np.array({a})  # the tableau a, flat: stage s takes a[s, r] at s * S + r
 NODES = np.array({c})
 ERROR = {e}  # b - b_hat: h sum_s ERROR[s] k_s estimates the local error
 ALPHA, BETA, SAFETY, MIN_FACTOR, MAX_FACTOR = {control}
@@ -162,16 +173,7 @@ def kernel(state0, rate, control, save_dt, limit, samples, counts, status, failu
         for i in range(max(start, 1), start + samples.shape[1]):
             target = i * save_dt
             while trial_steps(work, C0, B, target):
-                for s in range(1, S):  # stages outside, members inside; FSAL: stage 0 is the last step's last
-                    for j in range(B):
-                        h = work[(C0 + STEP) * B + j]
-{trial_state}
-                        for r in range(s):  # a is zero from column s on
-                            ha = h * A[s * S + r]
-{trial_add}
-{load_p_trial}
-                        {d} = rhs(work[(C0 + TIME) * B + j] + NODES[s] * h, {z}, {p})
-{store_stage}
+{stages}
                 state_error(work, K, NEW, C0, S, ERROR, D, B)
                 control_step(work, C0, B, target, j0, status, failure_time, S - 1, ALPHA, BETA, SAFETY, MIN_FACTOR,
                              MAX_FACTOR)
@@ -198,6 +200,11 @@ def _row(c: int, first: str = "") -> str:
 
 def _names(prefix: str, count: int) -> str:
     return ", ".join(f"{prefix}{c}" for c in range(count)) + ("," if count == 1 else "")
+
+
+def _names_of(values: list[str]) -> str:
+    """values as a tuple's text: one value takes a trailing comma (a state of one value unpacks a 1-tuple)."""
+    return ", ".join(values) + ("," if len(values) == 1 else "")
 
 
 def _loads(prefix: str, count: int, first: str, indent: int) -> str:
@@ -292,17 +299,20 @@ def splitting(method: Method, D: int, P: int, pieces: tuple[str, ...], factors: 
 def adaptive(method: Method, D: int, P: int) -> tuple[str, int]:
     """An embedded pair's kernel source and its work rows: state, parameters, slopes, trial state, control."""
     S, a, e, alpha, beta, safety, min_factor, max_factor = adaptive_constants(method)
+    names = dict(d=_names("d", D), z=_names("z", D).rstrip(","), p=_names("p", P).rstrip(","))
+    stages = [ADAPTIVE_STAGE.format(
+        s=s, **names, trial_state=" " * 20 + f"{_names('z', D)} = {_names_of([f'work[{_row(c)}]' for c in range(D)])}",
+        trial_add="\n".join(line for r in range(s) for line in (
+            " " * 20 + f"ha = h * A[{s * S + r}]",
+            *(" " * 20 + f"z{c} += ha * work[(K + {D * r + c}) * B + j]" for c in range(D)))),
+        load_p_trial=_loads("p", P, "D", 20),
+        store_stage="\n".join([*(" " * 20 + f"work[(K + {D * s + c}) * B + j] = d{c}" for c in range(D)),
+                               *(" " * 20 + f"work[{_row(c, 'NEW')}] = z{c}" for c in range(D))]))
+        for s in range(1, S)]
     source = ADAPTIVE.format(
         S=S, a=a, c=tuple(float(x) for x in method.tableau.c), e=e,
         control=(alpha, beta, safety, min_factor, max_factor),
-        load_y_start=_loads("y", D, "", 16), load_p_start=_loads("p", P, "D", 16),
-        d=_names("d", D), y=_names("y", D).rstrip(","), p=_names("p", P).rstrip(","),
-        z=_names("z", D).rstrip(","),
+        load_y_start=_loads("y", D, "", 16), load_p_start=_loads("p", P, "D", 16), y=_names("y", D).rstrip(","),
         store_first_slopes="\n".join(" " * 16 + f"work[{_row(c, 'K')}] = d{c}" for c in range(D)),
-        trial_state=" " * 24 + f"{_names('z', D)} = {', '.join(f'work[{_row(c)}]' for c in range(D))}",
-        trial_add="\n".join(" " * 28 + f"z{c} += ha * work[(K + D * r{f' + {c}' if c else ''}) * B + j]"
-                            for c in range(D)),
-        load_p_trial=_loads("p", P, "D", 24),
-        store_stage="\n".join([*(" " * 24 + f"work[(K + D * s + {c}) * B + j] = d{c}" for c in range(D)),
-                               *(" " * 24 + f"work[{_row(c, 'NEW')}] = z{c}" for c in range(D))]))
+        stages="\n".join(stages), **names)
     return source, D + P + D * S + D + CONTROL_ROWS

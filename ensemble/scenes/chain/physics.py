@@ -5,8 +5,10 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from ...engine.blocks import FAST
 
-@njit(inline="always", fastmath=True, error_model="numpy")
+
+@njit(inline="always", **FAST)
 def acceleration(x_left, x, x_right, c_left, c_right):
     """Acceleration (m/s^2) of a mass at x between neighbours x_left, x_right (m).
 
