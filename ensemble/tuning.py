@@ -28,6 +28,8 @@ from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
+from .errors import EnsembleError
+
 FORMAT = 1
 HINT = "ensemble: this machine's kernels are untuned; `ensemble tune` (once, about a minute) may make runs faster"
 
@@ -42,7 +44,8 @@ class Tuning:
     where a block's rows fit the L1 data cache (None: the rule's two SIMD vectors; where they outgrow it the rule's
     one vector stays), and fused_sweeps (False: long fields sweep one kick or drift at a time where the rule would
     run TILE_PIECES of them fused in tiles; None: the rule). features: Numba's CPU features string that gives
-    vector_bits here (kept in the file, so that applying it needs no LLVM at import)."""
+    vector_bits here (kept in the file; a file whose string is not this machine's own is ignored: another
+    string compiles other arithmetic, a garbled one aborts LLVM)."""
     vector_bits: int | None = None
     block: int | None = None
     stages_outside: bool | None = None
@@ -69,6 +72,33 @@ def kernel_folder() -> Path:
     if os.environ.get("NUMBA_CACHE_DIR"):
         return Path(os.environ["NUMBA_CACHE_DIR"]) / "ensemble-kernels"
     return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "ensemble" / "kernels"
+
+
+class KernelFolderError(EnsembleError):
+    """The kernel folder is not this user's own: code in it could run as ours (exit status 2)."""
+
+
+def private_kernel_folder() -> Path:
+    """kernel_folder(), made if missing, readable and writable by this user alone (0700): its files are imported
+    as code. Where it cannot be made (a home folder that cannot be written, on some cluster nodes), this user's
+    folder in the machine's temporary folder. KernelFolderError, in one line, for a folder another user owns."""
+    folder = kernel_folder()
+    try:
+        folder.mkdir(mode=0o700, parents=True, exist_ok=True)
+    except OSError:
+        folder = Path(tempfile.gettempdir()) / f"ensemble-kernels-{os.getuid()}"
+        try:
+            folder.mkdir(mode=0o700, exist_ok=True)
+        except OSError as e:
+            raise KernelFolderError(f"{folder}: cannot make the kernel folder ({e.strerror or e}); set "
+                                    f"ENSEMBLE_KERNEL_DIR to a folder of your own") from None
+    found = os.stat(folder)
+    if found.st_uid != os.getuid():
+        raise KernelFolderError(f"{folder}: the kernel folder belongs to another user (uid {found.st_uid}) and its "
+                                f"files would run as your code; set ENSEMBLE_KERNEL_DIR to a folder of your own")
+    if found.st_mode & 0o077:
+        os.chmod(folder, 0o700)  # one of ours made by an older version, or by a umask that lets others in
+    return folder
 
 
 def tuning_path() -> Path:
@@ -126,7 +156,9 @@ def load(path: Path | None = None) -> tuple[Tuning | None, str | None]:
                         fused_sweeps=choices.get("fused_sweeps"), features=choices.get("features"))
         if not _known(tuning):
             raise ValueError("unknown choices")
-    except (OSError, ValueError, KeyError, TypeError, AttributeError) as e:
+        if tuning.features is not None and tuning.features != vector_features(tuning.vector_bits):
+            raise ValueError("its CPU features are not this machine's")  # they would compile other arithmetic
+    except (OSError, ValueError, KeyError, TypeError, AttributeError, RecursionError) as e:
         return None, f"ensemble: ignoring {path}: it cannot be read ({e}); `ensemble tune` writes a new one"
     if found.get("format") != FORMAT or found.get("host") != host_key():
         return None, (f"ensemble: ignoring {path}: it was tuned on another machine, Numba or engine; "
@@ -155,6 +187,12 @@ _few_members: int | None = None  # members_block's
 def applied() -> Tuning:
     """The tuning this process runs with (apply's), or the engine's rules."""
     return _applied or Tuning()
+
+
+def loop_order() -> str:
+    """The generated Runge-Kutta kernels' loop order, in words: the one tuning choice that moves results' last
+    bits, recorded in every result and resume manifest."""
+    return "stages outside members" if applied().stages_outside else "each member's step whole"
 
 
 def generated_block(default: int) -> int:
@@ -225,6 +263,8 @@ def set_features(features: str | None) -> bool:
 def save(tuning: Tuning, measured: dict, path: Path | None = None) -> Path:
     """Write the tuning file (atomically): the choices, what they hold for, and the rates they were chosen by."""
     path = path or tuning_path()
+    if path.parent == kernel_folder():
+        private_kernel_folder()
     path.parent.mkdir(parents=True, exist_ok=True)
     choices = {**asdict(tuning), "features": tuning.features or vector_features(tuning.vector_bits)}
     text = json.dumps({"format": FORMAT, "host": host_key(), "choices": choices, "measured": measured}, indent=1)

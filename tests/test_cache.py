@@ -68,9 +68,13 @@ def test_every_kernel_family_gives_the_same_bits_compiled_and_cached(tmp_path):
 def test_every_kernel_is_keyed_on_the_helpers_and_its_scenes_physics():
     """Numba keys a cached kernel on its own file (and closure) alone. A kernel generated from the engine's templates
     lives in a file whose text holds hashes of the helpers it inlines (blocks.HELPERS; sites.SITES_HELPERS, which
-    includes it, for a field of sites) and of its scene's physics file, so a change to either makes a new file
-    that compiles anew."""
+    includes it, for a field of sites), of its scene's physics file and of the compile target, so a change to any
+    makes a new file that compiles anew."""
     import hashlib
+    import importlib
+    import json
+
+    from llvmlite import binding
 
     from ensemble.engine import kernels
     from ensemble.engine.blocks import HELPERS
@@ -86,5 +90,8 @@ def test_every_kernel_is_keyed_on_the_helpers_and_its_scenes_physics():
             function = kernels.kernel(scene, method, constants[name]).function.py_func
             text = Path(function.__code__.co_filename).read_text()
             helpers = SITES_HELPERS if getattr(scene, "SITES", False) else HELPERS
-            physics = hashlib.sha256(kernels.physics_file(scene.PHYSICS).read_bytes()).hexdigest()
+            file = importlib.import_module(scene.PHYSICS).__file__
+            physics = hashlib.sha256(json.dumps({file: hashlib.sha256(Path(file).read_bytes()).hexdigest()})
+                                     .encode()).hexdigest()
             assert f"# helpers: {helpers}" in text and f"# physics: {physics}" in text, (name, method.name)
+            assert text.startswith(f"# compiled for: cpu {binding.get_host_cpu_name()}; "), (name, method.name)

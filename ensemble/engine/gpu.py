@@ -24,9 +24,8 @@ import numpy as np
 from ..errors import DeviceUnavailable
 from ..methods import Method
 from ..results import DEFAULT_BLOWUP_FACTOR, Outcome, Status
-from ..scenes.contract import load
 from .blocks import FIRST_LOG2_ERR_PREVIOUS, adaptive_constants, method_constants
-from .kernels import factor_counts, load_source, physics_hash
+from .kernels import factor_counts, load_source, loaded, physics_hash
 from .launch import _fixed_counts, _limits, adaptive_control
 
 THREADS = 128  # threads per CUDA block
@@ -93,9 +92,10 @@ def device_function(function, done: dict | None = None):
 
 
 @cache
-def device_functions(where: str, names: tuple[str, ...]) -> tuple:
-    """A scene's functions `names` (its physics module `where`) as device functions."""
-    module = load(where)
+def device_functions(where: str, names: tuple[str, ...], expected: str) -> tuple:
+    """A scene's functions `names` (its physics module `where`, whose sources must still be of identity
+    `expected`: kernels.loaded) as device functions."""
+    module = loaded(where, expected)
     done: dict = {}
     return tuple(device_function(getattr(module, name), done) for name in names)
 
@@ -375,14 +375,15 @@ class GpuKernel(NamedTuple):
 def kernel(scene, method: Method, constants: dict, precision: str = "float64") -> GpuKernel:
     """The CUDA kernel of a stepping method for a scene (compiled when first launched)."""
     D, P = scene.kernel_rows(constants)
+    sources = physics_hash(scene.PHYSICS)  # a cache key: an edited scene is another kernel
     if getattr(scene, "SITES", False):
-        return _sites_kernel(scene.NAME, scene.PHYSICS, tuple(scene.PIECES), method, constants["n"],
+        return _sites_kernel(scene.NAME, scene.PHYSICS, sources, tuple(scene.PIECES), method, constants["n"],
                              constants["boundary"] == "periodic", precision, site_threads(constants["n"], method))
-    return _member_kernel(scene.NAME, scene.PHYSICS, tuple(scene.PIECES), method, D, P, precision)
+    return _member_kernel(scene.NAME, scene.PHYSICS, sources, tuple(scene.PIECES), method, D, P, precision)
 
 
 @cache
-def _member_kernel(name: str, where: str, pieces: tuple[str, ...], method: Method, D: int, P: int,
+def _member_kernel(name: str, where: str, sources: str, pieces: tuple[str, ...], method: Method, D: int, P: int,
                    precision: str) -> GpuKernel:
     common = _common(D, P, method.adaptive)
     if method.adaptive:
@@ -391,10 +392,11 @@ def _member_kernel(name: str, where: str, pieces: tuple[str, ...], method: Metho
         family, fields, template = "runge_kutta", runge_kutta(method, D, P), FIXED_STEP
     else:
         family, template = "splitting", FIXED_STEP
-        fields = splitting(method, D, P, pieces, factor_counts(where, pieces, P), hasattr(load(where), "to_pieces"))
+        coordinates = hasattr(loaded(where, sources), "to_pieces")
+        fields = splitting(method, D, P, pieces, factor_counts(where, pieces, P), coordinates)
     used = fields.pop("used")
-    physics_import = f"{', '.join(used)}, = device_functions({where!r}, {used!r})"
-    return GpuKernel(_compiled(family, name, method, precision, physics_import, physics_hash(where), D, P,
+    physics_import = f"{', '.join(used)}, = device_functions({where!r}, {used!r}, {sources!r})"
+    return GpuKernel(_compiled(family, name, method, precision, physics_import, sources, D, P,
                                template.format(**common, **fields, OK=OK, BLEW_UP=BLEW_UP, UNDERFLOW=UNDERFLOW,
                                                member="cuda.grid(1)")),
                      common["work_rows"])
@@ -831,8 +833,8 @@ def sites_layout(n: int, threads: int) -> dict:
 
 
 @cache
-def _sites_kernel(name: str, where: str, pieces: tuple[str, ...], method: Method, n: int, periodic: bool,
-                  precision: str, threads: int) -> GpuKernel:
+def _sites_kernel(name: str, where: str, sources: str, pieces: tuple[str, ...], method: Method, n: int,
+                  periodic: bool, precision: str, threads: int) -> GpuKernel:
     layout = sites_layout(n, threads)
     if method.adaptive:
         family, template, fields, rows = "adaptive", SITES_ADAPTIVE, sites_adaptive(method, layout), 4 * n + 7
@@ -843,6 +845,6 @@ def _sites_kernel(name: str, where: str, pieces: tuple[str, ...], method: Method
     numbers = dict(N=n, N2=n + 2, periodic=periodic, OK=OK, BLEW_UP=BLEW_UP, UNDERFLOW=UNDERFLOW,
                    SMALLEST_NORMAL=SMALLEST_NORMAL, **layout)
     body = SITES_HEADER.format(**numbers) + template.format(**numbers, **fields)
-    physics_import = f"acceleration, = device_functions({where!r}, ('acceleration',))"
-    return GpuKernel(_compiled(f"sites {family}", name, method, precision, physics_import, physics_hash(where),
+    physics_import = f"acceleration, = device_functions({where!r}, ('acceleration',), {sources!r})"
+    return GpuKernel(_compiled(f"sites {family}", name, method, precision, physics_import, sources,
                                2 * n, 2 * n, body, threads), rows, threads)

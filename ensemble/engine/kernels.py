@@ -1,9 +1,13 @@
 """A scene's kernel for a method: its family's template (ensemble.engine.templates) filled in with the scene's
 physics, written as a Python file that Numba keys its disk cache on, then imported.
 
-The file's name holds a hash of its text, and its text holds hashes of the scene's physics file and of the
-engine's helpers (blocks.HELPERS): a change to any of them makes a new file, which compiles once, and a file is
-never rewritten (Numba's cache index checks its source file's time stamp). The files live in kernel_folder().
+A kernel's identity is everything that decides its arithmetic. The file's name holds a hash of its text, and its
+text holds the family's template filled in (the method's coefficients, the layout), the identity of the scene's
+sources (its file and the user's modules it imports: ensemble.scenes.contract.identity), a hash of the engine's
+helpers (blocks.HELPERS) and the compile target (LLVM's CPU name and features, Numba's version, the fast-math
+flags): a change to any of them makes a new file, which compiles once. A file is imported only when its text
+matches its name (else it is written again, with one line said), and never rewritten otherwise (Numba's cache
+index checks its source file's time stamp). The files live in tuning.private_kernel_folder().
 """
 from __future__ import annotations
 
@@ -20,18 +24,19 @@ from numba import njit
 from numba.core.registry import CPUDispatcher
 
 from ..methods import Method
-from ..scenes.contract import load, python_function
-from ..tuning import applied, generated_block, kernel_folder
+from ..scenes.contract import SceneError, identity, load, python_function
+from ..tuning import KernelFolderError, applied, generated_block, private_kernel_folder
 from . import sites, templates
 from .blocks import FAST, HELPERS, Kernel
 
 BLOCK = 128  # members per block of a scene whose kernel_rows are its whole state (rows of B floats each)
 
 
-def physics_functions(where: str, names: tuple[str, ...]) -> tuple:
+def physics_functions(where: str, names: tuple[str, ...], expected: str) -> tuple:
     """The compiled functions `names` of a scene's physics: its own @njit functions as they are, plain Python
-    functions compiled to be inlined into the kernels (with the kernels' fast-math flags)."""
-    module = load(where)
+    functions compiled to be inlined into the kernels (with the kernels' fast-math flags). SceneError when the
+    scene's sources are no longer those of identity `expected`, which the kernel's file was generated for."""
+    module = loaded(where, expected)
     found = [getattr(module, name) for name in names]
     return tuple(f if isinstance(f, CPUDispatcher) else _inlined(f) for f in found)
 
@@ -41,14 +46,32 @@ def _inlined(function):
     return njit(inline="always", **FAST)(function)
 
 
-def physics_file(where: str) -> Path:
-    """The file a scene's physics is read from."""
-    return Path(where).resolve() if where.endswith(".py") else Path(load(where).__file__)
+def loaded(where: str, expected: str) -> ModuleType:
+    """A scene's module, which must be the sources of identity `expected` (SceneError if it changed meanwhile)."""
+    module = load(where)
+    if identity(module) != expected:
+        raise SceneError(f"{where} (or a module of yours it imports) changed while its kernels were being made; "
+                         f"run again")
+    return module
 
 
 def physics_hash(where: str) -> str:
-    """SHA-256 of a scene's physics file: generated kernel files hold it, so an edited scene compiles anew."""
-    return hashlib.sha256(physics_file(where).read_bytes()).hexdigest()
+    """The identity of a scene's sources (ensemble.scenes.contract.identity): generated kernel files hold it, so
+    an edited scene, or an edited module of the user's it imports, compiles anew."""
+    return identity(load(where))
+
+
+@cache
+def compile_target() -> str:
+    """What Numba compiles the CPU kernels for and with: LLVM's CPU name and features (NUMBA_CPU_NAME and
+    NUMBA_CPU_FEATURES, or the tuning's, or the host's), Numba's version, the fast-math flags."""
+    from llvmlite import binding
+    from numba import __version__ as numba_version
+    from numba.core import config
+
+    name = config.CPU_NAME or binding.get_host_cpu_name()
+    features = config.CPU_FEATURES if config.CPU_FEATURES is not None else binding.get_host_cpu_features().flatten()
+    return f"cpu {name}; features {features}; numba {numba_version}; fastmath {sorted(FAST['fastmath'])}"
 
 
 def factor_counts(where: str, pieces: tuple[str, ...], parameters: int) -> dict[str, int]:
@@ -74,67 +97,81 @@ def kernel(scene, method: Method, constants: dict) -> Kernel:
     """Kernel(function, work rows) of a stepping method for a scene: compiled, or loaded from Numba's cache. A
     scene whose member is a field of sites (SITES) gets ensemble.engine.sites's templates, for its constants' n
     sites and boundary; every other scene the templates of ensemble.engine.templates."""
+    sources = physics_hash(scene.PHYSICS)  # a cache key: an edited scene is another kernel
     if getattr(scene, "SITES", False):
-        return _sites_generated(scene.NAME, scene.PHYSICS, method, constants["n"], constants["boundary"] == "periodic",
-                                *sites.layout(constants, method))
+        return _sites_generated(scene.NAME, scene.PHYSICS, sources, method, constants["n"],
+                                constants["boundary"] == "periodic", *sites.layout(constants, method))
     D, P = scene.kernel_rows(constants)
-    return _generated(scene.NAME, scene.PHYSICS, tuple(scene.PIECES), method, D, P,
+    return _generated(scene.NAME, scene.PHYSICS, sources, tuple(scene.PIECES), method, D, P,
                       block_size(scene, constants, method), bool(applied().stages_outside))
 
 
 @cache
-def _sites_generated(name: str, where: str, method: Method, n: int, periodic: bool, B: int, tiled: bool) -> Kernel:
-    body, rows = sites.source(name, where, physics_hash(where), method, n, periodic, B, tiled)
+def _sites_generated(name: str, where: str, sources: str, method: Method, n: int, periodic: bool, B: int,
+                     tiled: bool) -> Kernel:
+    body, rows = sites.source(name, where, sources, method, n, periodic, B, tiled)
     return Kernel(load_source(body, f"{name}_{method.name}_{n}").kernel, rows)
 
 
 @cache
-def _generated(name: str, where: str, pieces: tuple[str, ...], method: Method, D: int, P: int, B: int,
+def _generated(name: str, where: str, sources: str, pieces: tuple[str, ...], method: Method, D: int, P: int, B: int,
                stages_outside: bool) -> Kernel:
     if method.adaptive:
         family, (body, rows), used = "adaptive", templates.adaptive(method, D, P), ("rhs",)
     elif method.tableau is not None:
         family, (body, rows), used = "runge_kutta", templates.runge_kutta(method, D, P, stages_outside), ("rhs",)
     else:
-        module = load(where)
+        module = loaded(where, sources)
         factors = factor_counts(where, pieces, P)
         coordinates = hasattr(module, "to_pieces")
         family = "splitting"
         body, rows = templates.splitting(method, D, P, pieces, factors, coordinates)
         used = (*pieces, *(f"{p}_factors" for p in factors), *(("to_pieces", "from_pieces") if coordinates else ()))
     physics_import = (f"from ensemble.engine.kernels import physics_functions\n\n"
-                      f"{', '.join(used)}, = physics_functions({where!r}, {used!r})")
-    source = templates.header(family, name, method, physics_import,
-                              physics_hash(where), HELPERS, D, P, B) + body
+                      f"{', '.join(used)}, = physics_functions({where!r}, {used!r}, {sources!r})")
+    source = templates.header(family, name, method, physics_import, sources, HELPERS, D, P, B) + body
     return Kernel(load_source(source, f"{name}_{method.name}").kernel, rows)
 
 
 def load_source(source: str, label: str) -> ModuleType:
-    """Import generated `source` from its file in kernel_folder(), writing the file first if it is not there."""
+    """Import generated `source`, headed by the compile target, from its file in the kernel folder: written first
+    if it is not there, written again (one line said) if its text is not `source`."""
+    source = f"# compiled for: {compile_target()}\n{source}"
     name = f"ensemble_kernel_{label}_{hashlib.sha256(source.encode()).hexdigest()[:16]}"
     if name in sys.modules:
         return sys.modules[name]
-    folder = kernel_folder()
+    path = private_kernel_folder() / f"{name}.py"
     try:
-        folder.mkdir(parents=True, exist_ok=True)
-    except OSError:  # a home folder that cannot be written (some cluster nodes): this machine's temporary folder
-        folder = Path(tempfile.gettempdir()) / f"ensemble-kernels-{os.getuid()}"
-        folder.mkdir(parents=True, exist_ok=True)
-    path = folder / f"{name}.py"
-    if not path.exists():
-        # Written under a temporary name and linked into place: never half a file, never a rewrite (other
-        # processes may be writing the same file at once)
-        handle, temporary = tempfile.mkstemp(dir=folder, suffix=".tmp")
-        with os.fdopen(handle, "w") as out:
-            out.write(source)
+        found = path.read_text()
+    except (OSError, UnicodeDecodeError):
+        found = None
+    if found is not None and found != source:
+        print(f"ensemble: {path} did not match its name (edited or damaged); writing it again", file=sys.stderr)
+    if found != source:
         try:
-            os.link(temporary, path)
-        except FileExistsError:
-            pass
-        finally:
-            os.unlink(temporary)
-    spec = importlib.util.spec_from_file_location(name, path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
+            _write(path, source, replace=found is not None)
+        except OSError as e:  # a full disk, a folder made read-only
+            raise KernelFolderError(f"{path.parent}: cannot write a kernel file there ({e.strerror or e}); free "
+                                    f"space, or set ENSEMBLE_KERNEL_DIR to another folder") from None
+    module = importlib.util.module_from_spec(importlib.util.spec_from_file_location(name, path))
+    exec(compile(source, str(path), "exec"), module.__dict__)  # the text checked, not the file read again
     sys.modules[name] = module
     return module
+
+
+def _write(path: Path, text: str, replace: bool) -> None:
+    """Write a kernel file under a temporary name and move it into place: never half a file. A new file is linked
+    (another process may be writing the same one at once); a damaged one is replaced."""
+    handle, temporary = tempfile.mkstemp(dir=path.parent, suffix=".tmp")
+    with os.fdopen(handle, "w") as out:
+        out.write(text)
+    try:
+        if replace:
+            os.replace(temporary, path)
+        else:
+            os.link(temporary, path)
+    except FileExistsError:
+        pass
+    finally:
+        if os.path.exists(temporary):
+            os.unlink(temporary)

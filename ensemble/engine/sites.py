@@ -351,7 +351,7 @@ from ensemble.engine.kernels import physics_functions
 from ensemble.engine.sites import (KICK, TILE_PIECES, TILE_ROWS, accept, drift, fixed_start, load_block,
                                    refresh_halos, saved, set_ghosts, splitting_schedule, stage_sums)
 
-acceleration, = physics_functions({where!r}, ("acceleration",))
+acceleration, = physics_functions({where!r}, ("acceleration",), {physics_hash!r})
 
 N, HALO, B, PERIODIC = {n}, {halo}, {B}, {periodic}  # sites, halo sites beyond each end of a row, members, a ring
 M = N + 2 * HALO  # sites in a row
@@ -554,7 +554,7 @@ def source(scene_name: str, where: str, physics_hash: str, method: Method, n: in
            tiled: bool) -> tuple[str, int]:
     """The kernel file's source for `method` over n sites (a ring if periodic) in blocks of B members, in tiles or
     not (see layout), and its work rows; `where` names the scene's physics module (its `acceleration`),
-    physics_hash its file's SHA-256."""
+    physics_hash the identity of its sources (ensemble.scenes.contract.identity)."""
     runge_kutta, S, a, b, _, sequence, fractions = method_constants(method)
     halo = ring_halo(method) if tiled and periodic else 0
     rows = stage_rows(n + 2 * halo, S)

@@ -81,9 +81,14 @@ def of_result(attrs: dict) -> Scene | None:
         return None
 
 
-@cache
 def _user_scene(where: str) -> UserScene:
-    return UserScene(load(where), where)
+    return _scene_of(load(where), where)
+
+
+@cache
+def _scene_of(module, where: str) -> UserScene:
+    """A user's scene for its module as imported (load imports an edited file anew: a new module, a new scene)."""
+    return UserScene(module, where)
 
 
 def absolute(name: str, folder: Path) -> str:

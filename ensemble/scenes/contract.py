@@ -26,11 +26,15 @@ is itself decorated with numba.njit.
 """
 from __future__ import annotations
 
+import ast
 import hashlib
 import importlib
 import importlib.util
 import inspect
+import json
+import re
 import sys
+import sysconfig
 from pathlib import Path
 from types import ModuleType
 
@@ -41,7 +45,8 @@ from ..parameter import Parameter
 
 #: Names a result already uses: a scene's state and parameters must not take them.
 RESERVED = ("t", "member", "method", "dt", "rtol", "atol", "steps_accepted", "steps_rejected", "rhs_evals",
-            "error_max", "error_final", "seconds_per_step", "status", "failure_time", "growth_per_step")
+            "error_max", "error_final", "seconds_per_step", "status", "failure_time", "growth_per_step", "sweep_point",
+            "run", "run_index", "member_in_run", "sweep_point_in_run", "run_path")  # the last: ensemble.open's
 
 
 class SceneError(EnsembleError, ValueError):
@@ -49,32 +54,127 @@ class SceneError(EnsembleError, ValueError):
 
 
 def module_from_file(path: Path) -> ModuleType:
-    """Import a Python file once per process, under a module name made from its resolved path."""
+    """Import a Python file under a module name made from its resolved path, again whenever its text or that of a
+    module of the user's it imports (`sources`) has changed since: an edited scene is never run with its old
+    physics."""
     path = Path(path).resolve()
     name = f"ensemble_scene_{path.stem}_{hashlib.sha256(str(path).encode()).hexdigest()[:12]}"
-    if name not in sys.modules:
-        spec = importlib.util.spec_from_file_location(name, path)
-        module = importlib.util.module_from_spec(spec)
-        sys.modules[name] = module
-        try:
-            spec.loader.exec_module(module)
-        except BaseException:
-            del sys.modules[name]
-            raise
-    return sys.modules[name]
+    current = sys.modules.get(name)
+    if current is not None and not stale(current):
+        return current
+    if current is not None:
+        _reload_users_modules(current)
+    text = path.read_bytes()  # read once: the module runs the very text its hash is taken of
+    module = importlib.util.module_from_spec(importlib.util.spec_from_file_location(name, path))
+    sys.modules[name] = module
+    try:
+        exec(compile(text, str(path), "exec"), module.__dict__)
+    except BaseException:
+        del sys.modules[name]
+        raise
+    module.__ensemble_sources__ = {str(path): hashlib.sha256(text).hexdigest(), **_users_modules(module)}
+    return module
+
+
+def sources(module: ModuleType) -> dict[str, str]:
+    """SHA-256 of each file whose code a scene's module runs, by path: its own, and every module of the user's
+    (outside the standard library, site-packages and ensemble) it imports, directly or through another, as they
+    were when it was imported."""
+    found = getattr(module, "__ensemble_sources__", None)
+    if found is None:  # a module by dotted name: as it is on the disk now (a built-in scene's never changes)
+        found = {module.__file__: _file_hash(module.__file__), **_users_modules(module)}
+        module.__ensemble_sources__ = found
+    return found
+
+
+def identity(module: ModuleType) -> str:
+    """One SHA-256 of the sources a scene's module runs: what its kernels are keyed on."""
+    return hashlib.sha256(json.dumps(sources(module), sort_keys=True).encode()).hexdigest()
+
+
+def stale(module: ModuleType) -> bool:
+    """Whether a file a scene's module runs has changed (or gone) since it was imported."""
+    return any(_file_hash(path) != digest for path, digest in sources(module).items())
+
+
+def _file_hash(path: str) -> str | None:
+    try:
+        return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+    except OSError:
+        return None
+
+
+_NOT_USERS = tuple({sysconfig.get_path(key) for key in ("stdlib", "platstdlib", "purelib", "platlib")}
+                   | {str(Path(__file__).resolve().parents[1])})  # ...and ensemble's own package
+
+
+def _users_modules(module: ModuleType, seen: dict[str, str] | None = None) -> dict[str, str]:
+    """{path: SHA-256} of the user's modules that `module` imports or refers to (a module, or a function or class
+    of one, in its namespace), and of theirs in turn."""
+    seen = {} if seen is None else seen
+    for value in [*_imported(module), *vars(module).values()]:
+        owner = getattr(python_function(value), "__module__", None)
+        used = value if isinstance(value, ModuleType) else sys.modules.get(owner if isinstance(owner, str) else "")
+        path = getattr(used, "__file__", None)
+        if used is None or used is module or not path or not path.endswith(".py"):
+            continue
+        path = str(Path(path).resolve())
+        if path in seen or path.startswith(_NOT_USERS):
+            continue
+        seen[path] = _file_hash(path)
+        _users_modules(used, seen)
+    return seen
+
+
+def _imported(module: ModuleType) -> list[ModuleType]:
+    """The modules that `module`'s text imports (`import a.b`, `from a import b`: a constant imported so leaves no
+    trace in its namespace), as they are imported now."""
+    try:
+        tree = ast.parse(Path(module.__file__).read_bytes())
+    except (OSError, SyntaxError, ValueError, TypeError):
+        return []
+    names = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            names += [alias.name for alias in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            try:
+                base = importlib.util.resolve_name("." * node.level + (node.module or ""), module.__package__)
+            except (ImportError, ValueError):
+                continue
+            names += [base, *(f"{base}.{alias.name}" for alias in node.names)]
+    return [sys.modules[name] for name in dict.fromkeys(names) if name in sys.modules]
+
+
+def _reload_users_modules(module: ModuleType) -> None:
+    """Import again the user's modules a scene's module uses whose files changed, the most deeply used first."""
+    by_file = {str(Path(m.__file__).resolve()): m for m in list(sys.modules.values())
+               if isinstance(getattr(m, "__file__", None), str)}
+    own = next(iter(sources(module)))
+    for path, digest in reversed(list(sources(module).items())):
+        if path != own and path in by_file and _file_hash(path) != digest:
+            importlib.reload(by_file[path])
 
 
 def load(where: str) -> ModuleType:
-    """A scene's module: a file by path (ending in .py) or a module by dotted name; SceneError when it does not
-    import."""
+    """A scene's module: a file by path (ending in .py) or a module by dotted name, imported again when a file it
+    runs has changed; SceneError when it does not import."""
     try:
         if where.endswith(".py"):
             if not Path(where).is_file():
                 raise SceneError(f"{where}: no such file")
             return module_from_file(Path(where))
-        return importlib.import_module(where)
+        module = importlib.import_module(where)
+        if stale(module):
+            _reload_users_modules(module)
+            module = importlib.reload(module)
+            del module.__ensemble_sources__
+        return module
     except SceneError:
         raise
+    except SystemExit as error:  # sys.exit or argparse at import: not ensemble's own exit
+        raise SceneError(f"{where} does not import: it called sys.exit({error.code!r}) (a scene file must not "
+                         f"run a program when imported)") from None
     except Exception as error:  # noqa: BLE001 (any error in the user's file is reported in one line)
         line = _line_of(error, where)
         raise SceneError(f"{where} does not import{line}: {type(error).__name__}: {error}") from None
@@ -183,17 +283,28 @@ _REQUIRED = {"STATE": "name -> (units, long_name) of each state variable",
              "rhs": "its right-hand side, rhs(t, *state, *parameters)"}
 
 
-def _check(scene: UserScene) -> None:
-    """The contract's rules, each failure one line naming the scene's file and what is wrong."""
-    where, module = scene.PHYSICS, scene.module
+def _check_names(scene: UserScene) -> None:
+    """The scene's name, its state variables' and its parameters': names of files and of variables in results."""
+    where = scene.PHYSICS
     if not scene.STATE:
         raise SceneError(f"{where}: STATE is empty")
+    if not (isinstance(scene.NAME, str) and re.fullmatch(r"[A-Za-z0-9_][A-Za-z0-9_.-]*", scene.NAME)):
+        raise SceneError(f"{where}: NAME must be letters, digits, _, . and - (it names files), not {scene.NAME!r}")
+    for name in (*scene.STATE, *scene.PARAMETERS):
+        if not (isinstance(name, str) and name.isidentifier() and name.isascii()):
+            raise SceneError(f"{where}: {name!r} is not a name for a state variable or a parameter (letters, digits "
+                             f"and _, not starting with a digit)")
+        if name in RESERVED:
+            raise SceneError(f"{where}: {name!r} is a name every result already uses ({', '.join(RESERVED)})")
     for name, value in scene.PARAMETERS.items():
         if not isinstance(value, Parameter):
             raise SceneError(f"{where}: PARAMETERS[{name!r}] is not an ensemble.Parameter")
-    for name in (*scene.STATE, *scene.PARAMETERS):
-        if name in RESERVED:
-            raise SceneError(f"{where}: {name!r} is a name every result already uses ({', '.join(RESERVED)})")
+
+
+def _check(scene: UserScene) -> None:
+    """The contract's rules, each failure one line naming the scene's file and what is wrong."""
+    where, module = scene.PHYSICS, scene.module
+    _check_names(scene)
     missing = [name for name in scene.starts if name not in scene.PARAMETERS]
     if missing:
         raise SceneError(f"{where}: PARAMETERS has no {missing[0]!r} (the value of {missing[0][:-1]!r} at t = 0)")
@@ -216,11 +327,33 @@ def _check(scene: UserScene) -> None:
                  len(scene.STATE))
     if hasattr(module, "exact"):
         _signature(where, module.exact, "exact", ["t", *scene.starts, *scene.rates])
+        _exact_returns(where, module.exact, len(scene.STATE), len(scene.starts) + len(scene.rates))
     declared = [name for name in STABILITY if hasattr(module, name)]
     if declared and len(declared) < len(STABILITY):
         missing = [name for name in STABILITY if name not in declared]
         raise SceneError(f"{where}: it declares {', '.join(declared)} for stability maps, but not "
                          f"{', '.join(missing)}")
+
+
+def _exact_returns(where: str, exact, size: int, arguments: int) -> None:
+    """exact must return `size` arrays that broadcast to (times, members): tried on 2 times and 3 members."""
+    t, row = np.array([[0.0], [0.5]]), np.ones((1, 3))
+    try:
+        with np.errstate(all="ignore"):
+            columns = exact(t, *([row] * arguments))
+    except Exception as error:  # noqa: BLE001 (reported in one line)
+        raise SceneError(f"{where}: exact(t, ...) on 2 times and 3 members raised {type(error).__name__}: "
+                         f"{error}") from None
+    count = len(columns) if isinstance(columns, (tuple, list)) else "not a tuple"
+    if count != size:
+        raise SceneError(f"{where}: exact must return a tuple of {size} arrays (one per state variable), got "
+                         f"{count}")
+    for c, column in enumerate(columns):
+        try:
+            np.broadcast_to(np.asarray(column, dtype=float), (2, 3))
+        except (ValueError, TypeError):
+            raise SceneError(f"{where}: exact's value {c} does not broadcast to (times, members) = (2, 3) for t "
+                             f"of shape (2, 1) and parameters of shape (1, 3)") from None
 
 
 def _signature(where: str, function, name: str, arguments: list[str]) -> None:
