@@ -3,8 +3,8 @@
 A run of OUT.nc writes its result as OUT.nc.tmp (ensemble.store.Writer) and
 records what it finished in the folder OUT.nc.parts/:
 
-    manifest.json                             the run's fingerprint: its run file and the versions that make
-                                              its bits (ensemble, numba, numpy, netCDF4)
+    manifest.json                             the run's fingerprint (fingerprint): its run file, members table,
+                                              scene's and engine's sources, and the versions that make its bits
     members-J0-J1-CRC.nc                      members J0 .. J1 - 1 (12 digits each) are in OUT.nc.tmp: their
                                               per-member records; inside, the range and run file it is of and
                                               a checksum of each saved variable's samples of its members; CRC is
@@ -56,7 +56,7 @@ import numpy as np
 
 from . import __version__
 from .errors import EnsembleError
-from .spec import Spec
+from .spec import Spec, members_table
 from .store import RUN_RECORDS, fsync_path, put_records, record_names, temporary_path
 
 MANIFEST = "manifest.json"
@@ -71,11 +71,25 @@ def folder_of(out: Path) -> Path:
 
 
 def fingerprint(spec: Spec) -> dict[str, str]:
-    """What a part's bits depend on besides the member range: the run file's text, the device (--device may
-    change the run file's; each rounds differently) and the versions of the packages that compute and store them."""
-    return {"run_file_sha256": hashlib.sha256(spec.text.encode()).hexdigest(), "ensemble": __version__,
-            "numba": version("numba"), "numpy": np.__version__, "netCDF4": netCDF4.__version__,
-            "device": f"{spec.device} {spec.precision}", "parts_format": PARTS_FORMAT}
+    """What a part's bits depend on besides the member range: the run file's text, every member's parameters and
+    start values (members_sha256), the sources of the scene (its file and the user's modules it imports) and of
+    the engine's kernels, the Runge-Kutta loop order (the one tuning choice that moves bits), the device (--device
+    may change the run file's; each rounds differently) and the versions of the packages that compute and store
+    them. The compile target is not in it: every target with fused multiply-adds gives the same bits."""
+    from .engine.kernels import physics_hash
+    from .tuning import engine_hash, loop_order
+
+    table = members_table(spec)
+    members = hashlib.sha256()
+    for name in sorted(table):
+        values = np.ascontiguousarray(table[name])
+        members.update(f"{name} {values.dtype.str} {values.shape}".encode())
+        members.update(values.tobytes())
+    return {"run_file_sha256": hashlib.sha256(spec.text.encode()).hexdigest(), "members_sha256": members.hexdigest(),
+            "scene_sources_sha256": physics_hash(spec.model.PHYSICS), "engine_sha256": engine_hash(),
+            "loop_order": loop_order(),
+            "ensemble": __version__, "numba": version("numba"), "numpy": np.__version__,
+            "netCDF4": netCDF4.__version__, "device": f"{spec.device} {spec.precision}", "parts_format": PARTS_FORMAT}
 
 
 class PartsError(EnsembleError):
@@ -119,6 +133,7 @@ class Parts:
         self.folder = folder_of(out)
         self.spec = spec
         self.dropped: list[str] = []  # what a resume found broken and deleted, one phrase each
+        self.fingerprint = fingerprint(spec)
         manifest = self.folder / MANIFEST
         if self.folder.exists() and not manifest.exists() and any(self.folder.iterdir()):
             raise PartsError(f"{self.folder} exists and holds files that are not a run's parts (no {MANIFEST}); "
@@ -131,13 +146,14 @@ class Parts:
                 found = json.loads(manifest.read_text())
             except (OSError, ValueError) as e:
                 raise PartsError(f"{manifest}: cannot be read ({e}); use --force to start over") from None
-            if found != fingerprint(spec):
-                changed = ", ".join(key for key in fingerprint(spec) if found.get(key) != fingerprint(spec)[key])
-                raise PartsError(f"{self.folder} was made by another run ({changed} differs); --resume continues "
-                                 f"only the same run file with the same versions; use --force to start over")
+            if found != self.fingerprint:
+                changed = [key for key in self.fingerprint if found.get(key) != self.fingerprint[key]]
+                verb = "differs" if len(changed) == 1 else "differ"
+                raise PartsError(f"{self.folder} was made by another run ({', '.join(changed)} {verb}); --resume "
+                                 f"continues only the same run file, scene and versions; use --force to start over")
         else:
             self.folder.mkdir(parents=True, exist_ok=True)
-            _write_atomically(manifest, json.dumps(fingerprint(spec), indent=1).encode())
+            _write_atomically(manifest, json.dumps(self.fingerprint, indent=1).encode())
         self.parts = self._verified()
         segments = self._segment_files()
         problem = self._result_problem(temporary_path(out)) if self.parts or segments else None
@@ -266,7 +282,7 @@ class Parts:
         if (inside.get("first_member"), inside.get("stop_member")) != (start, stop) or (
                 end is not None and (inside.get("first_sample"), inside.get("stop_sample")) != (first, end)):
             return "holds other members than its name says"
-        if inside.get("run_file_sha256") != fingerprint(self.spec)["run_file_sha256"]:
+        if inside.get("run_file_sha256") != self.fingerprint["run_file_sha256"]:
             return "is another run's"
         for name in self.spec.save:
             found = sample_sum(result.variables[name][start:stop, first:end], start, first)
@@ -413,7 +429,7 @@ class PartWriter:
         """Close the file, flush the result, and have the result fsynced and then the part sealed (checksum,
         rename to the part's name) on the parts' own thread: the part is complete once Parts.settle returns."""
         self.nc.setncatts({"first_member": self.start, "stop_member": self.stop,
-                           "run_file_sha256": fingerprint(self.parts.spec)["run_file_sha256"],
+                           "run_file_sha256": self.parts.fingerprint["run_file_sha256"],
                            **{f"samples_sum_{name}": f"{value:016x}" for name, value in self.sums.items()}})
         self.nc.close()
         self.parts.written[self.start] = self.records
@@ -474,7 +490,7 @@ class SegmentLog:
         once the samples are on the disk."""
         end = first + len(next(iter(data.values()))[0])
         inside = {"first_member": self.start, "stop_member": self.stop, "first_sample": first, "stop_sample": end,
-                  "run_file_sha256": fingerprint(self.writer.parts.spec)["run_file_sha256"],
+                  "run_file_sha256": self.writer.parts.fingerprint["run_file_sha256"],
                   **{f"samples_sum_{name}": f"{sample_sum(values, self.start, first):016x}"
                      for name, values in data.items()}}
         result = self.writer.parts.result

@@ -236,7 +236,7 @@ class _Record:
         self.spec, self.method, self.values, self.write_samples = spec, method, values, write_samples
         self.scene = spec.model
         self.noise = {name: noise_streams(spec, name, first, members) for name in spec.noise}
-        self.times, self.amplitudes, self.errors = spec.times(), [], []
+        self.amplitudes, self.errors = [], []
 
     def add(self, start: int, samples: np.ndarray) -> dict[str, np.ndarray]:
         """Samples start, start + 1, ... (count, state rows, members) of the launch; returns the saved variables
@@ -250,7 +250,7 @@ class _Record:
         if spec.measure["growth"] and not self.method.closed_form:
             self.amplitudes.append(scene.amplitudes(samples, self.values, spec.constants))
         if spec.measure["error"]:
-            exact = scene.exact(self.values, spec.constants, self.times[start:start + len(samples)])
+            exact = scene.exact(self.values, spec.constants, spec.times(start, start + len(samples)))
             self.errors.append(relative_error(samples, exact))
         return data
 
@@ -277,7 +277,7 @@ class _Record:
         records = dict(zip(COUNTS, outcome.counts), status=outcome.status, failure_time=outcome.failure_time)
         if spec.measure["growth"]:
             records["growth_per_step"] = (np.full(members, np.nan) if method.closed_form else growth_per_step(
-                self.scene, method, self.values, _joined(self.amplitudes, axis=2), outcome, self.times, spec.t_end))
+                self.scene, method, self.values, _joined(self.amplitudes, axis=2), outcome, spec.times(), spec.t_end))
         if spec.measure["error"]:
             records["error_max"], records["error_final"] = error_records(_joined(self.errors, axis=0))
         if spec.measure["timing"]:

@@ -152,9 +152,10 @@ class Spec:
         """The methods the run uses, in order of first use (from the sweep grids: no members table needed)."""
         return tuple(dict.fromkeys(m for grid in self.grids or ({},) for m in grid.get("method", (self.method,))))
 
-    def times(self) -> np.ndarray:
-        """Saved sample times (s)."""
-        return np.arange(self.n_save) * self.save_dt
+    def times(self, first: int = 0, stop: int | None = None) -> np.ndarray:
+        """Saved sample times (s) of samples first .. stop - 1 (default: to the last): a run's whole record of
+        times is never needed at once (a member may save 10^8 samples)."""
+        return np.arange(first, self.n_save if stop is None else min(stop, self.n_save)) * self.save_dt
 
 
 def _type_name(kind) -> str:

@@ -20,8 +20,15 @@ import netCDF4
 import numpy as np
 
 from . import __version__
+from .errors import EnsembleError
 from .results import Status
 from .spec import Spec
+
+TIMES_AT_ONCE = 2**20  # saved times written at a time: a member may save 10^8 samples
+
+
+class StoreError(EnsembleError):
+    """An unfinished result that cannot be continued as it is (exit status 2)."""
 
 
 def temporary_path(path: Path) -> Path:
@@ -119,12 +126,23 @@ def global_attributes(spec: Spec, table: dict[str, np.ndarray], command: str | N
         "seed": spec.seed,
         "blowup_factor": spec.blowup_factor,
         "device": device_name(spec.device),  # where the kernels ran, the GPU's name included
+        **kernels_identity(spec),
         "precision": spec.precision,
         "members_per_sweep_point": spec.members,
         "sweep_axes": " ".join(spec.sweep),
         "members_written": spec.n_members,  # always every member: the file appears only when complete
         "spec": spec.text,
     }
+
+
+def kernels_identity(spec: Spec) -> dict[str, str]:
+    """What the kernels were made of: the scene's sources (its file and the user's modules it imports), the
+    engine's kernel sources, and (on the CPU) the compile target and the Runge-Kutta loop order."""
+    from .engine.kernels import compile_target, physics_hash
+    from .tuning import engine_hash, loop_order
+
+    target = {"compile_target": compile_target(), "loop_order": loop_order()} if spec.device == "cpu" else {}
+    return {"scene_sources_sha256": physics_hash(spec.model.PHYSICS), "engine_sha256": engine_hash(), **target}
 
 
 def put_samples(variables, offset: int, first: int, data: dict[str, np.ndarray]) -> None:
@@ -163,23 +181,48 @@ class Writer:
         self.temporary = temporary_path(self.path)
         self.scene = spec.model
         self.spec = spec
-        if reopen:
-            self.nc = netCDF4.Dataset(self.temporary, "a")
-            self.nc.set_fill_off()
-            return
-        self.nc = nc = netCDF4.Dataset(self.temporary, "w", format="NETCDF4")
-        nc.set_fill_off()  # every value is written (NaN after a failure too): HDF5 need not pre-fill the storage
+        self.nc = netCDF4.Dataset(self.temporary, "a" if reopen else "w", format="NETCDF4")
+        self.nc.set_fill_off()  # every value is written (NaN after a failure too): HDF5 need not pre-fill the storage
         try:
-            nc.setncatts(global_attributes(spec, table, command))
-            self._dimensions(table)
-            self._parameters(table)
-            self._settings(table)
-            self._records()
-            self._observables()
-            self._allocate()
+            if reopen:
+                self._describe_again(table, command)
+            else:
+                self._describe(table, command)
+                self._allocate()
         except BaseException as error:
             self.__exit__(type(error), error, None)
             raise
+
+    def _describe(self, table: dict[str, np.ndarray], command: str | None) -> None:
+        """Everything the file says besides its samples and records: attributes, dimensions, parameters."""
+        self.nc.setncatts(global_attributes(self.spec, table, command))
+        self._dimensions(table)
+        self._parameters(table)
+        self._settings(table)
+        self._records()
+        self._observables()
+
+    def _describe_again(self, table: dict[str, np.ndarray], command: str | None) -> None:
+        """A resumed OUT.tmp's attributes and its variables but the samples and records, written again from the
+        run file (an edit of them since, of a parameter or a unit, must not reach the result); StoreError when
+        its variables are not the run file's."""
+        found = self.nc
+        self.nc = fresh = netCDF4.Dataset("description.nc", "w", diskless=True, persist=False)
+        try:
+            self._describe(table, command)
+            shape = {name: (v.dimensions, v.dtype) for name, v in fresh.variables.items()}
+            if {name: (v.dimensions, v.dtype) for name, v in found.variables.items()} != shape:
+                raise StoreError(f"{self.temporary}: its variables were changed since the run stopped; use --force "
+                                 f"to start over")
+            for source, target in [(fresh, found), *((fresh[n], found[n]) for n in fresh.variables)]:
+                for name in set(target.ncattrs()) - set(source.ncattrs()) - {"_FillValue"}:
+                    target.delncattr(name)
+                target.setncatts({k: source.getncattr(k) for k in source.ncattrs() if k != "_FillValue"})
+            for name in set(fresh.variables) - set(self.spec.save) - set(record_names(self.spec)):
+                found[name][:] = fresh[name][:]
+        finally:
+            fresh.close()
+            self.nc = found
 
     def _dimensions(self, table: dict[str, np.ndarray]) -> None:
         """member, t and the scene's dimensions that a saved variable or a parameter uses, with coordinates."""
@@ -190,7 +233,9 @@ class Writer:
         for dim, size in sizes.items():
             self.nc.createDimension(dim, size)
         self._coordinate("member", np.arange(n, dtype=np.int32), "ensemble member index")
-        self._coordinate("t", spec.times(), "time since the start of the run", units="s")
+        times = self._coordinate("t", np.empty(0), "time since the start of the run", units="s", dims=("t",))
+        for first in range(0, spec.n_save, TIMES_AT_ONCE):
+            times[first:first + TIMES_AT_ONCE] = spec.times(first, first + TIMES_AT_ONCE)
         for dim, (values, long_name) in self.scene.coordinates(spec.constants).items():
             if dim in used:
                 self._coordinate(dim, values, long_name)
@@ -265,7 +310,9 @@ class Writer:
     def _coordinate(self, name, values, long_name, units="1", dims=None):
         var = self.nc.createVariable(name, values.dtype, dims or (name,))
         var.setncatts({"units": units, "long_name": long_name})
-        var[:] = values
+        if len(values):
+            var[:] = values
+        return var
 
     def write_samples(self, start: int, first: int, data: dict[str, np.ndarray]) -> None:
         """Store saved variables (member, t, ...) of members start, start + 1, ... at samples first, first + 1,

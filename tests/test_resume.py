@@ -195,7 +195,7 @@ def test_resume_refuses_a_changed_run_file(reference, tmp_path, monkeypatch, cap
     path.write_text(NOISY_TOPS.replace("seed = 7", "seed = 8"))
     assert cli.main(["run", str(path), "-o", str(out), "--quiet", "--resume"]) == 2
     line = capsys.readouterr().err.strip()
-    assert "\n" not in line and "run_file_sha256 differs" in line, line
+    assert "\n" not in line and "(run_file_sha256, members_sha256 differ)" in line, line
     assert len(list(folder_of(out).glob("members-*.nc"))) == 2 and not out.exists()
 
 
