@@ -42,6 +42,8 @@ def run(spec, output=None, *, chunk: int | None = None, progress: bool = True, f
     from . import preflight
     from .runner import run as run_spec
 
+    if chunk is not None and (isinstance(chunk, bool) or not isinstance(chunk, (int, np.integer))):
+        raise preflight.RunRefused(f"chunk: a whole number of members, not {chunk!r}")
     spec, runfile, described = _spec(spec)
     folder = Path(tempfile.mkdtemp(prefix="ensemble-")) if output is None else None
     out = folder / "result.nc" if folder else Path(output)
@@ -85,7 +87,9 @@ def _spec(given):
         except TypeError as e:
             raise SpecError("run", f"the dict holds a value TOML cannot write ({e})") from None
         return parse(text), None, "a dict"
-    if isinstance(given, Path) or (isinstance(given, str) and "\n" not in given and given.endswith(".toml")):
+    if isinstance(given, Path) or (isinstance(given, str) and "\n" not in given):  # one line holds no run file
+        if not Path(given).is_file():
+            raise SpecError("run file", f"{given}: no such file")
         return load(given), Path(given), repr(str(given))
     if isinstance(given, str):
         return parse(given), None, "TOML text"
@@ -142,7 +146,10 @@ def fit(result) -> xr.Dataset:
     from .fitting import FitError
     from .scenes import of_result
 
-    ds = open(result) if isinstance(result, (str, Path, list)) else result
+    ds = open(result) if isinstance(result, (str, Path, list, tuple)) else result
+    if not isinstance(ds, xr.Dataset):
+        raise NotAResult(f"ensemble.fit takes a result (an xarray.Dataset, a path, a list of paths or a glob), not "
+                         f"{type(result).__name__}")
     problem = not_a_result(ds)
     if problem:
         raise NotAResult(f"the dataset {problem}")

@@ -13,7 +13,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 from . import __version__
 from .arguments import OneLineParser, positive_int
-from .errors import EXIT_BAD_INPUT, EXIT_FAILED, EXIT_INTERRUPTED, DeviceUnavailable, EnsembleError
+from .errors import EXIT_BAD_INPUT, EXIT_FAILED, EXIT_INTERRUPTED, EnsembleError
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -187,9 +187,7 @@ def _run(args) -> int:
     from . import interrupts, preflight
 
     interrupts.remember()
-    from .errors import Incomplete
     from .interrupts import HeldInterrupts
-    from .parts import PartsError
     from .runner import run
     from .scenes import SceneError
     from .spec import SpecError, load
@@ -202,9 +200,12 @@ def _run(args) -> int:
         print("ensemble: interrupted while reading the run file; nothing was written", file=sys.stderr)
         return EXIT_INTERRUPTED
     out = args.output or Path("results") / f"{args.runfile.stem}.nc"
-    spec, chunk, refusal = preflight.check(spec, out, args.runfile, device=args.device, chunk=args.chunk,
-                                           force=args.force, resume=args.resume, chunk_option="--chunk",
-                                           precision=args.precision)
+    try:
+        spec, chunk, refusal = preflight.check(spec, out, args.runfile, device=args.device, chunk=args.chunk,
+                                               force=args.force, resume=args.resume, chunk_option="--chunk",
+                                               precision=args.precision)
+    except EnsembleError as e:  # a kernel folder that is not the user's, a scene that does not compile
+        return _error(f"{args.runfile}: {e}" if isinstance(e, SceneError) else str(e))
     if refusal:
         return _error(refusal)
     if chunk != args.chunk and not args.quiet:
@@ -225,8 +226,7 @@ def _run(args) -> int:
         with preflight.OutputLock(out):
             summary = run(spec, out, chunk=chunk, progress=not args.quiet, force=args.force,
                           resume=args.resume, command=args.command_line, client=client)
-    except (preflight.OutputLocked, PartsError, DeviceUnavailable, SceneError, KeyboardInterrupt, Incomplete,
-            OSError, RuntimeError) as e:
+    except (preflight.OutputLocked, EnsembleError, KeyboardInterrupt, OSError, RuntimeError) as e:
         return _stopped(e, args.runfile, out, resume, spec)
     finally:
         if client is not None:

@@ -11,9 +11,16 @@ from pathlib import Path
 import numpy as np
 import xarray as xr
 
+from .errors import EnsembleError
+
+
+class CombineError(EnsembleError, ValueError):
+    """Results that cannot be combined: one line naming the file or what differs."""
+
+
 #: Global attributes kept per run, as variables over `run`.
 RUN_ATTRIBUTES = ("title", "history", "source", "method", "spec", "seed", "members_written", "members_per_sweep_point",
-                  "sweep_axes")
+                  "sweep_axes", "scene_sources_sha256", "engine_sha256", "compile_target", "loop_order")
 
 
 def open_results(paths) -> xr.Dataset:
@@ -28,14 +35,14 @@ def open_results(paths) -> xr.Dataset:
     `<name>_noise_stddev`; the attribute `observation_noise_stddev` stays on a
     variable only when every run has the same noise. Variables saved by some
     runs only are NaN for the others; differing time grids are joined (NaN
-    where a run has no sample). Raises ValueError for results of different
-    scenes.
+    where a run has no sample). Raises CombineError for results of different
+    scenes or a file that cannot be read.
     """
     paths = [Path(p) for p in paths]
-    runs = [xr.load_dataset(p, engine="netcdf4") for p in paths]
+    runs = [_loaded(p) for p in paths]
     scenes = {ds.attrs.get("scene") for ds in runs}
     if len(scenes) != 1 or None in scenes:
-        raise ValueError(f"results of one scene can be combined; these are of {sorted(map(str, scenes))}")
+        raise CombineError(f"results of one scene can be combined; these are of {sorted(map(str, scenes))}")
     names = list(dict.fromkeys(m for ds in runs for m in _methods(ds)))
     noisy = {name for ds in runs for name in ds.data_vars if "observation_noise_stddev" in ds[name].attrs}
     first_points = np.cumsum([0] + [int(ds["sweep_point"].max()) + 1 for ds in runs[:-1]])
@@ -61,8 +68,22 @@ def open_results(paths) -> xr.Dataset:
     axes = dict.fromkeys(axis for ds in runs for axis in ds.attrs.get("sweep_axes", "").split())
     out.attrs = {**{k: v for k, v in runs[0].attrs.items() if k not in RUN_ATTRIBUTES and k != "dt"},
                  "title": f"{len(runs)} ensemble {scenes.pop()} runs combined", "method": " ".join(names),
-                 "sweep_axes": " ".join(axes)}
+                 "sweep_axes": " ".join(axes), "source": _shared_source(runs)}
     return out
+
+
+def _loaded(path: Path) -> xr.Dataset:
+    try:
+        return xr.load_dataset(path, engine="netcdf4")
+    except (OSError, ValueError, RuntimeError) as e:
+        said = str(e).splitlines()[0] if str(e) else repr(e)
+        raise CombineError(f"{path}: cannot be read as a result ({said})") from None
+
+
+def _shared_source(runs: list[xr.Dataset]) -> str:
+    """The runs' `source` (ensemble and its version) when they share it, else a note that run_source has each."""
+    sources = {ds.attrs.get("source", "") for ds in runs}
+    return sources.pop() if len(sources) == 1 else "ensemble, several versions (run_source has each run's)"
 
 
 def _methods(ds: xr.Dataset) -> list[str]:

@@ -8,6 +8,7 @@ import shutil
 from pathlib import Path
 
 from .errors import DeviceUnavailable, EnsembleError
+from .spec import DEVICES, PRECISIONS
 
 
 class RunRefused(EnsembleError):
@@ -36,6 +37,10 @@ def whole_blocks(spec, chunk: int) -> int:
 def on_device(spec, device: str | None, where: str, precision: str | None = None):
     """The spec on `device` in `precision` (None: the run file's), and why it cannot run there (None if it
     can)."""
+    if device is not None and device not in DEVICES:
+        return spec, f"device: {device!r} is not one of {', '.join(DEVICES)}"
+    if precision is not None and precision not in PRECISIONS:
+        return spec, f"precision: {precision!r} is not one of {', '.join(PRECISIONS)}"
     if device:
         spec = dataclasses.replace(spec, device=device)
     if precision:
