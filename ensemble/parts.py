@@ -73,11 +73,11 @@ def folder_of(out: Path) -> Path:
 def fingerprint(spec: Spec) -> dict[str, str]:
     """What a part's bits depend on besides the member range: the run file's text, every member's parameters and
     start values (members_sha256), the sources of the scene (its file and the user's modules it imports) and of
-    the engine's kernels, the Runge-Kutta loop order (the one tuning choice that moves bits), the device (--device
-    may change the run file's; each rounds differently) and the versions of the packages that compute and store
-    them. The compile target is not in it: every target with fused multiply-adds gives the same bits."""
+    the engine's kernels, the device (--device may change the run file's; each rounds differently) and the
+    versions of the packages that compute and store them. Neither the compile target nor the tuning is in it:
+    every target with fused multiply-adds and every tuning choice give the same bits."""
     from .engine.kernels import physics_hash
-    from .tuning import engine_hash, loop_order
+    from .tuning import engine_hash
 
     table = members_table(spec)
     members = hashlib.sha256()
@@ -87,7 +87,6 @@ def fingerprint(spec: Spec) -> dict[str, str]:
         members.update(values.tobytes())
     return {"run_file_sha256": hashlib.sha256(spec.text.encode()).hexdigest(), "members_sha256": members.hexdigest(),
             "scene_sources_sha256": physics_hash(spec.model.PHYSICS), "engine_sha256": engine_hash(),
-            "loop_order": loop_order(),
             "ensemble": __version__, "numba": version("numba"), "numpy": np.__version__,
             "netCDF4": netCDF4.__version__, "device": f"{spec.device} {spec.precision}", "parts_format": PARTS_FORMAT}
 

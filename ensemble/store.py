@@ -137,11 +137,11 @@ def global_attributes(spec: Spec, table: dict[str, np.ndarray], command: str | N
 
 def kernels_identity(spec: Spec) -> dict[str, str]:
     """What the kernels were made of: the scene's sources (its file and the user's modules it imports), the
-    engine's kernel sources, and (on the CPU) the compile target and the Runge-Kutta loop order."""
+    engine's kernel sources, and (on the CPU) the compile target."""
     from .engine.kernels import compile_target, physics_hash
-    from .tuning import engine_hash, loop_order
+    from .tuning import engine_hash
 
-    target = {"compile_target": compile_target(), "loop_order": loop_order()} if spec.device == "cpu" else {}
+    target = {"compile_target": compile_target()} if spec.device == "cpu" else {}
     return {"scene_sources_sha256": physics_hash(spec.model.PHYSICS), "engine_sha256": engine_hash(), **target}
 
 

@@ -12,10 +12,10 @@ engine is ignored with one line. Importing ensemble applies a valid file (`prepa
 of ours exists; a run without one uses the engine's rules and says once that `ensemble tune` may make runs
 faster. Nothing tunes on its own.
 
-No choice but one changes a member's arithmetic: every run file in runs/ and the method sweeps gave the same bits
-with 256- and 512-bit vectors on the Intel Xeon, a block holds members side by side, each computed alone, and
-tiles keep each site's order of pieces (tests/test_tuning.py checks all three). The Runge-Kutta kernels' other
-loop order moves results in the last bits (fast-math groups the stage sums otherwise; docs/speed.md says so).
+No choice changes a member's arithmetic: a block holds members side by side, each computed alone, the vector
+width only changes how many lanes an instruction holds (with fast-math's contraction alone, LLVM may not regroup
+arithmetic per width), tiles keep each site's order of pieces, and the Runge-Kutta kernels' two loop orders take
+the same operations in the same order (tests/test_tuning.py and tests/test_targets.py check them).
 """
 from __future__ import annotations
 
@@ -187,12 +187,6 @@ _few_members: int | None = None  # members_block's
 def applied() -> Tuning:
     """The tuning this process runs with (apply's), or the engine's rules."""
     return _applied or Tuning()
-
-
-def loop_order() -> str:
-    """The generated Runge-Kutta kernels' loop order, in words: the one tuning choice that moves results' last
-    bits, recorded in every result and resume manifest."""
-    return "stages outside members" if applied().stages_outside else "each member's step whole"
 
 
 def generated_block(default: int) -> int:

@@ -34,7 +34,6 @@ from llvmlite import ir as llvmlite_ir
 from numba import njit, types
 from numba.core import cgutils
 from numba.extending import intrinsic
-from numba.np.numpy_support import carray
 
 from ..methods import Method
 from ..results import ACCEPTED, NO_STEP, REJECTED, RHS_EVALS, UNDERFLOWED, Status
@@ -102,17 +101,6 @@ def _fused_multiply_add(typingctx, a, b, c):
     return types.float64(types.float64, types.float64, types.float64), codegen
 
 
-@intrinsic
-def _stack_pointer(typingctx, size):
-    """A pointer to `size` float64s (a compile-time constant) in the calling function's stack frame."""
-    if not isinstance(size, types.IntegerLiteral):
-        return None
-
-    def codegen(context, builder, signature, arguments):
-        return cgutils.alloca_once(builder, context.get_value_type(types.float64), size=size.literal_value)
-    return types.CPointer(types.float64)(size), codegen
-
-
 _FLUSH_TO_ZERO = 0x8040  # x86's MXCSR bits FTZ (15) and DAZ (6): subnormal results and operands become zeros
 
 
@@ -171,15 +159,6 @@ def restore_float_mode(previous: int | None) -> None:
     """Give this thread back the mode flush_subnormals found."""
     if previous is not None:
         _set_float_mode(previous)
-
-
-@njit(inline="always")
-def stack_array(size):
-    """An uninitialized float64 array of `size` values (a constant of the kernel's closure) on the stack, for
-    values a member keeps only within a step, such as its stage slopes. Where every index is a constant once
-    LLVM unrolls the loops, the values stay in registers: stored in work rows, each had to be written to
-    memory (without those stores a whole 262,144-top rk4 run took 0.89 of the time: analysis/bench/README.md)."""
-    return carray(_stack_pointer(size), size)
 
 
 CACHE_LINE = 64  # bytes

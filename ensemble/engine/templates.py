@@ -11,7 +11,7 @@ block's members innermost (it vectorizes) and the method's coefficients as const
 The families and what they call (see ensemble.scenes.contract for the scene's side):
 
 - explicit Runge-Kutta tableaus (`runge_kutta`): rhs(t, *y, *p) -> D slopes; a member's stage slopes stay in
-  registers (stack_array) within its step;
+  registers (scalars k{s}_{c}) within its step;
 - splittings and compositions (`splitting`): for each piece, piece(tau, *y, *p, *factors) -> D values, where a
   piece with a `<piece>_factors(tau, *p)` function gets those values, computed once per member and sequence
   entry; optional to_pieces(*y, *p) and from_pieces(*y, *p) change coordinates around each save interval;
@@ -35,7 +35,7 @@ import numpy as np
 from numba import njit
 
 from ensemble.engine.blocks import (FAST, block_done, cache_line_array, check_members, control_step, counts_out,
-                                    stack_array, state_accept, state_error, state_load, state_saved, state_start,
+                                    state_accept, state_error, state_load, state_saved, state_start,
                                     trial_steps)
 from ensemble.engine.blocks import STEP, TIME, H
 
@@ -69,37 +69,32 @@ def kernel(state0, rate, h, steps_per_save, limit, samples, status, failure_time
 # The fixed-step families fill in FIXED_STEP: the kernel's frame (blocks, the first call's start, save intervals).
 
 RUNGE_KUTTA = '''
-S, SLOPES = {S}, {slopes}
+S = {S}
 A = {a}  # the tableau: a (S x S, flat), b, c
 WEIGHTS = {b}
 NODES = {c}
 '''
-# Runge-Kutta stage s of member j: its state from the step's start and the earlier stages' slopes, its slope.
-RUNGE_KUTTA_STAGE = '''{stage_state}
-                        for r in range(s):  # a is zero from column s on
-                            ha = h * A[s * S + r]
-{stage_add}
-                        {d} = rhs(t + NODES[s] * h, {z}, {p})
-{store_slopes}'''
-RUNGE_KUTTA_BLOCK = '''        slopes = stack_array(SLOPES)  # stage s's slope of state row c at D s + c'''
+# A member's whole step, its stages written out one after the other (stage s's slope of row c in k{s}_{c}, a
+# scalar LLVM keeps in a register; each nonzero a[s, r] one line: without fast-math's licence to assume no NaN,
+# LLVM must compute a zero entry's 0 * k, which cost the free body's rk4 a tenth of its speed).
 RUNGE_KUTTA_STEPS = '''            for step in range(steps_per_save):
                 t = ((i - 1) * steps_per_save + step) * h
                 for j in range(B):
 {load_y}
 {load_p}
-{zero_sums}
-                    for s in range(S):
-{stage}
-{add_sums}
+{new_state}
+{stages}
 {store_step}'''
+RUNGE_KUTTA_WRITTEN_STAGE = '''{stage_state}{stage_add}
+                    {d} = rhs(t + NODES[{s}] * h, {z}, {p}){add_sums}'''
 
 # Stage s of an adaptive pair's trial step, for every member of a block (stages outside, members inside; FSAL:
-# stage 0 is the last step's last). Written out stage by stage, with the tableau's entries a[s, r], r < s, one a
-# line: as loops over s and r, LLVM vectorized the members' loop only when fast-math let it reorder the sums.
+# stage 0 is the last step's last). Written out stage by stage, with the tableau's nonzero entries a[s, r], r < s,
+# one a line: as loops over s and r, LLVM vectorized the members' loop only when fast-math let it reorder the
+# sums.
 ADAPTIVE_STAGE = '''                for j in range(B):  # stage {s}
                     h = work[(C0 + STEP) * B + j]
-{trial_state}
-{trial_add}
+{trial_state}{trial_add}
 {load_p_trial}
                     {d} = rhs(work[(C0 + TIME) * B + j] + NODES[{s}] * h, {z}, {p})
 {store_stage}'''
@@ -108,17 +103,17 @@ ADAPTIVE_STAGE = '''                for j in range(B):  # stage {s}
 # members, its slopes in work rows from K = D + P on, and a last sweep adds the weighted slopes to the state.
 RUNGE_KUTTA_STAGES_OUTSIDE = '''            for step in range(steps_per_save):
                 t = ((i - 1) * steps_per_save + step) * h
-                for s in range(S):
-                    for j in range(B):
-{load_y}
-{load_p}
-{stage}
+{stages}
                 for j in range(B):
 {load_y_sums}
-{zero_sums}
-                    for s in range(S):
-{add_sums}
+{new_state}{add_sums}
 {store_step}'''
+RUNGE_KUTTA_OUTSIDE_STAGE = '''                for j in range(B):  # stage {s}
+{load_y}
+{load_p}
+{stage_state}{stage_add}
+                    {d} = rhs(t + NODES[{s}] * h, {z}, {p})
+{store_slopes}'''
 
 # Splittings of at most UNROLLED pieces loop over their sequence, which LLVM unrolls; longer ones are written out
 # piece by piece: the body's rotations4 (19 pieces) ran 4.8 times faster so (analysis/bench/README.md). Written out, the
@@ -219,30 +214,41 @@ def header(family: str, scene_name: str, method: Method, physics_import: str, ph
 
 def runge_kutta(method: Method, D: int, P: int, stages_outside: bool = False) -> tuple[str, int]:
     """The explicit Runge-Kutta kernel's source and its work rows: state and parameters, and with stages_outside
-    (the other loop order) each stage's slopes."""
+    (the other loop order) each stage's slopes. Both orders take the same arithmetic: the stages' states
+    y + sum_r (h a[s, r]) k_r and the new state y + sum_s (h b_s) k_s, nonzero terms in order."""
     _, S, a, b, _, _, _ = method_constants(method)
-    head = RUNGE_KUTTA.format(S=S, slopes=D * S, a=a, b=b, c=tuple(float(x) for x in method.tableau.c))
-    stage = dict(stage_state=_lines("z{c} = y{c}", D, 24), d=_names("d", D), z=_names("z", D).rstrip(","),
-                 p=_names("p", P).rstrip(","))
+    head = RUNGE_KUTTA.format(S=S, a=a, b=b, c=tuple(float(x) for x in method.tableau.c))
+    z, p = _names("z", D).rstrip(","), _names("p", P).rstrip(",")
+    in_work = (lambda r, c: f"work[(K + {D * r + c}) * B + j]") if stages_outside else (lambda r, c: f"k{r}_{c}")
+    stages = [(RUNGE_KUTTA_OUTSIDE_STAGE if stages_outside else RUNGE_KUTTA_WRITTEN_STAGE).format(
+        s=s, z=z, p=p, load_y=_loads("y", D, "", 20), load_p=_loads("p", P, "D", 20),
+        stage_state=_lines("z{c} = y{c}", D, 20), d=_names("d", D) if stages_outside else _names_of(
+            [f"k{s}_{c}" for c in range(D)]),
+        stage_add=_added("z", "ha", "A", [(s * S + r, a[s * S + r], r) for r in range(s)], in_work, D),
+        add_sums=_added("n", "hb", "WEIGHTS", [(s, b[s], s)], in_work, D),
+        store_slopes="\n".join(" " * 20 + f"{in_work(s, c)} = d{c}" for c in range(D))) for s in range(S)]
+    new_state, store = _lines("n{c} = y{c}", D, 20), "\n".join(" " * 20 + f"work[{_row(c)}] = n{c}" for c in range(D))
     if stages_outside:
         steps = RUNGE_KUTTA_STAGES_OUTSIDE.format(
-            load_y=_loads("y", D, "", 24), load_p=_loads("p", P, "D", 24), stage=RUNGE_KUTTA_STAGE.format(
-                **stage, stage_add="\n".join(" " * 28 + f"z{c} += ha * work[(K + D * r + {c}) * B + j]"
-                                             for c in range(D)),
-                store_slopes="\n".join(" " * 24 + f"work[(K + D * s + {c}) * B + j] = d{c}" for c in range(D))),
-            load_y_sums=_loads("y", D, "", 20), zero_sums=_lines("s{c} = 0.0", D, 20),
-            add_sums="\n".join(" " * 24 + f"s{c} += WEIGHTS[s] * work[(K + D * s + {c}) * B + j]" for c in range(D)),
-            store_step="\n".join(" " * 20 + f"work[{_row(c)}] = y{c} + h * s{c}" for c in range(D)))
+            stages="\n".join(stages), load_y_sums=_loads("y", D, "", 20), new_state=new_state, store_step=store,
+            add_sums=_added("n", "hb", "WEIGHTS", [(s, b[s], s) for s in range(S)], in_work, D))
         return (head + "K = D + P  # first row of the stage slopes\n"
                 + FIXED_STEP.format(block_start="", first_call="", save_interval=steps)), D + P + D * S
-    steps = RUNGE_KUTTA_STEPS.format(
-        load_y=_loads("y", D, "", 20), load_p=_loads("p", P, "D", 20),
-        zero_sums=_lines("s{c} = 0.0", D, 20),
-        stage=RUNGE_KUTTA_STAGE.format(**stage, stage_add=_lines("z{c} += ha * slopes[D * r + {c}]", D, 28),
-                                       store_slopes=_lines("slopes[D * s + {c}] = d{c}", D, 24)),
-        add_sums=_lines("s{c} += WEIGHTS[s] * d{c}", D, 24),
-        store_step="\n".join(" " * 20 + f"work[{_row(c)}] = y{c} + h * s{c}" for c in range(D)))
-    return head + FIXED_STEP.format(block_start=RUNGE_KUTTA_BLOCK, first_call="", save_interval=steps), D + P
+    steps = RUNGE_KUTTA_STEPS.format(load_y=_loads("y", D, "", 20), load_p=_loads("p", P, "D", 20),
+                                     new_state=new_state, stages="\n".join(stages), store_step=store)
+    return head + FIXED_STEP.format(block_start="", first_call="", save_interval=steps), D + P
+
+
+def _added(target: str, weight: str, table: str, terms, slope, D: int) -> str:
+    """Lines (each after a newline, at a member's indent) that add h times each nonzero coefficient of `terms`,
+    (index in `table`, coefficient, stage r), times stage r's slope (slope(r, c) for row c) to target0 ..:
+    without fast-math's licence to assume no NaN, LLVM must compute a zero coefficient's 0 * k."""
+    lines = []
+    for index, coefficient, r in terms:
+        if coefficient:
+            lines.append(f"{weight} = h * {table}[{index}]")
+            lines += [f"{target}{c} += {weight} * {slope(r, c)}" for c in range(D)]
+    return "".join(f"\n{' ' * 20}{line}" for line in lines)
 
 
 def splitting(method: Method, D: int, P: int, pieces: tuple[str, ...], factors: dict[str, int],
@@ -302,9 +308,8 @@ def adaptive(method: Method, D: int, P: int) -> tuple[str, int]:
     names = dict(d=_names("d", D), z=_names("z", D).rstrip(","), p=_names("p", P).rstrip(","))
     stages = [ADAPTIVE_STAGE.format(
         s=s, **names, trial_state=" " * 20 + f"{_names('z', D)} = {_names_of([f'work[{_row(c)}]' for c in range(D)])}",
-        trial_add="\n".join(line for r in range(s) for line in (
-            " " * 20 + f"ha = h * A[{s * S + r}]",
-            *(" " * 20 + f"z{c} += ha * work[(K + {D * r + c}) * B + j]" for c in range(D)))),
+        trial_add=_added("z", "ha", "A", [(s * S + r, a[s * S + r], r) for r in range(s)],
+                         lambda r, c: f"work[(K + {D * r + c}) * B + j]", D),
         load_p_trial=_loads("p", P, "D", 20),
         store_stage="\n".join([*(" " * 20 + f"work[(K + {D * s + c}) * B + j] = d{c}" for c in range(D)),
                                *(" " * 20 + f"work[{_row(c, 'NEW')}] = z{c}" for c in range(D))]))
