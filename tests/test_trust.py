@@ -342,3 +342,15 @@ def test_a_damaged_numba_cache_file_is_compiled_again_in_one_line(tmp_path, dama
     assert "\n" not in line and "Numba's cache of the rk4 kernel" in line and "compiling it again" in line, line
     with xr.open_dataset(tmp_path / "first.nc") as a, xr.open_dataset(tmp_path / "second.nc") as b:
         assert a.x.values.tobytes() == b.x.values.tobytes()
+
+
+def test_saved_times_are_written_in_pieces_to_the_same_bits(tmp_path, monkeypatch):
+    """A member may save 10^8 samples: the t coordinate is written TIMES_AT_ONCE at a time (a one-member run
+    saving 2e7 samples peaked at 527 MB where it now takes 231, against 218 MB for 100 samples)."""
+    from ensemble import store
+
+    monkeypatch.setattr(store, "TIMES_AT_ONCE", 7)
+    _scene(tmp_path, 1.0)
+    ds = ensemble.run(RUN.format(method="rk4", members=2).replace("save_dt = 0.5", "save_dt = 0.05")
+                      .replace('"decay.py"', repr(str(tmp_path / "decay.py"))), progress=False)
+    assert ds.sizes["t"] == 21 and ds.t.values.tobytes() == (np.arange(21) * 0.05).tobytes()
