@@ -247,7 +247,7 @@ def _stopped(error: BaseException, runfile: Path, out: Path, resume: str, spec) 
 
     if isinstance(error, preflight.OutputLocked):
         return _error(f"{out}: another run is writing it now; wait for it or choose another output")
-    if isinstance(error, SceneError):  # a user's scene whose functions do not compile: found before any chunk ran
+    if isinstance(error, SceneError) and error.exit_status == EXIT_BAD_INPUT:  # found before any chunk ran
         return _error(f"{runfile}: scene: {error}")
     if isinstance(error, EnsembleError) and error.exit_status == EXIT_BAD_INPUT:  # parts of another run, no GPU
         return _error(str(error))

@@ -57,7 +57,7 @@ import numpy as np
 from . import __version__
 from .errors import EnsembleError
 from .spec import Spec, members_table
-from .store import RUN_RECORDS, fsync_path, put_records, record_names, temporary_path
+from .store import RUN_RECORDS, fsync_path, kernels_identity, put_records, record_names, temporary_path
 
 MANIFEST = "manifest.json"
 PARTS_FORMAT = "2"  # 2: parts carry their range, run file and sample checksums (ensemble 0.5.0)
@@ -76,9 +76,6 @@ def fingerprint(spec: Spec) -> dict[str, str]:
     the engine's kernels, the device (--device may change the run file's; each rounds differently) and the
     versions of the packages that compute and store them. Neither the compile target nor the tuning is in it:
     every target with fused multiply-adds and every tuning choice give the same bits."""
-    from .engine.kernels import scene_identity
-    from .tuning import engine_hash
-
     table = members_table(spec)
     members = hashlib.sha256()
     for name in sorted(table):
@@ -86,7 +83,7 @@ def fingerprint(spec: Spec) -> dict[str, str]:
         members.update(f"{name} {values.dtype.str} {values.shape}".encode())
         members.update(values.tobytes())
     return {"run_file_sha256": hashlib.sha256(spec.text.encode()).hexdigest(), "members_sha256": members.hexdigest(),
-            "scene_sources_sha256": scene_identity(spec.model), "engine_sha256": engine_hash(),
+            **{k: v for k, v in kernels_identity(spec).items() if k != "compile_target"},
             "ensemble": __version__, "numba": version("numba"), "numpy": np.__version__,
             "netCDF4": netCDF4.__version__, "device": f"{spec.device} {spec.precision}", "parts_format": PARTS_FORMAT}
 

@@ -34,7 +34,7 @@ from .methods import METHODS
 from .parameter import Mode, Parameter, ParameterError
 from .results import DEFAULT_BLOWUP_FACTOR
 from .scenes import SceneError, absolute, applies, methods_for, resolve
-from .scenes.contract import identity
+from .scenes.contract import SceneChanged, identity
 
 
 class SpecError(EnsembleError, ValueError):
@@ -131,7 +131,7 @@ class Spec:
         scene = resolve(self.scene)
         module = getattr(scene, "module", None)
         if self.sources is not None and module is not None and identity(module) != self.sources:
-            raise SceneError(f"{self.scene} (or a module of yours it imports) changed since the run began; a run "
+            raise SceneChanged(f"{self.scene} (or a module of yours it imports) changed since the run began; a run "
                              f"takes one physics: run it again (--force to start over)")
         return scene
 

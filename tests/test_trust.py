@@ -357,7 +357,7 @@ def test_saved_times_are_written_in_pieces_to_the_same_bits(tmp_path, monkeypatc
 
 
 def test_a_scene_edited_during_a_run_stops_it_in_one_line(tmp_path, monkeypatch, capsys):
-    """Edited after the first of its chunks, the run stops (one line, exit 2: the chunk it finished is kept),
+    """Edited after the first of its chunks, the run stops (one line, exit 3: the chunk it finished is kept),
     and a resume refuses the parts of the other physics: no result mixes the two (the old code computed the
     first chunk with the old rate and the others with the new)."""
     _scene(tmp_path, 1.0)
@@ -372,9 +372,9 @@ def test_a_scene_edited_during_a_run_stops_it_in_one_line(tmp_path, monkeypatch,
 
     monkeypatch.setattr(runner, "integrate_chunk", compute)
     out = tmp_path / "out.nc"
-    with pytest.raises(ensemble.EnsembleError, match="changed since the run began; a run takes one physics"):
+    with pytest.raises(ensemble.EnsembleError, match="changed since the run began; a run takes one physics") as raised:
         runner.run(load(runfile), out, chunk=7, progress=False)
-    assert not out.exists()
+    assert raised.value.exit_status == 3 and not out.exists()
     monkeypatch.setattr(runner, "integrate_chunk", real)
     assert cli.main(["run", str(runfile), "-o", str(out), "--quiet", "--resume"]) == 2
     line = capsys.readouterr().err.strip()

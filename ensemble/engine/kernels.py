@@ -55,18 +55,12 @@ def loaded(where: str, expected: str) -> ModuleType:
     return module
 
 
-def physics_hash(where: str) -> str:
-    """The identity of a scene's sources (ensemble.scenes.contract.identity): generated kernel files hold it, so
-    an edited scene, or an edited module of the user's it imports, compiles anew."""
-    return identity(load(where))
-
-
 def scene_identity(scene) -> str:
     """The identity of the sources a scene runs: a user's scene's as they were when its run was read (a kernel
     made later refuses sources edited since, in one line: a run never mixes two physics), a built-in scene's
     physics module's."""
     module = getattr(scene, "module", None)
-    return identity(module) if module is not None else physics_hash(scene.PHYSICS)
+    return identity(module if module is not None else load(scene.PHYSICS))
 
 
 @cache

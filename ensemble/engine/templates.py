@@ -140,8 +140,8 @@ SPLITTING_STEPS = '''{enter_pieces}
 
 ADAPTIVE = '''
 S = {S}
-A = np.array({a})  # the tableau a, flat: stage s takes a[s, r] at s * S + r
-NODES = np.array({c})
+A = {a}  # the tableau a, flat: stage s takes a[s, r] at s * S + r
+NODES = {c}
 ERROR = {e}  # b - b_hat: h sum_s ERROR[s] k_s estimates the local error
 ALPHA, BETA, SAFETY, MIN_FACTOR, MAX_FACTOR = {control}
 K, NEW, C0 = D + P, D + P + D * S, D + P + D * S + D  # first rows of the slopes, the trial state, the control

@@ -40,7 +40,7 @@ from types import ModuleType
 
 import numpy as np
 
-from ..errors import EnsembleError
+from ..errors import EXIT_FAILED, EnsembleError
 from ..parameter import Parameter
 
 #: Names a result already uses: a scene's state and parameters must not take them.
@@ -51,6 +51,12 @@ RESERVED = ("t", "member", "method", "dt", "rtol", "atol", "steps_accepted", "st
 
 class SceneError(EnsembleError, ValueError):
     """A scene that does not keep the contract; the message is one line that says what is wrong and where."""
+
+
+class SceneChanged(SceneError):
+    """A user's scene edited while its run was under way: the run stops, its finished chunks kept (exit 3)."""
+
+    exit_status = EXIT_FAILED
 
 
 def module_from_file(path: Path) -> ModuleType:
