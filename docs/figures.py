@@ -1,6 +1,8 @@
 """Make the charts the README and docs/ show, docs/images/*.png, from the run files in runs/.
 
-    pip install -e ".[plot]" && python docs/figures.py
+    pip install -e ".[plot]" && python docs/figures.py [RUN ...]
+
+With run names (work_precision_top, say), makes only their charts.
 
 Runs each run file below through the public API (results in a temporary folder), then draws its charts with
 `ensemble fit`, `ensemble stability` or `ensemble work-precision` --charts, and keeps the ones the docs show.
@@ -29,10 +31,15 @@ FIGURES = {
 }
 
 
-def main() -> int:
+def main(names: list[str]) -> int:
+    unknown = sorted(set(names) - set(FIGURES))
+    if unknown:
+        print(f"figures.py: no figure of {', '.join(unknown)}; known: {', '.join(FIGURES)}", file=sys.stderr)
+        return 2
     IMAGES.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory() as folder:
-        for name, (analysis, keep) in FIGURES.items():
+        for name in names or FIGURES:
+            analysis, keep = FIGURES[name]
             result = Path(folder) / f"{name}.nc"
             ensemble.run(ROOT / "runs" / f"{name}.toml", result, progress=False)
             status = command([analysis, str(result), "--charts", folder])
@@ -45,4 +52,4 @@ def main() -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(main(sys.argv[1:]))

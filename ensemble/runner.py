@@ -179,44 +179,52 @@ def integrate(spec: Spec, method: Method, values: dict[str, np.ndarray], repeats
     return outcome, kernel_seconds_per_step(scene, method, values, spec.constants, outcome, repeats, stepping)
 
 
-TIMED_MEMBER_STEPS = 4_000_000  # work in one timed kernel call, so that the call's own fixed cost is negligible
-TIMED_STEPS_PER_MEMBER = 1000  # steps each member takes in a timed call: a few steps cost more each than many
+TIMED_KERNEL_BLOCKS = 16  # blocks in a timed call, whatever the point's members: one block costs more per step
+TIMED_STEPS_PER_MEMBER = 1000  # steps each member takes at least in a timed call
+TIMED_SECONDS = 0.05  # a timed call lasts at least this long (as timeit's autorange does): the timer, the call's
+#                       own cost and each member's first steps stay small against it
 
 
 def kernel_seconds_per_step(scene, method: Method, values: dict[str, np.ndarray], constants: dict, outcome: Outcome,
                             repeats: int, settings: dict) -> float:
-    """The kernel's seconds per member-step on one thread, per-member costs excluded: the difference between the
-    best of `repeats` timed calls over the run's span (`settings`, saving only the end state), stretched to a
-    whole even number of spans in which each member takes about TIMED_STEPS_PER_MEMBER steps, and the best of as
-    many over half that time, over the difference in member-steps. The members are repeated until the first
-    call does at least TIMED_MEMBER_STEPS member-steps. It times stepping alone: no layout, no output, and neither
-    per-call nor per-member costs (dispatch, loading a block, checking and saving samples), on one thread
-    whatever the point's member count, so the cost grows in proportion to the steps. A run on T threads costs
-    about 1/T of it per member-step. Members that take as many steps over half the time (they failed) are timed
-    whole."""
+    """The kernel's seconds per member-step on one thread: the best of `repeats` calls over their member-steps.
+
+    Every point is timed in one configuration, so that its cost grows in proportion to its steps: the point's
+    members repeated (in order) to TIMED_KERNEL_BLOCKS whole blocks, from their start over as many steps as
+    make a call last at least TIMED_SECONDS (at least TIMED_STEPS_PER_MEMBER each; `settings` are the run's,
+    `outcome` what it did). It times stepping alone: no layout, no output, on one thread whatever the point's
+    member count. A run on T threads costs about 1/T of it per member-step."""
     taken = int(outcome.counts[0].sum() + outcome.counts[1].sum())
     if taken == 0:
         return np.nan
-    members, block = len(outcome.status), launch.block_size(scene, constants, method)
-    stretch = 2 * max(1, math.ceil(TIMED_STEPS_PER_MEMBER * members / taken / 2))  # the timed span, in t_end
-    whole = block // math.gcd(members, block)  # copies that fill whole kernel blocks: no padded members timed
-    copies = -(-max(1, -(-TIMED_MEMBER_STEPS // (taken * stretch))) // whole) * whole
-    tiled = {name: np.tile(v, (copies,) + (1,) * (np.ndim(v) - 1)) for name, v in values.items()}
-    if np.ndim(settings["dt"]):
-        settings = {**settings, "dt": tiled["dt"]}
-    settings = {**settings, "rtol": tiled["rtol"], "atol": tiled["atol"]}
-    calls = [launch.Launch(scene, method, tiled, constants, **{**settings, "save_dt": span * settings["save_dt"]})
-             for span in (stretch, stretch // 2)]
-    best = [np.inf, np.inf]
-    for _ in range(repeats):  # one thread: how many blocks a point has cannot leave threads idle
-        for k, call in enumerate(calls):
+    members = len(outcome.status)
+    chosen = np.resize(np.arange(members), TIMED_KERNEL_BLOCKS * launch.block_size(scene, constants, method))
+    subset = {name: np.asarray(v)[chosen] for name, v in values.items()}
+    settings = {**settings, "rtol": subset["rtol"], "atol": subset["atol"]}
+    if method.adaptive:
+        settings["dt"] = subset["dt"]
+    run_span = settings["save_dt"]  # s: the run's, from its start to t_end
+
+    def timed(steps: int, calls: int) -> tuple[float, float]:
+        """The best time of `calls` calls in which each member takes about `steps` steps, and their member-steps."""
+        span = steps * settings["dt"] if not method.adaptive else run_span * steps * members / taken
+        call = launch.Launch(scene, method, subset, constants, **{**settings, "save_dt": span})
+        best = np.inf
+        for _ in range(calls):
             start = time.perf_counter()
-            call.run(threads=1)
-            best[k] = min(best[k], time.perf_counter() - start)
-    steps = [float(c.sum()) for c in (call.outcome().counts[:2] for call in calls)]
-    if steps[0] > steps[1] and best[0] > best[1]:
-        return (best[0] - best[1]) / (steps[0] - steps[1])
-    return best[0] / steps[0]
+            call.run(threads=1)  # one thread: how many blocks a point has cannot leave threads idle
+            best = min(best, time.perf_counter() - start)
+        counts = call.outcome().counts
+        return best, float(counts[0].sum() + counts[1].sum())
+
+    steps = TIMED_STEPS_PER_MEMBER
+    seconds, taken_timed = timed(steps, 1)
+    while seconds < TIMED_SECONDS:
+        steps = math.ceil(steps * min(10.0, 1.2 * TIMED_SECONDS / max(seconds, 1e-9)))
+        seconds, taken_timed = timed(steps, 1)
+    if repeats > 1:
+        seconds = min(seconds, timed(steps, repeats - 1)[0])
+    return seconds / taken_timed
 
 
 def noise_streams(spec: Spec, name: str, first: int, members: int) -> list[np.random.Generator]:

@@ -214,32 +214,6 @@ def test_adaptive_run_launches_once_per_chunk_and_setting(monkeypatch):
     assert 0 < len(calls) <= chunks * settings and ds.sizes["member"] == 300
 
 
-def test_timed_cost_per_member_grows_in_proportion_to_the_steps(monkeypatch):
-    """seconds_per_step times the kernel alone, over blocks of at least TIMED_MEMBER_STEPS member-steps, with
-    per-call and per-member costs taken out, so a record of 100 steps costs per step what one of 10,000 does
-    (the whole call was timed before: the cost hardly grew with the steps). Checked against a clock on which a
-    kernel call costs 1 ms, 2 us per member and 3 ns per member-step: the estimate must be the 3 ns exactly.
-    (It was a wall-clock test; on this shared host the ratio of two such timings ranged 0.15 to 3.7 within a
-    minute, so it failed one run in three. Real kernel costs are measured by the benchmarks, not by tests.)"""
-    from types import SimpleNamespace
-
-    clock = [0.0]
-    real_run = launch.Launch.run
-
-    def costed(self, *args, **kwargs):
-        real_run(self, *args, **kwargs)
-        counts = self.outcome().counts
-        clock[0] += 1e-3 + 2e-6 * self.members + 3e-9 * float(counts[0].sum() + counts[1].sum())
-
-    monkeypatch.setattr(launch.Launch, "run", costed)
-    monkeypatch.setattr(runner, "time", SimpleNamespace(perf_counter=lambda: clock[0]))
-    for t_end in (0.1, 10.0):
-        spec = parse(top_runfile(t_end=t_end, save_dt=t_end / 4, members=2))
-        outcome, seconds = runner.integrate(spec, METHODS["rk4"], members_table(spec), repeats=2)
-        assert outcome.counts[0][0] == round(spec.t_end / 1e-3)
-        assert seconds == pytest.approx(3e-9, rel=1e-9), t_end
-
-
 def test_a_run_calls_the_kernel_once_per_chunk_and_setting(monkeypatch):
     """Adaptive members without dt (NaN) share one launch: a run's kernel launches number at most its chunks
     times its distinct settings (NaN != NaN once made every member a launch of its own, 1000x slower)."""
@@ -346,27 +320,34 @@ def test_control_step_chooses_the_steps_of_its_formula_for_every_kind_of_member(
             assert (status[j] == 2) == want[6] and (failure_time[j] == time[j]) == want[6]
 
 
-def test_a_few_steps_per_member_are_timed_over_many(monkeypatch):
-    """Issue 39: on a 3-mass chain at dt = 0.1, 0.01 and 0.001 over 8 s, seconds_per_step x steps grew 24.5x for
-    100x the steps: a member's first steps cost more than later ones (its block warming up), and timing 80 steps
-    against 40 left that in. The timed calls now stretch the span until each member takes about
-    TIMED_STEPS_PER_MEMBER steps. On a clock where each member's first 200 steps cost 5 ns more each, the
-    estimate is the 3 ns of a step exactly, at 80 steps per member as at 8000."""
+def test_timed_cost_grows_in_proportion_to_the_steps_whatever_the_members(monkeypatch):
+    """[measure] timing times every point in one configuration (TIMED_KERNEL_BLOCKS blocks, calls of at least
+    TIMED_SECONDS), so that seconds_per_step x steps grows 100x for 100x the steps (issue 50: it grew 150x to
+    190x on a 3-mass chain with 2 members, the timed member count changing with the steps). Checked against a
+    clock on which a call costs 1 ms, a member 2 us, each member's first 200 steps 5 ns more each, and a
+    member-step 3 ns times (1 + 1 / blocks in the call). Real kernel costs are measured by the benchmarks."""
     from types import SimpleNamespace
 
     clock = [0.0]
     real_run = launch.Launch.run
+    spec = parse(top_runfile(members=2))
+    block = launch.block_size(spec.model, spec.constants, METHODS["rk4"])
 
     def costed(self, *args, **kwargs):
         real_run(self, *args, **kwargs)
         steps = self.outcome().counts[0] + self.outcome().counts[1]  # per member
-        clock[0] += 1e-3 + 2e-6 * self.members + 3e-9 * float(steps.sum()) + 5e-9 * float(
-            np.minimum(steps, 200).sum())
+        clock[0] += 1e-3 + 2e-6 * self.members + 5e-9 * float(np.minimum(steps, 200).sum()) + 3e-9 * float(
+            steps.sum()) * (1 + 1 / -(-self.members // block))
 
     monkeypatch.setattr(launch.Launch, "run", costed)
     monkeypatch.setattr(runner, "time", SimpleNamespace(perf_counter=lambda: clock[0]))
-    for t_end in (0.08, 0.8, 8.0):
-        spec = parse(top_runfile(t_end=t_end, save_dt=t_end / 4, members=2))
-        outcome, seconds = runner.integrate(spec, METHODS["rk4"], members_table(spec), repeats=1)
+    step = 3e-9 * (1 + 1 / runner.TIMED_KERNEL_BLOCKS)
+    cost = {}
+    for t_end, members in ((0.08, 2), (8.0, 2), (0.08, 3000)):
+        spec = parse(top_runfile(t_end=t_end, save_dt=t_end / 4, members=members))
+        outcome, seconds = runner.integrate(spec, METHODS["rk4"], members_table(spec), repeats=2)
         assert outcome.counts[0][0] == round(t_end / 1e-3)
-        assert seconds == pytest.approx(3e-9, rel=1e-9), t_end
+        assert seconds == pytest.approx(step, rel=0.2), (t_end, members)  # calls long enough for the fixed costs
+        cost[t_end, members] = seconds * outcome.counts[0][0]
+    assert cost[8.0, 2] / cost[0.08, 2] == pytest.approx(100, rel=0.02)
+    assert cost[0.08, 3000] == pytest.approx(cost[0.08, 2], rel=0.02)
