@@ -163,4 +163,6 @@ def fit(result) -> xr.Dataset:
         raise FitError(f"the result has no variable {e}, which a {ds.attrs.get('scene')} result has") from None
     for axis in ds.attrs.get("sweep_axes", "").split():
         fits[axis] = ds[axis]
+    if "run_index" in ds and ds.sizes.get("run", 1) > 1:  # combined results: each sweep point is of one run
+        fits["run_index"] = ds["run_index"]
     return fits

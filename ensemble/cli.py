@@ -13,7 +13,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 from . import __version__
 from .arguments import OneLineParser, positive_int
-from .errors import EXIT_BAD_INPUT, EXIT_FAILED, EXIT_INTERRUPTED, EnsembleError
+from .errors import EXIT_BAD_INPUT, EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, EnsembleError
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -81,8 +81,10 @@ def _analysis_parsers(commands) -> None:
     for sub, passes in ((fit, "a fitted sweep point disagrees with its reference"),
                         (stability, "a measured limit disagrees with theory (the table's `agree` column)")):
         sub.add_argument("--check", action="store_true", help=f"exit 1 when {passes}")
-    for sub in (fit, stability):
-        sub.add_argument("result", type=Path, help="a result file written by `ensemble run`")
+    fit.add_argument("results", type=Path, nargs="+", metavar="RESULT",
+                     help="result files written by `ensemble run`; several (of one scene) are combined and fitted "
+                          "together, their fits written beside the first")
+    stability.add_argument("result", type=Path, help="a result file written by `ensemble run`")
     work.add_argument("results", type=Path, nargs="+", metavar="RESULT",
                       help="result files written by `ensemble run`, of one scene: several are charted together (a "
                            "line per method and precision or device where they differ); the table goes beside the "
@@ -349,6 +351,9 @@ def entry() -> None:
     except KeyboardInterrupt:  # before a run started or after it ended (a run reports its own)
         print("ensemble: interrupted", file=sys.stderr)
         status = EXIT_INTERRUPTED
+    except BrokenPipeError:  # `ensemble fit ... | head`: the reader has what it wanted
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # Python's flush at exit must not raise
+        status = EXIT_OK
     if status == EXIT_INTERRUPTED:
         signal.signal(signal.SIGINT, signal.SIG_IGN)
     raise SystemExit(status)

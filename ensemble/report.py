@@ -103,9 +103,9 @@ def rows(fits: xr.Dataset, value: str, label_of, against: str = "theory") -> lis
 def point_label(sel) -> str:
     """The sweep point of a selection of members, as "axis = value, ..." ("" without sweep axes).
 
-    A swept method is named (the dataset stores it as flags).
+    A swept method is named (the dataset stores it as flags); in combined results, the run (file) it came from.
     """
-    parts = []
+    parts = [f"run {int(sel['run_index'].values.flat[0])}"] if "run_index" in sel else []
     for axis in sel.attrs.get("sweep_axes", "").split():
         if axis not in sel:
             continue
@@ -192,15 +192,32 @@ def load_result(path: Path, fit_function):
         return None
 
 
+def load_results(paths: list[Path], fit_function):
+    """load_result of one path; of several, (their combination, fit_function of it) (ensemble.open), or None after
+    one line on stderr."""
+    if len(paths) == 1:
+        return load_result(paths[0], fit_function)
+    from .api import open as open_results
+    from .errors import EnsembleError
+
+    try:
+        ds = open_results(paths)
+        return ds, fit_function(ds)
+    except EnsembleError as e:
+        print(f"ensemble: error: {str(e).splitlines()[0]}", file=sys.stderr)
+        return None
+
+
 def fit_command(args) -> int:
     """`ensemble fit`: fit a result, print a table per fitted quantity, write the fits beside the result and, with
     --charts, the charts; the exit status (1: --check failed; 2: bad input, one line)."""
     from .api import fit
 
-    loaded = load_result(args.result, fit)
+    loaded = load_results(args.results, fit)
     if loaded is None:
         return EXIT_BAD_INPUT
     ds, fits = loaded
+    named = str(args.results[0]) + (f" and {len(args.results) - 1} more" if len(args.results) > 1 else "")
     if args.members and max(args.members) >= ds.sizes["member"]:
         print(f"ensemble: error: --members: {max(args.members)} is not in 0..{ds.sizes['member'] - 1}", file=sys.stderr)
         return EXIT_BAD_INPUT
@@ -213,7 +230,7 @@ def fit_command(args) -> int:
         found = [r for r in rows(fits, name, label, against) if np.isfinite(r.theory)]
         table += found
         what = fits[name].attrs.get("long_name", name)
-        print_table(f"{what} [{name}], {args.result} ({ds.attrs['method']}, {step})", found,
+        print_table(f"{what} [{name}], {named} ({ds.attrs['method']}, {step})", found,
                     fits[name].attrs.get("units", ""))
     if fits.attrs.get("members_not_ok"):
         print(f"{fits.attrs['members_not_ok']} members did not run to the end (their status is not ok) and are left "
@@ -222,7 +239,9 @@ def fit_command(args) -> int:
         print(f"{fits.attrs['members_failed']} members could not be fitted and are left out")
     if not table:
         print("no member could be fitted: nothing to compare with the theory")
-    _write(args.result, args.charts, fits, fits.attrs.get("fit", "fit"), "fits",
+    if len(args.results) > 1:
+        print("runs:", ", ".join(f"{k} {path}" for k, path in enumerate(args.results)))
+    _write(args.results[0], args.charts, fits, fits.attrs.get("fit", "fit"), "fits",
            lambda plt, stem: _fit_charts(plt, ds, fits, table, stem, args))
     return EXIT_CHECK_FAILED if args.check and not (table and all(r.checked for r in table)) else EXIT_OK
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -301,6 +302,33 @@ def test_fit_takes_combined_results(tmp_path):
     (tmp_path / "broken.nc").write_bytes(paths[0].read_bytes()[:1000])
     with pytest.raises(ensemble.EnsembleError, match="broken.nc: cannot be read as a result"):
         ensemble.fit([paths[0], tmp_path / "broken.nc"])
+
+
+def test_fit_command_takes_several_results(tmp_path, capsys):
+    """`ensemble fit A.nc B.nc`: the results combined, a row per run, the fits beside the first; results of two
+    scenes, or a file that is not one, are one line and exit 2."""
+    from ensemble.cli import main
+
+    from .conftest import top_runfile
+
+    root = Path(__file__).resolve().parent.parent
+
+    paths = []
+    for seed in (1, 2):
+        paths.append(tmp_path / f"r{seed}.nc")
+        ensemble.run(top_runfile(members=3, t_end=2.0, seed=seed), paths[-1], progress=False)
+    assert main(["fit", *map(str, paths), "--check", "--against", "method"]) == 0
+    printed = capsys.readouterr().out
+    assert "r1.nc and 1 more" in printed and re.search(r"^run 1 .* pass$", printed, flags=re.M), printed
+    fits = xr.load_dataset(tmp_path / "r1_tilt_decay.nc")
+    alone = np.concatenate([ensemble.fit(p).rate.values for p in paths])
+    assert np.array_equal(fits.rate.values, alone)
+    ensemble.run(root / "runs" / "two_mass.toml", tmp_path / "chain.nc", progress=False)
+    (tmp_path / "text.nc").write_text("not a result")
+    for other in ("chain.nc", "text.nc"):
+        assert main(["fit", str(paths[0]), str(tmp_path / other)]) == 2
+        said = capsys.readouterr().err.strip().splitlines()
+        assert len(said) == 1 and said[0].startswith("ensemble: error:"), said
 
 
 @pytest.mark.parametrize("damage", ["features", "nesting"])
