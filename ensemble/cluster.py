@@ -17,6 +17,7 @@ from __future__ import annotations
 import logging
 import os
 import signal
+from dataclasses import dataclass
 from importlib.metadata import version
 
 import numpy as np
@@ -105,52 +106,117 @@ class Collected:
         put_samples(self.samples, start - self.start, first, data)
 
 
-def compute_on(client, spec: Spec, todo: list[tuple[int, int]], parts, tally, bar, repeats: int, task) -> None:
-    """Compute the member ranges `todo` on the cluster with task(spec, start, stop, repeats) -> (saved variables,
-    records) (runner.chunk_task) and keep each as a part, in whatever order they finish; raises Incomplete naming
-    the ranges whose tasks failed (after Dask's retries), once the rest are in."""
+@dataclass
+class _Job:
+    """A member range the cluster computes: in one task, or (segmented) a task per segment, each continuing from
+    what the last one carried back, while the client writes the range's part as the segments come."""
+    start: int
+    stop: int
+    writer: object = None  # parts.PartWriter, from the first segment on
+    log: object = None  # parts.SegmentLog of the range
+    carried: dict | None = None  # what the next segment task continues from (parts.SegmentLog.kept)
+    worker: str | None = None  # where the last segment ran: the next one goes there if it can
+
+
+def compute_on(client, spec: Spec, todo: list[tuple[int, int]], parts, tally, bar, repeats: int, task,
+               segment: int | None = None) -> None:
+    """Compute the member ranges `todo` on the cluster and keep each as a part, in whatever order they finish;
+    raises Incomplete naming the ranges whose tasks failed (after Dask's retries), once the rest are in.
+
+    Whole records: task(spec, start, stop, repeats) -> (saved variables, records) (runner.chunk_task). Records
+    run in segments of `segment` samples (each range one launch's: runner.one_launch_ranges): task(spec, start,
+    stop, repeats, carried, segment) (runner.segment_task) computes one segment at a time, and each finished
+    segment is saved as a segment file (parts.SegmentLog) before the next task continues from it: a run stopped
+    inside a long member resumes from its last segment, here or on the cluster."""
     from dataclasses import replace
 
     from distributed import as_completed
 
+    segmented = segment is not None
     light = replace(spec, table=None)  # a few kB: each worker draws its own members (not scattered: a worker
     # that dies would take scattered data with it)
     limit = IN_FLIGHT_PER_THREAD * max(1, sum(client.nthreads().values()))
     pending = iter(todo)
-    ranges = {}
+    jobs: dict = {}
 
-    def submit():
+    def submit(job: _Job):
+        where = {"workers": [job.worker], "allow_other_workers": True} if job.worker else {}
+        more = [job.carried, segment] if segmented else []
+        future = client.submit(task, light, job.start, job.stop, repeats, *more, pure=False, **where)
+        jobs[future] = job
+        return future
+
+    def next_job():
         for start, stop in pending:
-            future = client.submit(task, light, start, stop, repeats, pure=False)
-            ranges[future] = (start, stop)
-            return future
+            job = _Job(start, stop)
+            if segmented:
+                job.writer = parts.begin(start, stop)
+                job.log = job.writer.log(start, stop)
+                job.carried = job.log.kept()
+            return submit(job)
         return None
 
-    running = as_completed([f for f in (submit() for _ in range(limit)) if f is not None])
+    running = as_completed([f for f in (next_job() for _ in range(limit)) if f is not None])
     failed, cause = [], ""
-    for future in running:
-        interrupts.check()  # a Ctrl-C that a library swallowed
-        start, stop = ranges.pop(future)
-        try:
-            samples, records = future.result()
-        except Exception as e:  # a worker that kept dying (KilledWorker), or the task raised
-            failed.append((start, stop))
-            cause = cause or f"{type(e).__name__}: {str(e).split('. ')[0]}".rstrip(": ")  # its first sentence
-        else:
-            writer = parts.begin(start, stop)
+    try:
+        for future in running:
+            interrupts.check()  # a Ctrl-C that a library swallowed
+            job = jobs.pop(future)
             try:
-                writer.write_samples(start, 0, samples)
-                writer.write(start, records)
-            except BaseException:
-                writer.abandon()
-                raise
-            writer.finish()
-            tally.add(records)
-            bar.n = parts.members_done()
-            bar.refresh()
-        future.release()
-        following = submit()
-        if following is not None:
-            running.add(following)
+                result = future.result()
+            except Exception as e:  # a worker that kept dying (KilledWorker), or the task raised
+                failed.append((job.start, job.stop))
+                cause = cause or f"{type(e).__name__}: {str(e).split('. ')[0]}".rstrip(": ")  # its first sentence
+                if job.writer is not None:
+                    job.writer.abandon()  # its segment files stay: --resume continues from them
+            else:
+                if segmented and "records" not in result:
+                    _keep_segment(job, result)
+                    running.add(submit(job))
+                else:
+                    _keep(job, result if segmented else {"samples": result[0], "records": result[1]}, parts)
+                    tally.add(job.writer.records)
+                    bar.n = parts.members_done()
+                    bar.refresh()
+                    following = next_job()
+                    if following is not None:
+                        running.add(following)
+            future.release()
+    except BaseException:
+        for job in jobs.values():
+            if job.writer is not None:
+                job.writer.abandon()
+        raise
     if failed:
         raise Incomplete(sorted(failed), cause)
+
+
+def _keep_segment(job: _Job, found: dict) -> None:
+    """Write a segment a task returned (runner.segment_task) and save it, then carry it to the next task."""
+    if found["restarted"]:  # the worker could not continue the kept segments (another kernel layout)
+        job.log.restart()
+        job.carried = None
+    first, samples, record = found["first"], found["samples"], found["record"]
+    job.writer.write_samples(job.start, first, samples)
+    job.log.save(first, samples, found["state"], record)
+    before = job.carried or {"amplitudes": [], "errors": []}
+    job.carried = {"sample": first + len(next(iter(samples.values()))[0]), "state": found["state"],
+                   "noise": record["noise"],
+                   **{name: before[name] + ([record[name]] if name in record else []) for name in ("amplitudes",
+                                                                                                   "errors")}}
+    job.worker = found["worker"]
+
+
+def _keep(job: _Job, found: dict, parts) -> None:
+    """Write a range's records (and its samples, when they come whole) and make it a part."""
+    writer = job.writer or parts.begin(job.start, job.stop)
+    job.writer = writer
+    try:
+        if "samples" in found:
+            writer.write_samples(job.start, 0, found["samples"])
+        writer.write(job.start, found["records"])
+    except BaseException:
+        writer.abandon()
+        job.writer = None
+        raise
+    writer.finish()

@@ -466,19 +466,35 @@ class SegmentLog:
         """Where the kept segments end, (sample, kernel state), with `record` (runner._Record) and the part's
         checksums restored to that point; None (and the segments deleted) when there are none, or when they are
         of another kernel layout than `call`'s."""
+        kept = self.kept()
+        if kept is None:
+            return None
+        if not call.takes(kept["state"]):
+            self.restart()
+            return None
+        record.restore(kept["noise"], kept["amplitudes"], kept["errors"])
+        return kept["sample"], kept["state"]
+
+    def kept(self) -> dict | None:
+        """What the kept segments leave to continue from, the part's checksums restored to that point: "sample"
+        (the first not done), "state" (launch.Launch.state()), "noise" (the noise streams' states), "amplitudes"
+        and "errors" (a list of pieces, one per segment); None when there are none."""
         if not self.paths:
             return None
         loaded = [_load(path) for path in self.paths]
-        state = {name: loaded[-1][name] for name in self.STATE if name in loaded[-1]}
-        if not call.takes(state):
-            self.discard()
-            return None
-        record.restore(json.loads(str(loaded[-1]["noise"])), [d["amplitudes"] for d in loaded if "amplitudes" in d],
-                       [d["errors"] for d in loaded if "errors" in d])
         for inside in (json.loads(str(d["inside"])) for d in loaded):
             for name in self.writer.sums:
                 self.writer.sums[name] = (self.writer.sums[name] + int(inside[f"samples_sum_{name}"], 16)) % 2**64
-        return Segment.of(self.paths[-1]).end, state
+        return {"sample": Segment.of(self.paths[-1]).end,
+                "state": {name: loaded[-1][name] for name in self.STATE if name in loaded[-1]},
+                "noise": json.loads(str(loaded[-1]["noise"])),
+                "amplitudes": [d["amplitudes"] for d in loaded if "amplitudes" in d],
+                "errors": [d["errors"] for d in loaded if "errors" in d]}
+
+    def restart(self) -> None:
+        """The range starts again from sample 0: its segments deleted, the part's checksums zeroed."""
+        self.discard()
+        self.writer.sums = dict.fromkeys(self.writer.sums, 0)
 
     def save(self, first: int, data: dict[str, np.ndarray], state: dict[str, np.ndarray], record: dict) -> None:
         """Samples first, first + 1, ... of the members, just written as `data` (name: (members, samples, ...)),

@@ -300,7 +300,7 @@ def _joined(pieces: list[np.ndarray], axis: int) -> np.ndarray:
 
 
 def integrate_members(spec: Spec, method: Method, values: dict[str, np.ndarray], first: int, write_samples,
-                      repeats: int = 0, watch=None, threads: int | None = None, log=None):
+                      repeats: int = 0, watch=None, threads: int | None = None, log=None, segment: int | None = None):
     """Integrate members first, first + 1, ... (one method and dt); returns finish(), which hands their saved
     variables to write_samples(first sample, variables) and returns the per-member records (member,).
 
@@ -310,7 +310,8 @@ def integrate_members(spec: Spec, method: Method, values: dict[str, np.ndarray],
     last segment the members continue. watch as launch.integrate's."""
     scene = spec.model
     settings = _settings(spec, method, values)
-    call = launch.Launch(scene, method, values, spec.constants, **settings, segment=segment_samples(spec))
+    segment = segment or segment_samples(spec)
+    call = launch.Launch(scene, method, values, spec.constants, **settings, segment=segment)
     record = _Record(spec, method, values, first, call.members, write_samples)
     whole = []
     resume = log and log.resumed(call, record)
@@ -363,6 +364,63 @@ def compute_chunk(spec: Spec, start: int, stop: int, sink, repeats: int = 0, wat
     return integrate_chunk(spec, start, stop, sink, repeats, watch, threads)()
 
 
+class _SegmentDone(Exception):
+    """A segment task's segment is finished (raised through integrate_members by CarriedLog.save)."""
+
+
+class CarriedLog:
+    """On a Dask worker, the segment log of one member range (as parts.SegmentLog locally), carried by the tasks
+    themselves: the range continues from `carried` (what parts.SegmentLog.kept gives, None: from the start), and
+    the integration stops once its next segment is finished, so that the client saves that segment before the
+    next task continues it."""
+
+    def __init__(self, carried: dict | None):
+        self.carried, self.finished, self.restarted = carried, None, False
+
+    def resumed(self, call, record) -> tuple[int, dict] | None:
+        if self.carried is None:
+            return None
+        if not call.takes(self.carried["state"]):  # a worker of another kernel layout: from the start
+            self.restarted = True
+            return None
+        record.restore(self.carried["noise"], self.carried["amplitudes"], self.carried["errors"])
+        return self.carried["sample"], self.carried["state"]
+
+    def save(self, first: int, data: dict[str, np.ndarray], state: dict[str, np.ndarray], record: dict) -> None:
+        self.finished = {"first": first, "samples": data, "state": state, "record": record,
+                         "restarted": self.restarted}
+        raise _SegmentDone
+
+
+def segment_task(spec: Spec, start: int, stop: int, repeats: int, carried: dict | None, segment: int) -> dict:
+    """On a Dask worker: the next segment (of `segment` samples, as the client cut them) of members start ..
+    stop - 1 (one launch's settings), continuing from `carried` (None: the first). Returns that segment ("first",
+    "samples": saved variables (members, samples, ...), "state", "record", "restarted": it started again from
+    sample 0) or, once every segment is done, the members' records ("records")."""
+    from distributed import get_worker
+
+    threads = max(1, launch.thread_count() // get_worker().state.nthreads)
+    values = members_table(spec, start, stop)
+    log = CarriedLog(carried)
+    try:
+        with tuning.members_block(few_members_block(spec)):  # as a local run would
+            finish = integrate_members(spec, METHODS[str(values["method"][0])], values, start, lambda *_: None,
+                                       repeats, threads=threads, log=log, segment=segment)
+            records = finish()
+    except _SegmentDone:
+        return {**log.finished, "worker": get_worker().address}
+    return {"records": records, "worker": get_worker().address}
+
+
+def one_launch_ranges(spec: Spec, todo: list[tuple[int, int]]) -> list[tuple[int, int]]:
+    """The member ranges `todo` cut where the launch's settings change (each a range segment_task takes)."""
+    out = []
+    for start, stop in todo:
+        table = members_table(spec, start, stop)
+        out += [(start + k0, start + k1) for k0, k1 in _same_settings(table, 0, stop - start)]
+    return out
+
+
 @dataclass
 class Tally:
     """What this invocation of a run computed: members, member-steps, the distinct step counts."""
@@ -382,8 +440,9 @@ def run(spec: Spec, out: str | Path, *, chunk: int | None = None, progress: bool
     """Integrate every member of `spec` and write the dataset to `out` (NetCDF); an existing `out` only with
     force. Finished chunks are kept as parts (ensemble.parts) until the result is complete: with `resume`, a run
     stopped midway computes only what its parts lack (raises parts.PartsError if they are another run's).
-    `client` (a dask.distributed Client) computes the chunks on its cluster with `task` (default chunk_task);
-    chunks that keep failing there raise Incomplete after the rest are done. `command` is recorded in the
+    `client` (a dask.distributed Client) computes the chunks on its cluster with `task` (default chunk_task, or
+    segment_task for records run in segments: cluster.compute_on); chunks that keep failing there raise
+    Incomplete after the rest are done. `command` is recorded in the
     file's history (default: `ensemble run <run file>`). A run of few, long members here runs them in a smaller
     block (few_members_block)."""
     with tuning.members_block(None if client else few_members_block(spec)):
@@ -446,7 +505,12 @@ def _run(spec: Spec, out: Path, chunk: int | None, progress: bool, force: bool, 
                 else:
                     from .cluster import compute_on
 
-                    compute_on(client, spec, todo, parts, tally, bar, repeats, task or chunk_task)
+                    segment = segment_samples(spec)
+                    if segment < spec.n_save:  # each finished segment a unit that resumes
+                        compute_on(client, spec, one_launch_ranges(spec, todo), parts, tally, bar, repeats,
+                                   task or segment_task, segment=segment)
+                    else:
+                        compute_on(client, spec, todo, parts, tally, bar, repeats, task or chunk_task)
             parts.settle()  # every part sealed before the result is complete
             interrupts.check()
             held.start()  # a Ctrl-C from here waits until the result is whole and the parts are gone
@@ -489,7 +553,8 @@ def chunk_task(spec: Spec, start: int, stop: int, repeats: int = 0):
 
     threads = max(1, launch.thread_count() // get_worker().state.nthreads)
     sink = Collected(spec, start, stop)
-    records = compute_chunk(spec, start, stop, sink, repeats, threads=threads)
+    with tuning.members_block(few_members_block(spec)):  # as a local run would
+        records = compute_chunk(spec, start, stop, sink, repeats, threads=threads)
     return sink.samples, records
 
 

@@ -88,6 +88,42 @@ def test_a_chunk_that_keeps_failing_is_named_and_resume_completes_it(client, tmp
     same_bits(remote, local)
 
 
+def test_a_long_member_resumes_from_its_last_segment_on_the_cluster(client, tmp_path, write_runfile, monkeypatch):
+    """Issue 50, item 9: on a cluster, records run in segments are computed a segment per task, and the client
+    saves each finished one (parts.SegmentLog) before the next task continues it. Stopped after 20 segments
+    (here, the client), the run resumes on the cluster from its last segment, with noise and growth along, to
+    the bits of a local run; the resume computes only the segments still missing."""
+    from ensemble import parts
+
+    from .test_long_members import NOISY_GROWING
+
+    monkeypatch.setattr(runner, "CHUNK_BYTES", 20_000)  # segments of 2 samples: 51 per group of members
+    path = write_runfile(NOISY_GROWING)
+    spec = load(path)
+    assert runner.segment_samples(spec) == 2 and spec.n_save == 101
+    local, remote = tmp_path / "local.nc", tmp_path / "remote.nc"
+    runner.run(spec, local, progress=False)
+    real, saved, stop_after = parts.SegmentLog.save, [], [20]
+
+    def save(self, *args):
+        real(self, *args)
+        saved.append(args[0])
+        if len(saved) == stop_after[0]:
+            raise KeyboardInterrupt
+
+    monkeypatch.setattr(parts.SegmentLog, "save", save)
+    with pytest.raises(KeyboardInterrupt):
+        runner.run(spec, remote, progress=False, client=client)
+    kept = len(list(folder_of(remote).glob("segment-*.npz")))
+    assert kept == 20 and not remote.exists()
+    saved.clear()
+    stop_after[0] = None
+    runner.run(spec, remote, progress=False, client=client, resume=True)
+    assert len(saved) == 2 * 51 - kept
+    same_bits(remote, local)
+    assert not folder_of(remote).exists()
+
+
 def test_workers_with_other_versions_are_refused(client, monkeypatch):
     monkeypatch.setattr(cluster, "__version__", "0.0.1")  # this process claims another ensemble than the workers
     with pytest.raises(cluster.ClusterError, match=r"has ensemble .* \(here 0.0.1\); install the same versions"):
