@@ -159,8 +159,15 @@ def fit(result) -> xr.Dataset:
                        f"gives one as fit(ds))")
     try:
         fits = scene.fit(ds.load())
+    except EnsembleError:
+        raise
     except KeyError as e:
         raise FitError(f"the result has no variable {e}, which a {ds.attrs.get('scene')} result has") from None
+    except Exception as e:  # noqa: BLE001 (a scene's own fit: one line that says whose it is)
+        raise FitError(f"the {ds.attrs.get('scene')} scene's fit(ds) raised {type(e).__name__}: {e}") from None
+    if not isinstance(fits, xr.Dataset):
+        raise FitError(f"the {ds.attrs.get('scene')} scene's fit(ds) returned a {type(fits).__name__}, not an "
+                       f"xarray.Dataset over member")
     for axis in ds.attrs.get("sweep_axes", "").split():
         fits[axis] = ds[axis]
     if "run_index" in ds and ds.sizes.get("run", 1) > 1:  # combined results: each sweep point is of one run

@@ -68,3 +68,26 @@ class HeldInterrupts:
     def __exit__(self, *exc):
         self.stop()
         return False
+
+
+def on_a_thread(function, *args):
+    """function(*args) on a daemon thread while the caller waits: a Ctrl-C reaches the caller at once, as a
+    KeyboardInterrupt between two waits, never inside a C callback of the function's (LLVM calls back into Python
+    while it compiles, and an interrupt raised there is only printed, "Exception ignored", and lost). The thread is
+    left to finish on its own or to end with the process. Returns what function returns, or raises what it
+    raised."""
+    outcome = {}
+
+    def call():
+        try:
+            outcome["value"] = function(*args)
+        except BaseException as error:  # noqa: BLE001 (handed to the caller)
+            outcome["error"] = error
+
+    worker = threading.Thread(target=call, daemon=True, name="ensemble-compile")
+    worker.start()
+    while worker.is_alive():
+        worker.join(0.1)
+    if "error" in outcome:
+        raise outcome["error"]
+    return outcome["value"]

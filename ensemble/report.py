@@ -251,7 +251,15 @@ def _fit_charts(plt, ds, fits, table, stem, args) -> list[Path]:
     from .scenes import of_result
 
     scene = of_result(ds.attrs)
-    paths = scene.charts(plt, ds, fits, table, stem, args.members) if hasattr(scene, "charts") else []
+    paths = []
+    if hasattr(scene, "charts"):
+        try:
+            paths = list(scene.charts(plt, ds, fits, table, stem, args.members))
+        except OSError:
+            raise
+        except Exception as e:  # noqa: BLE001 (a scene's own charts: one line, the other charts still drawn)
+            print(f"ensemble: error: the {ds.attrs.get('scene')} scene's charts raised {type(e).__name__}: {e}",
+                  file=sys.stderr)
     return [*paths, charts.draw_misses(plt, fits, stem, args.against, fits.attrs.get("fit", "fit"))]
 
 

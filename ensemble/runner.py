@@ -649,7 +649,8 @@ def prepare_kernels(spec: Spec, announce: bool = True) -> float:
     if announce:
         timer.start()
     start = time.perf_counter()
-    try:
+
+    def compile_all():
         for name in spec.methods:
             launch.prepare(scene, METHODS[name], spec.constants, device=spec.device, precision=spec.precision,
                            values=members_table(spec, 0, 1))
@@ -658,6 +659,9 @@ def prepare_kernels(spec: Spec, announce: bool = True) -> float:
         if spec.measure["growth"]:  # and the growth fit compile, too
             measured_growth(scene.amplitudes(one, members_table(spec, 0, 1), spec.constants), np.zeros(1),
                             np.ones(1))
+
+    try:
+        interrupts.on_a_thread(compile_all)
     finally:
         timer.cancel()
     seconds = time.perf_counter() - start

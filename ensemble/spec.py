@@ -679,6 +679,8 @@ def _build_table(spec: Spec, start: int = 0, stop: int | None = None) -> dict[st
             scene.check_exact(table)
     except ParameterError as e:
         raise SpecError(f"{'sweep' if e.name in spec.sweep else 'parameters'}.{e.name}", e.problem) from None
+    except SceneError as e:  # the scene's check raised something else than a ParameterError
+        raise SpecError("scene", str(e)) from None
     for name, mode in modes.items():
         if not 1 <= mode.number <= sizes["site"]:
             raise SpecError(f"parameters.{name}.mode", f"must be in 1..{sizes['site']}, got {mode.number}")

@@ -80,12 +80,16 @@ class KernelFolderError(EnsembleError):
 
 def private_kernel_folder() -> Path:
     """kernel_folder(), made if missing, readable and writable by this user alone (0700): its files are imported
-    as code. Where it cannot be made (a home folder that cannot be written, on some cluster nodes), this user's
-    folder in the machine's temporary folder. KernelFolderError, in one line, for a folder another user owns."""
+    as code. Where the default one cannot be made (a home folder that cannot be written, on some cluster nodes),
+    this user's folder in the machine's temporary folder; ENSEMBLE_KERNEL_DIR is used as given or not at all.
+    KernelFolderError, in one line, for a folder another user owns or one that cannot be made or kept private."""
     folder = kernel_folder()
     try:
         folder.mkdir(mode=0o700, parents=True, exist_ok=True)
-    except OSError:
+    except OSError as e:
+        if os.environ.get("ENSEMBLE_KERNEL_DIR"):
+            raise KernelFolderError(f"{folder}: cannot make the kernel folder ({e.strerror or e}); set "
+                                    f"ENSEMBLE_KERNEL_DIR to a folder you can write") from None
         folder = Path(tempfile.gettempdir()) / f"ensemble-kernels-{os.getuid()}"
         try:
             folder.mkdir(mode=0o700, exist_ok=True)
@@ -97,7 +101,11 @@ def private_kernel_folder() -> Path:
         raise KernelFolderError(f"{folder}: the kernel folder belongs to another user (uid {found.st_uid}) and its "
                                 f"files would run as your code; set ENSEMBLE_KERNEL_DIR to a folder of your own")
     if found.st_mode & 0o077:
-        os.chmod(folder, 0o700)  # one of ours made by an older version, or by a umask that lets others in
+        try:
+            os.chmod(folder, 0o700)  # one of ours made by an older version, or by a umask that lets others in
+        except OSError as e:
+            raise KernelFolderError(f"{folder}: cannot make the kernel folder private ({e.strerror or e}); set "
+                                    f"ENSEMBLE_KERNEL_DIR to a folder of your own") from None
     return folder
 
 

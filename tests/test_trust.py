@@ -151,6 +151,10 @@ def test_a_new_kernel_folder_is_private(tmp_path, monkeypatch):
     os.chmod(tmp_path / "open", 0o777)
     monkeypatch.setenv("ENSEMBLE_KERNEL_DIR", str(tmp_path / "open"))
     assert private_kernel_folder().stat().st_mode & 0o777 == 0o700
+    (tmp_path / "file").write_text("")
+    monkeypatch.setenv("ENSEMBLE_KERNEL_DIR", str(tmp_path / "file" / "kernels"))  # given, so used or refused
+    with pytest.raises(ensemble.EnsembleError, match=r"file/kernels: cannot make the kernel folder \(Not a dir"):
+        private_kernel_folder()
 
 
 @pytest.mark.parametrize("method, returned", [("rk4", "math.nan"), ("rk4", "-math.inf"), ("rk4", "x * math.nan"),
@@ -258,6 +262,7 @@ def test_an_rhs_that_raises_midway_is_one_line_and_exit_3(tmp_path, capsys):
     ('import numpy as np\ndef exact(t, x0, a):\n    return x0 * np.exp(-a * t), x0, x0\n',
      "exact must return a tuple of 1 arrays (one per state variable), got 3"),
     ('def exact(t, x0, a):\n    return (x0[:, :2],)\n', "exact's value 0 does not broadcast to (times, members)"),
+    ('def check(values):\n    raise Exception("no")\n', "check(values) raised Exception: no (a value no"),
 ])
 def test_a_scene_that_breaks_the_contract_is_one_line(tmp_path, capsys, change, expected):
     (tmp_path / "decay.py").write_text("RATE = 1.0\n" + DECAY + change)
@@ -265,6 +270,21 @@ def test_a_scene_that_breaks_the_contract_is_one_line(tmp_path, capsys, change, 
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and expected in err[0], err
     assert not list(tmp_path.glob("out.nc*"))
+
+
+@pytest.mark.parametrize("fit, expected", [
+    ('    raise ValueError("my fit broke")', "the decay scene's fit(ds) raised ValueError: my fit broke"),
+    ('    return {"rate": 1.0}', "the decay scene's fit(ds) returned a dict, not an xarray.Dataset over member"),
+])
+def test_a_scenes_fit_that_raises_or_returns_no_dataset_is_one_line(tmp_path, capsys, fit, expected):
+    (tmp_path / "decay.py").write_text("RATE = 1.0\nNAME = 'decay'\n" + DECAY + "\ndef fit(ds):\n" + fit + "\n")
+    out = tmp_path / "out.nc"
+    assert cli.main(["run", str(_runfile(tmp_path, "rk4", members=2)), "-o", str(out), "--quiet"]) == 0
+    assert cli.main(["fit", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [f"ensemble: error: {out}: {expected}"], err
+    with pytest.raises(ensemble.EnsembleError, match=re.escape(expected)):
+        ensemble.fit(out)
 
 
 @pytest.mark.parametrize("options, expected", [
@@ -372,6 +392,26 @@ def test_a_damaged_numba_cache_file_is_compiled_again_in_one_line(tmp_path, dama
         assert a.x.values.tobytes() == b.x.values.tobytes()
 
 
+def test_a_numba_cache_that_cannot_be_written_is_one_line(tmp_path, monkeypatch, capsys):
+    """A full disk under Numba's cache: the kernel compiled here runs, and one line says why the next run will
+    compile it again (it was "could not be loaded", after compiling it twice)."""
+    import errno
+
+    import numba.core.caching
+
+    def full(self, *args):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setenv("ENSEMBLE_KERNEL_DIR", str(tmp_path / "kernels"))
+    monkeypatch.setattr(numba.core.caching.IndexDataCacheFile, "save", full)
+    _scene(tmp_path, 0.75)  # a kernel of its own: compiled (and saved) in this test
+    ds = ensemble.run(str(_runfile(tmp_path, "rk4")), progress=False)
+    said = capsys.readouterr().err.strip().splitlines()
+    assert len(said) == 1 and said[0].startswith("ensemble: cannot write Numba's cache of the rk4 kernel in "), said
+    assert said[0].endswith("(No space left on device); every run compiles it again until it can"), said
+    np.testing.assert_allclose(_x_end(ds), _expected(ds, 0.75, "rk4"), rtol=1e-9)
+
+
 def test_saved_times_are_written_in_pieces_to_the_same_bits(tmp_path, monkeypatch):
     """A member may save 10^8 samples: the t coordinate is written TIMES_AT_ONCE at a time (a one-member run
     saving 2e7 samples peaked at 527 MB where it now takes 231, against 218 MB for 100 samples)."""
@@ -407,3 +447,37 @@ def test_a_scene_edited_during_a_run_stops_it_in_one_line(tmp_path, monkeypatch,
     assert cli.main(["run", str(runfile), "-o", str(out), "--quiet", "--resume"]) == 2
     line = capsys.readouterr().err.strip()
     assert "\n" not in line and "scene_sources_sha256 differs" in line, line
+
+
+def test_ctrl_c_while_compiling_stops_at_once(tmp_path, monkeypatch, capfd):
+    """Issue 50: Ctrl-C while LLVM compiled could land inside one of its callbacks into Python: ctypes printed
+    "Exception ignored" with a traceback, dropped the interrupt, and the run went on compiling (27 s). Compiling
+    now runs on a thread of its own, and the interrupt reaches the run at once. Here a stand-in compiler spends
+    its time in such callbacks."""
+    import ctypes
+    import signal
+    import threading
+    import time
+
+    from ensemble import runner
+    from ensemble.spec import load
+
+    _scene(tmp_path, 1.0)
+    spec = load(_runfile(tmp_path, "rk4"))
+    callback = ctypes.CFUNCTYPE(None)(lambda: time.sleep(0.5))  # as LLVM's object cache calls into Python
+
+    def compiling(*args, **kwargs):
+        for _ in range(6):
+            callback()
+
+    monkeypatch.setattr(runner.launch, "prepare", compiling)
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        threading.Timer(0.3, os.kill, (os.getpid(), signal.SIGINT)).start()
+        start = time.monotonic()
+        with pytest.raises(KeyboardInterrupt):
+            runner.prepare_kernels(spec, announce=False)
+        assert time.monotonic() - start < 1.5
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    assert "Exception ignored" not in capfd.readouterr().err

@@ -26,6 +26,7 @@ Numba's parallel lowering made compiling a kernel take twice as long
 """
 from __future__ import annotations
 
+import errno
 import math
 import sys
 import threading
@@ -288,26 +289,42 @@ def _numba_cause(message: str) -> str:
 
 def _call_fresh(scene, method: Method, constants: dict) -> None:
     """_call_once; where Numba's disk cache of the kernel cannot be loaded (a truncated or damaged file), its
-    cache files are deleted, with one line said, and the kernel compiled again."""
+    cache files are deleted, with one line said, and the kernel compiled again; where it cannot be written (a
+    full disk, a folder that cannot be written), one line says so and the kernel compiled here is used."""
     try:
         _call_once(scene, method, constants)
     except Exception as error:  # noqa: BLE001 (unpickling and LLVM's parser raise many kinds)
         files = cache_files(kernels.kernel(scene, method, constants).function)
-        if not files:  # nothing was cached: the kernel does not compile
+        cannot_write = isinstance(error, OSError) and error.errno in CANNOT_WRITE
+        if not files and not cannot_write:  # nothing was cached: the kernel does not compile
             raise
         for file in files:
             file.unlink(missing_ok=True)
-        print(f"ensemble: Numba's cache of the {method.name} kernel in {files[0].parent} could not be loaded "
-              f"({type(error).__name__}); compiling it again", file=sys.stderr, flush=True)
+        if cannot_write:
+            print(f"ensemble: cannot write Numba's cache of the {method.name} kernel in "
+                  f"{cache_folder(kernels.kernel(scene, method, constants).function)} ({error.strerror}); every "
+                  f"run compiles it again until it can", file=sys.stderr, flush=True)
+        else:
+            print(f"ensemble: Numba's cache of the {method.name} kernel in {files[0].parent} could not be loaded "
+                  f"({type(error).__name__}); compiling it again", file=sys.stderr, flush=True)
         _call_once(scene, method, constants)
+
+
+CANNOT_WRITE = {errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES, errno.EPERM}  # a cache that cannot be saved
+
+
+def cache_folder(dispatcher) -> Path | None:
+    """Where Numba keeps the disk cache of a compiled function (None if it has none)."""
+    files = getattr(getattr(dispatcher, "_cache", None), "_cache_file", None)  # numba.core.caching's
+    return Path(files._cache_path) if hasattr(files, "_index_name") else None
 
 
 def cache_files(dispatcher) -> list[Path]:
     """The files of Numba's disk cache of a compiled function (its index and its data)."""
-    files = getattr(getattr(dispatcher, "_cache", None), "_cache_file", None)  # numba.core.caching's
-    if not hasattr(files, "_index_name"):
+    folder = cache_folder(dispatcher)
+    if folder is None:
         return []
-    folder, stem = Path(files._cache_path), files._index_name.removesuffix(".nbi")
+    stem = dispatcher._cache._cache_file._index_name.removesuffix(".nbi")
     return sorted([*folder.glob(f"{stem}.nbi"), *folder.glob(f"{stem}.*.nbc")])
 
 

@@ -243,8 +243,15 @@ class UserScene:
         pass
 
     def check(self, values: dict[str, np.ndarray]) -> None:
-        if hasattr(self.module, "check"):
+        if not hasattr(self.module, "check"):
+            return
+        try:
             self.module.check(values)
+        except EnsembleError:
+            raise
+        except Exception as e:  # noqa: BLE001 (the user's code: one line that says whose it is)
+            raise SceneError(f"{self.PHYSICS}: check(values) raised {type(e).__name__}: {e} (a value no member "
+                             f"can have raises ensemble.ParameterError(name, problem))") from None
 
     def derive(self, values: dict, constants: dict) -> dict:
         return {}
