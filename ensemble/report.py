@@ -16,8 +16,9 @@ import xarray as xr
 from .api import not_a_result
 from .errors import EXIT_BAD_INPUT, EXIT_CHECK_FAILED, EXIT_OK
 
-Z_TOLERANCE = 5.0  # a sweep point passes when its mean is within this many standard errors of theory...
-RTOL = 1e-6  # ...or within this relative difference (noise-free runs have tiny standard errors)
+Z_TOLERANCE = 5.0  # a noisy sweep point passes when its mean is within this many standard errors of theory...
+RTOL = 1e-6  # ...or within this relative difference, a noise-free one (whose z has no meaning) only within it;
+#              a fitted variable's own `check_rtol` attribute replaces it
 
 
 @dataclass(frozen=True)
@@ -38,6 +39,9 @@ class Row:
     failed: int
     against: str = "theory"  # or "method": what miss, z and pass compare with
     excited: bool = True  # False: the run gave this row nothing to measure (a chain mode its start left silent)
+    noisy: bool = True  # the result has observation noise: z is compared with N(0, 1)
+    rtol: float = RTOL  # the relative miss that passes
+
 
     @property
     def reference(self) -> float:
@@ -45,6 +49,9 @@ class Row:
 
     @property
     def z(self) -> float:
+        """miss / error; NaN without noise, where the error is a fit's residual, not a distribution's width."""
+        if not self.noisy:
+            return np.nan
         return self.miss / self.error if self.error > 0 else np.inf * np.sign(self.miss)
 
     @property
@@ -60,8 +67,8 @@ class Row:
 
     @property
     def passed(self) -> bool:
-        close = abs(self.miss) <= RTOL * abs(self.reference)
-        return bool(self.members > 0 and (close or abs(self.z) <= Z_TOLERANCE))
+        close = abs(self.miss) <= self.rtol * abs(self.reference)
+        return bool(self.members > 0 and (close or (self.noisy and abs(self.z) <= Z_TOLERANCE)))
 
 
 def mean_with_error(values: np.ndarray, stderr: np.ndarray) -> tuple[float, float]:
@@ -75,19 +82,22 @@ def mean_with_error(values: np.ndarray, stderr: np.ndarray) -> tuple[float, floa
     return mean, max(propagated, scatter)
 
 
-def rows(fits: xr.Dataset, value: str, label_of, against: str = "theory") -> list[Row]:
-    """One row per sweep point (and per mode, for chains) of a fit dataset.
+def rows(fits: xr.Dataset, value: str, label_of, against: str = "theory", noisy: bool = True) -> list[Row]:
+    """One row per sweep point (and per mode, for chains) of a fit dataset; `noisy`: the result has observation
+    noise. A fitted value without `<value>_stderr` has its members' scatter alone as its error.
 
     label_of(selection, sweep point or None, mode number or None) names a row.
     """
     out = []
     points = np.unique(fits["sweep_point"].values) if "sweep_point" in fits.coords else [None]
     modes = fits["mode"].values if "mode" in fits[value].dims else [None]
+    rtol = float(fits[value].attrs.get("check_rtol", RTOL))
     for point in points:
         chosen = fits if point is None else fits.isel(member=np.flatnonzero(fits["sweep_point"].values == point))
         for mode in modes:
             sel = chosen if mode is None else chosen.sel(mode=mode)
-            v, e = sel[value].values, sel[f"{value}_stderr"].values
+            v = sel[value].values
+            e = sel[f"{value}_stderr"].values if f"{value}_stderr" in sel else np.zeros(v.shape)
             theory = sel[f"{value}_theory"].values
             method = sel[f"{value}_method"].values if f"{value}_method" in sel else np.full(v.shape, np.nan)
             ok = np.isfinite(v) & np.isfinite(e)
@@ -96,7 +106,7 @@ def rows(fits: xr.Dataset, value: str, label_of, against: str = "theory") -> lis
             excited = bool(np.any(sel["excited"].values)) if "excited" in sel else True
             out.append(Row(label_of(sel, point, mode), float(np.mean(v[ok])) if ok.any() else np.nan,
                            float(np.mean(theory[over])), float(np.mean(method[over])), miss, error,
-                           int(ok.sum()), int((~ok).sum()), against, excited))
+                           int(ok.sum()), int((~ok).sum()), against, excited, noisy, rtol))
     return out
 
 
@@ -119,21 +129,27 @@ def point_label(sel) -> str:
 
 def print_table(title: str, rows_: list[Row], units: str) -> None:
     against = rows_[0].against if rows_ else "theory"
+    noisy = rows_[0].noisy if rows_ else True
+    rtol = rows_[0].rtol if rows_ else RTOL
     print(title)
     print(f"{'':<24} {'fitted mean':>13} {'theory':>13} {'method shows':>13} {'miss':>10} {'+-':>9} {'z':>9}"
           f"  members  result")
     for r in rows_:
         failed = f" ({r.failed} not fitted)" if r.failed else ""
+        z = f"{r.z:>9.3g}" if noisy else f"{'-':>9}"
         print(f"{r.label:<24} {r.mean:>13.8g} {r.theory:>13.8g} {r.method:>13.8g} {r.miss:>10.2g} {r.error:>9.2g}"
-              f" {r.z:>9.3g}  {r.members:>7}  {r.result}{failed}")
+              f" {z}  {r.members:>7}  {r.result}{failed}")
     what = "theory" if against == "theory" else "what the method shows"
-    print(f"miss: mean over members of fitted - {what}, +- its standard error; z = miss / error. "
-          f"pass: |z| <= {Z_TOLERANCE:g} or |miss| <= {RTOL:g} relative. Units: {units}")
+    if noisy:
+        rule = f"z = miss / error. pass: |z| <= {Z_TOLERANCE:g} or |miss| <= {rtol:g} relative"
+    else:
+        rule = f"noise-free: no z. pass: |miss| <= {rtol:g} relative"
+    print(f"miss: mean over members of fitted - {what}, +- its standard error; {rule}. Units: {units}")
 
 
 def fitted_values(fits: xr.Dataset) -> list[str]:
-    """The fitted quantities of a fit dataset: variables with a _theory and a _stderr beside them."""
-    return [name for name in fits.data_vars if f"{name}_theory" in fits and f"{name}_stderr" in fits]
+    """The fitted quantities of a fit dataset: variables with a `<name>_theory` beside them."""
+    return [name for name in fits.data_vars if f"{name}_theory" in fits]
 
 
 def label(sel, point, mode) -> str:
@@ -218,6 +234,7 @@ def fit_command(args) -> int:
         return EXIT_BAD_INPUT
     ds, fits = loaded
     named = str(args.results[0]) + (f" and {len(args.results) - 1} more" if len(args.results) > 1 else "")
+    noisy = any(float(ds[name].attrs.get("observation_noise_stddev", 0.0)) > 0 for name in ds.data_vars)
     if args.members and max(args.members) >= ds.sizes["member"]:
         print(f"ensemble: error: --members: {max(args.members)} is not in 0..{ds.sizes['member'] - 1}", file=sys.stderr)
         return EXIT_BAD_INPUT
@@ -227,7 +244,7 @@ def fit_command(args) -> int:
         if not np.isfinite(fits[name].values).any() and not np.isfinite(fits[f"{name}_theory"].values).any():
             continue  # a quantity this result does not have (a body's wobble, when every member is spun to grow)
         against = args.against if f"{name}_method" in fits else "theory"
-        found = [r for r in rows(fits, name, label, against) if np.isfinite(r.theory)]
+        found = [r for r in rows(fits, name, label, against, noisy) if np.isfinite(r.theory)]
         table += found
         what = fits[name].attrs.get("long_name", name)
         print_table(f"{what} [{name}], {named} ({ds.attrs['method']}, {step})", found,
@@ -260,7 +277,8 @@ def _fit_charts(plt, ds, fits, table, stem, args) -> list[Path]:
         except Exception as e:  # noqa: BLE001 (a scene's own charts: one line, the other charts still drawn)
             print(f"ensemble: error: the {ds.attrs.get('scene')} scene's charts raised {type(e).__name__}: {e}",
                   file=sys.stderr)
-    return [*paths, charts.draw_misses(plt, fits, stem, args.against, fits.attrs.get("fit", "fit"))]
+    title = fits.attrs.get("fit", "fit").replace("_", " ")  # tilt_decay (the file's name): "tilt decay"
+    return [*paths, charts.draw_misses(plt, fits, stem, args.against, title)]
 
 
 def _write(result: Path, charts: Path | None, table: xr.Dataset, name: str, what: str, draw) -> None:

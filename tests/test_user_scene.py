@@ -106,7 +106,11 @@ def test_the_examples_run_file_runs_and_its_fit_finds_the_steady_amplitude(tmp_p
     assert ds.attrs["scene"] == "driven_oscillator" and ds.attrs["scene_source"] == str(EXAMPLE)
     assert ds["x"].attrs["units"] == "m" and ds["x"].dims == ("member", "t")
     fitted = resolve(str(EXAMPLE)).fit(ds)
-    np.testing.assert_allclose(fitted["amplitude"], fitted["amplitude_theory"], rtol=2e-3)
+    np.testing.assert_allclose(fitted["amplitude"], fitted["amplitude_theory"], rtol=1e-8)  # rk4 at dt = 0.01 s
+    checked = subprocess.run([sys.executable, "-m", "ensemble", "fit", str(tmp_path / "osc.nc"), "--check"],
+                             capture_output=True, text=True)  # the example passes its own check (issue 53)
+    assert checked.returncode == 0, checked.stdout + checked.stderr
+    assert checked.stdout.count(" pass\n") == 10 and "Omega = 0.95 " in checked.stdout, checked.stdout
 
 
 STABILITY_SCAN = f"""scene = "{EXAMPLE}"
