@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 import xarray as xr
 
-from .errors import EnsembleError
+from .errors import EXIT_BAD_INPUT, EnsembleError
 
 IN_MEMORY_BYTES = 2**30  # a result written to a temporary file is returned in memory up to this size
 
@@ -52,10 +52,11 @@ def run(spec, output=None, *, chunk: int | None = None, progress: bool = True, f
     if rounded != chunk:
         warnings.warn(f"chunk {chunk} is rounded up to {rounded}, whole kernel blocks", stacklevel=2)
         chunk = rounded
+    made = []
     try:
         if problem:
             raise preflight.RunRefused(problem)
-        out.parent.mkdir(parents=True, exist_ok=True)
+        made = preflight.make_folder(out.parent)
         try:
             with preflight.OutputLock(out):
                 run_spec(spec, out, chunk=chunk, progress=progress, force=force, resume=resume,
@@ -63,6 +64,10 @@ def run(spec, output=None, *, chunk: int | None = None, progress: bool = True, f
         except preflight.OutputLocked:
             raise preflight.RunRefused(f"{out}: another run is writing it now; wait for it or choose another "
                                        f"output") from None
+        except EnsembleError as e:
+            if e.exit_status == EXIT_BAD_INPUT:  # nothing run or written: nor a folder made for it
+                preflight.remove_empty(made)
+            raise
         if folder is None:
             return xr.open_dataset(out, engine="netcdf4")
         if out.stat().st_size <= IN_MEMORY_BYTES:
@@ -168,6 +173,9 @@ def fit(result) -> xr.Dataset:
     if not isinstance(fits, xr.Dataset):
         raise FitError(f"the {ds.attrs.get('scene')} scene's fit(ds) returned a {type(fits).__name__}, not an "
                        f"xarray.Dataset over member")
+    if "member" in fits.dims and "sweep_point" not in fits.coords:  # a scene's own fit: its rows per sweep point
+        fits = fits.assign_coords(sweep_point=ds["sweep_point"])
+        fits.attrs.setdefault("sweep_axes", ds.attrs.get("sweep_axes", ""))
     for axis in ds.attrs.get("sweep_axes", "").split():
         fits[axis] = ds[axis]
     if "run_index" in ds and ds.sizes.get("run", 1) > 1:  # combined results: each sweep point is of one run

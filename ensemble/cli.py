@@ -215,7 +215,7 @@ def _run(args) -> int:
               f"block computes all its members however few the chunk has", file=sys.stderr)
     # the command that finishes an interrupted run: a run that replaces an earlier result needs --force again
     resume = f"ensemble run {args.runfile} -o {out} --resume{' --force' if out.exists() else ''}"
-    client = None
+    client, made = None, []
     try:
         if args.scheduler or args.workers:  # before anything is made: a cluster that cannot be had leaves nothing
             from .cluster import ClusterError, connect
@@ -224,12 +224,15 @@ def _run(args) -> int:
                 client = connect(args.scheduler, args.workers)
             except ClusterError as e:
                 return _error(str(e))
-        out.parent.mkdir(parents=True, exist_ok=True)
+        made = preflight.make_folder(out.parent)
         with preflight.OutputLock(out):
             summary = run(spec, out, chunk=chunk, progress=not args.quiet, force=args.force,
                           resume=args.resume, command=args.command_line, client=client)
     except (preflight.OutputLocked, EnsembleError, KeyboardInterrupt, OSError, RuntimeError) as e:
-        return _stopped(e, args.runfile, out, resume, spec)
+        status = _stopped(e, args.runfile, out, resume, spec)
+        if status == EXIT_BAD_INPUT:  # nothing run or written: nor a folder made for it
+            preflight.remove_empty(made)
+        return status
     finally:
         if client is not None:
             from .cluster import close

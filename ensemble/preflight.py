@@ -11,6 +11,26 @@ from .errors import DeviceUnavailable, EnsembleError
 from .spec import DEVICES, PRECISIONS
 
 
+def make_folder(folder: Path) -> list[Path]:
+    """mkdir -p folder; returns the folders it made, innermost first (see remove_empty)."""
+    made = []
+    at = Path(folder)
+    while not at.exists():
+        made.append(at)
+        at = at.parent
+    folder.mkdir(parents=True, exist_ok=True)
+    return made
+
+
+def remove_empty(folders: list[Path]) -> None:
+    """Remove those of `folders` (innermost first) that are still empty: a run refused leaves nothing behind."""
+    for folder in folders:
+        try:
+            folder.rmdir()
+        except OSError:
+            return
+
+
 class RunRefused(EnsembleError):
     """A run refused before it started (nothing was computed or written); the message names what and where."""
 

@@ -55,21 +55,25 @@ class Summary:
 
     def __str__(self) -> str:
         failed = self.blew_up + self.underflowed
-        failures = (f"; {failed} of {self.members + self.resumed} members failed ({self.blew_up} blew up, "
+        failures = (f"; {failed} of {_members(self.members + self.resumed)} failed ({self.blew_up} blew up, "
                     f"{self.underflowed} step size underflow)" if failed else "")
         if self.complete_already:
-            return (f"complete already ({self.resumed} members): the run that made it was stopped before removing "
+            return (f"complete already ({_members(self.resumed)}): the run that made it was stopped before removing "
                     f"its parts, which are removed now")
         if not self.members:
-            return f"{self.resumed} members from an earlier run's parts, assembled in {self.seconds:.3g} s" + failures
+            return f"{_members(self.resumed)} from an earlier run's parts, assembled in {self.seconds:.3g} s" + failures
         if self.closed_form:
-            return f"{self.members} members (closed form) in {self.seconds:.3g} s" + failures
+            return f"{_members(self.members)} (closed form) in {self.seconds:.3g} s" + failures
         rate = self.member_steps / self.seconds if self.seconds > 0 else float("inf")
-        steps = (f"{self.members} members x {self.steps_each} steps" if self.steps_each is not None
-                 else f"{self.members} members, {self.member_steps} member-steps")
+        steps = (f"{_members(self.members)} x {self.steps_each} steps" if self.steps_each is not None
+                 else f"{_members(self.members)}, {self.member_steps} member-steps")
         compiling = f" (after {self.preparing:.3g} s compiling kernels)" if self.preparing > ANNOUNCE_AFTER else ""
         resumed = f" ({self.resumed} more from the parts of an earlier run)" if self.resumed else ""
         return f"{steps} in {self.seconds:.3g} s: {rate:.3g} member-steps/s" + compiling + resumed + failures
+
+
+def _members(count: int) -> str:
+    return f"{count} member" if count == 1 else f"{count} members"
 
 
 def _record_bytes(spec: Spec) -> tuple[int, int]:
@@ -470,7 +474,7 @@ FEW_MEMBERS_BLOCK = 8  # the smallest block: one AVX-512 vector of doubles, two 
 
 def _run(spec: Spec, out: Path, chunk: int | None, progress: bool, force: bool, resume: bool,
          command: str | None, client, task) -> Summary:
-    _tuned(progress)
+    tuning.prepare()
     if resume and Parts.left_complete(out, spec):
         Parts.discard(out)
         return Summary(0, 0, 0.0, resumed=spec.n_members, complete_already=True)
@@ -491,6 +495,9 @@ def _run(spec: Spec, out: Path, chunk: int | None, progress: bool, force: bool, 
         chunk = chunk or (dask_chunk(spec, sum(client.nthreads().values())) if client else default_chunk(spec))
         todo = [(j, min(j + chunk, stop)) for start, stop in parts.missing() for j in range(start, stop, chunk)]
         preparing = 0.0 if client or not todo else prepare_kernels(spec, announce=progress)
+        said = tuning.pending_line()  # once the kernels compile: bad input says its one line alone
+        if said and progress:
+            print(said, file=sys.stderr, flush=True)
         repeats = spec.measure["repeats"] if spec.measure["timing"] else 0
         tally = Tally()
         began = time.perf_counter()
@@ -526,14 +533,6 @@ def _run(spec: Spec, out: Path, chunk: int | None, progress: bool, force: bool, 
     if held.stop():
         raise LateInterrupt(summary)
     return summary
-
-
-def _tuned(progress: bool) -> None:
-    """Apply this machine's tuning (ensemble.tuning), saying once (with progress) what there is to say of it."""
-    tuning.prepare()
-    said = tuning.pending_line()
-    if said and progress:
-        print(said, file=sys.stderr, flush=True)
 
 
 def _summary(spec: Spec, tally: Tally, records: dict[str, np.ndarray], seconds: float, preparing: float) -> Summary:

@@ -263,6 +263,8 @@ def test_an_rhs_that_raises_midway_is_one_line_and_exit_3(tmp_path, capsys):
      "exact must return a tuple of 1 arrays (one per state variable), got 3"),
     ('def exact(t, x0, a):\n    return (x0[:, :2],)\n', "exact's value 0 does not broadcast to (times, members)"),
     ('def check(values):\n    raise Exception("no")\n', "check(values) raised Exception: no (a value no"),
+    ('def slow(x):\n    return x\ndef rhs(t, x, a):\n    return (-slow(a) * x,)\n',
+     "rhs calls slow, a plain Python function: decorate it with @numba.njit"),
 ])
 def test_a_scene_that_breaks_the_contract_is_one_line(tmp_path, capsys, change, expected):
     (tmp_path / "decay.py").write_text("RATE = 1.0\n" + DECAY + change)
@@ -270,6 +272,18 @@ def test_a_scene_that_breaks_the_contract_is_one_line(tmp_path, capsys, change, 
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and expected in err[0], err
     assert not list(tmp_path.glob("out.nc*"))
+
+
+def test_a_kernel_that_does_not_compile_leaves_no_folder_and_says_one_line(tmp_path, capsys):
+    """Bad input found while compiling: its one line alone (no notice of the machine's tuning before it), and no
+    empty output folder made for the result that never came."""
+    (tmp_path / "decay.py").write_text("import fractions\nRATE = 1.0\n" + DECAY.replace(
+        "return (-RATE * a * x,)", "return (-RATE * a * x * float(fractions.Fraction(1)),)"))  # Python, not Numba
+    out = tmp_path / "new" / "deeper" / "out.nc"
+    assert cli.main(["run", str(_runfile(tmp_path, "euler", members=2)), "-o", str(out)]) == 2
+    err = [line for line in capsys.readouterr().err.splitlines() if not line.startswith("compiling")]
+    assert len(err) == 1 and "the euler kernel does not compile" in err[0], err
+    assert not (tmp_path / "new").exists()
 
 
 @pytest.mark.parametrize("fit, expected", [

@@ -314,6 +314,25 @@ def _check_names(scene: UserScene) -> None:
             raise SceneError(f"{where}: PARAMETERS[{name!r}] is not an ensemble.Parameter")
 
 
+def _compiled_helpers(where: str, module: ModuleType, name: str) -> None:
+    """The functions of the scene's file that `name` calls (and that those call) are compiled with numba.njit: a
+    plain Python function inside a kernel fails to compile with a NameError that names no cause."""
+    seen, todo = set(), [getattr(module, name)]
+    while todo:
+        function = todo.pop()
+        code = getattr(function, "py_func", function).__code__
+        for called in code.co_names:
+            helper = module.__dict__.get(called)
+            if called in seen or helper is None:
+                continue
+            seen.add(called)
+            if inspect.isfunction(helper):
+                raise SceneError(f"{where}: {name} calls {called}, a plain Python function: decorate it with "
+                                 f"@numba.njit (the kernels are compiled, and call only compiled functions)")
+            if hasattr(helper, "py_func"):
+                todo.append(helper)
+
+
 def _check(scene: UserScene) -> None:
     """The contract's rules, each failure one line naming the scene's file and what is wrong."""
     where, module = scene.PHYSICS, scene.module
@@ -326,6 +345,7 @@ def _check(scene: UserScene) -> None:
         raise SceneError(f"{where}: {clash[0]!r} is both a state variable and a parameter")
     arguments = ["t", *scene.STATE, *scene.rates]
     _signature(where, module.rhs, "rhs", arguments)
+    _compiled_helpers(where, module, "rhs")
     _returns(where, module.rhs, "rhs", [0.0] + [1.0] * (len(arguments) - 1), len(scene.STATE))
     for piece in scene.PIECES:
         if not hasattr(module, piece):
@@ -336,6 +356,7 @@ def _check(scene: UserScene) -> None:
             _signature(where, function, name, ["tau", *scene.rates])
             factors = [f"f{i}" for i in range(len(_returns(where, function, name, [0.5] + [1.0] * len(scene.rates))))]
         _signature(where, getattr(module, piece), piece, ["tau", *scene.STATE, *scene.rates, *factors])
+        _compiled_helpers(where, module, piece)
         _returns(where, getattr(module, piece), piece, [0.5] + [1.0] * (len(arguments) - 1 + len(factors)),
                  len(scene.STATE))
     if hasattr(module, "exact"):
