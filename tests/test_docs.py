@@ -75,11 +75,28 @@ def help_texts(commands: list[tuple[str, ...]]) -> list[str]:
     return texts
 
 
-@pytest.mark.parametrize("doc", DOCS, ids=lambda p: str(p.relative_to(ROOT)))
+RUN_FILES = sorted((ROOT / "runs").glob("*.toml"))
+
+
+def runfile_commands(text: str) -> list[str]:
+    """The commands a run file's comments give: from `ensemble ` or `python ` to the end of the line or of the
+    code span, cut at a `&&`."""
+    comments = [line.split("#", 1)[1] for line in text.splitlines() if "#" in line]
+    found = [c for line in comments for c in re.findall(r"((?:ensemble|python) [^`;]*?)(?:`|$|\.(?: |$))", line)]
+    return [part.strip() for command in found for part in command.split("&&") if part.strip()]
+
+
+@pytest.mark.parametrize("doc", DOCS + RUN_FILES, ids=lambda p: str(p.relative_to(ROOT)))
 def test_every_command_in_the_docs_names_what_exists(doc):
     """`python analysis/X.py --option`: X.py exists and its --help lists --option; `ensemble SUB --option`:
-    `ensemble SUB --help` lists it; runs/X.toml: the run file exists."""
-    given = commands(doc.read_text())
+    `ensemble SUB --help` lists it; runs/X.toml: the run file exists. The same for the commands in run files'
+    comments, which are all `python analysis/...` or `ensemble ...`."""
+    if doc.suffix == ".toml":
+        given = runfile_commands(doc.read_text())
+        strays = [c for c in given if c.split()[0] == "python" and not c.split()[1].startswith("analysis/")]
+        assert not strays, f"{doc.name}: {strays}"
+    else:
+        given = commands(doc.read_text())
     options = {}  # the command whose --help must list them (script, or -m ensemble SUB): options
     for command in given:
         words = command.split()
@@ -96,7 +113,7 @@ def test_every_command_in_the_docs_names_what_exists(doc):
         for word in words:
             if word.startswith("runs/"):
                 assert (ROOT / word).is_file(), f"{doc.name}: {command}: no {word}"
-    assert any(key[0] == "-m" for key in options) or doc.parent.name in ("analysis", "bench", "docs"), given
+    assert any(key[0] == "-m" for key in options) or doc.parent.name in ("analysis", "bench", "docs", "runs"), given
     for (key, wanted), text in zip(options.items(), help_texts(list(options))):
         listed = set(re.findall(r"--[a-z][a-z0-9-]*", text))
         assert wanted <= listed, f"{doc.name}: {' '.join(key)} has no {sorted(wanted - listed)}"
