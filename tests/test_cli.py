@@ -44,6 +44,21 @@ def test_run_writes_the_default_output_and_a_summary(cli_run):
     assert "10 members x 1000 steps" in summary and "member-steps/s" in summary
 
 
+def test_progress_to_a_pipe_is_a_plain_line_now_and_then(tmp_path):
+    """Issue 53: stderr to a file got a carriage-return update every tenth of a second (67 bar lines for a 5.7 s
+    run). Off a terminal the bar writes a line each tenth of the run or half minute, and the summary ends it."""
+    path = tmp_path / "run.toml"
+    path.write_text(top_runfile(members=1000, t_end=1.0, save_dt=0.1))
+    done = subprocess.run([sys.executable, "-m", "ensemble", "run", str(path), "-o", str(tmp_path / "out.nc"),
+                           "--chunk", "128"], capture_output=True, text=True)  # stderr a pipe
+    assert done.returncode == 0 and "\r" not in done.stderr, repr(done.stderr)
+    progress = [line for line in done.stderr.splitlines() if " of 1000 members after " in line]
+    assert 1 <= len(progress) <= 10, done.stderr
+    fractions = [int(line.split("%")[0]) for line in progress]
+    assert fractions == sorted(fractions) and all(b - a >= 10 for a, b in zip(fractions, fractions[1:])), progress
+    assert done.stdout.startswith(f"wrote {tmp_path / 'out.nc'}: 1000 members x 1000 steps")
+
+
 def test_dataset_follows_the_contract(cli_run):
     folder, _ = cli_run
     ds = xr.open_dataset(folder / "results" / "sweep.nc")
