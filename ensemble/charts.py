@@ -201,7 +201,7 @@ def draw_energy_drift(plt, ds: xr.Dataset, points: xr.Dataset, drift_step: float
         return None
     ax.set_xlabel("t (s)")
     ax.set_ylabel("|E / E(0) - 1|")
-    ax.set_title(f"energy drift, one member per method (upper envelope; < {FLOOR:g} drawn at {FLOOR:g})",
+    ax.set_title(f"energy drift, one member per method\n(upper envelope; < {FLOOR:g} drawn at {FLOOR:g})",
                  fontsize=9)
     ax.legend(**LEGEND_OUTSIDE)
     return save(plt, fig, stem, "energy")

@@ -3,6 +3,7 @@ theory."""
 from __future__ import annotations
 
 import numpy as np
+from scipy.signal.windows import blackmanharris
 
 from ... import charts
 
@@ -16,9 +17,11 @@ def draw(plt, ds, fits, rows, stem, members=None) -> list:
     x = ds["x"].values[member]
     pad = 8 * t.size
     omega = 2 * np.pi * np.fft.rfftfreq(pad, t[1] - t[0])
-    power = np.sum(np.abs(np.fft.rfft((x - x.mean(axis=0)) * np.hanning(t.size)[:, None], pad, axis=0)) ** 2, axis=1)
+    window = blackmanharris(t.size)[:, None]  # the fit's (ensemble.fitting.member_frequencies)
+    power = np.sum(np.abs(np.fft.rfft((x - x.mean(axis=0)) * window, pad, axis=0)) ** 2, axis=1)
     fig, ax = plt.subplots(figsize=(8, 4.5), layout="constrained")
-    ax.semilogy(omega, power / power.max(), lw=1, label=f"member {member}, summed over sites (Hann window)")
+    ax.semilogy(omega, power / power.max(), lw=1,
+                label=f"member {member}, summed over sites (Blackman-Harris window, as the fit's peak search)")
     theory = fits["frequency_theory"].values[member]
     for j, w in enumerate(theory):
         ax.axvline(w, color="k", ls="--", lw=0.7, label="theory (eigenfrequencies)" if j == 0 else None)
@@ -31,8 +34,11 @@ def draw(plt, ds, fits, rows, stem, members=None) -> list:
     ax.set_title("spectrum of x(t)")
     ax.legend(**charts.LEGEND_OUTSIDE)
     paths = [charts.save(plt, fig, stem, "spectrum")]
-    series = [(fits["frequency_theory"].values.ravel(), fits["frequency"].values.ravel(),
-               fits["frequency_stderr"].values.ravel(), "fitted, every member and mode")]
+    theory = fits["frequency_theory"].values.ravel()
+    series = [(theory, fits["frequency"].values.ravel(), fits["frequency_stderr"].values.ravel(),
+               "fitted, every member and mode")]
+    if "frequency_method" in fits and np.isfinite(fits["frequency_method"].values).any():
+        series.append((theory, fits["frequency_method"].values.ravel(), None, f"what {ds.attrs['method']} shows"))
     paths.append(charts.against_theory(plt, stem, "frequencies", series, theory_label="eigenfrequency",
                                        quantity="frequency", units="rad/s",
                                        title="fitted frequencies against theory"))
