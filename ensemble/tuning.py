@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
 import os
 import platform
 import tempfile
@@ -299,33 +300,43 @@ def tune(say=print) -> tuple[Tuning, dict]:
     rates = {bits: {case: sum(r[bits][case] for r in rounds) / ROUNDS for case in rounds[0][bits]} for bits in widths}
     for bits in widths:
         say(f"  vectors {width_name(bits):>14}: " + ", ".join(f"{k} {v:.3g}" for k, v in rates[bits].items()))
-    score = {bits: (rates[bits][f"top rk4, block {BLOCK}"] * rates[bits]["chain verlet N=16"]) ** 0.5
-             for bits in widths}
+    spread = max(_spread([r[bits] for r in rounds]) for bits in widths)
+    score = {bits: math.prod(rates[bits].values()) ** (1 / len(rates[bits])) for bits in widths}
     # LLVM's own choice is one of the two widths: a width is kept only when clearly faster than the other
-    bits = _pick({None: min(score.values()), **score}, None)
+    bits = _pick({None: min(score.values()), **score}, None, spread)
     tops, layouts = top_layouts(BLOCK), sites_layouts()
     _compiled([(bits, tops[1:], False, layouts[1:2]), (bits, [], False, layouts[2:])])  # tops[0] is compiled
     timed = [_measured(bits, tops, chain=False, layouts=layouts) for _ in range(ROUNDS)]
     mean = {name: sum(t[name] for t in timed) / ROUNDS for name in timed[0]}
+    spread = max(spread, _spread(timed))
     say("  generated kernels under the chosen vectors: " + ", ".join(f"{top_name(*top)} {mean[top_name(*top)]:.3g}"
                                                                      for top in tops))
     say("  fields of sites under the chosen vectors: " + ", ".join(f"{layout_name(*lay)} {mean[layout_name(*lay)]:.3g}"
                                                                     for lay in layouts))
+    say(f"  spread of one case's rate between rounds: up to {spread:.3f}x; a candidate replaces the engine's rule "
+        f"only when faster than it by more (and by {CANDIDATE_MARGIN}x at least)")
     blocks = {b: mean[top_name(b, False)] for b, outside in tops if not outside}
-    block = _pick(blocks, BLOCK)
-    outside = _pick({outside: mean[top_name(BLOCK, outside)] for b, outside in tops if b == BLOCK}, False)
-    short = _pick({b: mean[layout_name(n, b, fused)] for n, b, fused in layouts if n == 16}, layouts[0][1])
-    fused = _pick({fused: mean[layout_name(n, b, fused)] for n, b, fused in layouts if n > 16}, True)
-    measured = {"vectors": {width_name(b): rates[b] for b in widths}, "layouts": mean,
+    block = _pick(blocks, BLOCK, spread)
+    outside = _pick({outside: mean[top_name(BLOCK, outside)] for b, outside in tops if b == BLOCK}, False, spread)
+    short = _pick({b: mean[layout_name(n, b, fused)] for n, b, fused in layouts if n == 16}, layouts[0][1], spread)
+    fused = _pick({fused: mean[layout_name(n, b, fused)] for n, b, fused in layouts if n > 16}, True, spread)
+    measured = {"vectors": {width_name(b): rates[b] for b in widths}, "layouts": mean, "spread": spread,
                 "units": "member-steps/s (top), mass-steps/s (chain)"}
     return Tuning(vector_bits=bits, block=None if block == BLOCK else block, stages_outside=outside or None,
                   sites_block=None if short == layouts[0][1] else short,
                   fused_sweeps=None if fused else False), measured
 
 
-def _pick(rates: dict, default):
-    """The fastest candidate of `rates`, where any but `default` must be CANDIDATE_MARGIN faster to win."""
-    return max(rates, key=lambda c: rates[c] / (1.0 if c == default else CANDIDATE_MARGIN))
+def _pick(rates: dict, default, spread: float = 1.0):
+    """The fastest candidate of `rates`, where any but `default` must be faster by CANDIDATE_MARGIN and by more
+    than `spread` (how far one case's rate moved between rounds) to win."""
+    margin = max(CANDIDATE_MARGIN, spread)
+    return max(rates, key=lambda c: rates[c] / (1.0 if c == default else margin))
+
+
+def _spread(rounds: list[dict]) -> float:
+    """The largest ratio between two rounds' rates of one case (rounds: case -> rate, one dict a round)."""
+    return max(max(r[case] for r in rounds) / min(r[case] for r in rounds) for case in rounds[0])
 
 
 def top_layouts(block: int) -> list[tuple[int, bool]]:
@@ -416,14 +427,14 @@ def measure_here(bits: int | None, tops: list, chain: bool = True, layouts: list
         apply(Tuning(block=block, stages_outside=outside or None))
         calls[top_name(block, outside)] = (launch.Launch(SCENES["top"], METHODS["rk4"], top, {}, n_save=2,
                                                           save_dt=steps * 1e-3, dt=1e-3), members * steps)
-    chains = [(16, None, None)] if chain else []
+    chains = [(16, None, None), (2, None, None)] if chain else []  # a short chain too: its rate falls otherwise
     for n, block, fused in chains + [tuple(layout) for layout in layouts]:
         # sites_block sets the block where rows fit the L1 cache; at 1024 sites the rule gives the layout's own
         apply(Tuning(sites_block=block, fused_sweeps=None if fused is not False else False))
         count = 65536 // n  # chains
         masses = {"m": np.ones((count, n)), "k": np.ones((count, n + 1)), "x0": rng.normal(0, 0.1, (count, n)),
                   "v0": np.zeros((count, n))}
-        name = "chain verlet N=16" if block is None else layout_name(n, block, fused)
+        name = f"chain verlet N={n}" if block is None else layout_name(n, block, fused)
         calls[name] = (launch.Launch(SCENES["chain"], METHODS["verlet"], masses, {"n": n, "boundary": "fixed"},
                                      n_save=2, save_dt=steps * 0.01, dt=0.01), n * count * steps)
     apply(None)
