@@ -44,8 +44,11 @@ def _parser() -> argparse.ArgumentParser:
                        help="compute on an existing Dask cluster, e.g. tcp://HOST:8786 (needs the dask extra)")
     where.add_argument("--workers", type=positive_int, metavar="N",
                        help="compute on N Dask worker processes started here (needs the dask extra)")
-    commands.add_parser("methods", help="list the integration methods",
-                        description="List each method: order, symplectic or not, and the scenes it applies to.")
+    methods = commands.add_parser("methods", help="list the integration methods",
+                                  description="List each method: order, symplectic or not, and the scenes it "
+                                              "applies to; with a scene (a built-in's name or a scene file of "
+                                              "your own), the methods that apply to it.")
+    methods.add_argument("scene", nargs="?", help="a scene: top, chain, body, or the path of a scene file")
     tune = commands.add_parser("tune", help="time this machine's kernel layouts and keep the fastest (once per "
                                             "machine, about a minute)",
                                description="Time the candidate kernel layouts on this machine (vector width, "
@@ -288,15 +291,23 @@ def _tune(args) -> int:
     return 0
 
 
-def _methods() -> int:
+def _methods(scene: str | None = None) -> int:
     from .methods import METHODS
-    from .scenes import scenes_of
+    from .scenes import SceneError, absolute, applies, resolve, scenes_of
 
+    chosen = list(METHODS.values())
+    if scene is not None:
+        try:
+            model = resolve(absolute(scene, Path.cwd()))
+        except SceneError as e:
+            return _error(str(e))
+        chosen = [m for m in chosen if applies(m, model)]
+        print(f"methods for {model.NAME} ({scene}):")
     width = max(len(name) for name in METHODS)
     scenes = {name: ",".join(scenes_of(m)) for name, m in METHODS.items()}
     across = max(len("scenes"), *map(len, scenes.values()))
     print(f"{'method':<{width}} {'order':>5}  {'symplectic':<10}  {'scenes':<{across}} description")
-    for m in METHODS.values():
+    for m in chosen:
         order = "exact" if m.order is None else str(m.order)
         print(f"{m.name:<{width}} {order:>5}  {'yes' if m.symplectic else 'no':<10}  {scenes[m.name]:<{across}} "
               f"{m.summary}")
@@ -381,4 +392,4 @@ def main(argv: list[str] | None = None) -> int:
         _quiet_numpy()
         return {"fit": report.fit_command, "stability": report.stability_command,
                 "work-precision": report.work_precision_command}[args.command](args)
-    return _methods()
+    return _methods(args.scene)

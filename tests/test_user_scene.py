@@ -279,3 +279,13 @@ def test_an_edited_scene_file_compiles_anew_and_an_unchanged_one_loads_from_the_
     scene.write_text(text.replace("FACTOR", "2.0"))
     edited, recompiled = run("edited.nc")
     assert edited == pytest.approx(np.exp(-2.0), rel=1e-7) and len(recompiled) > len(compiled)
+
+
+def test_methods_lists_what_applies_to_a_scene_of_ones_own(capsys):
+    """`ensemble methods SCENE.py` (issue 53): the example has a closed form and no pieces to split."""
+    from ensemble import cli
+
+    assert cli.main(["methods", str(EXAMPLE)]) == 0
+    listed = [line.split()[0] for line in capsys.readouterr().out.splitlines()[2:]]
+    assert listed == ["euler", "rk4", "dopri5", "exact"], listed
+    assert cli.main(["methods", "no_such_scene.py"]) == 2
