@@ -30,13 +30,17 @@ class NotAResult(EnsembleError, ValueError):
 
 
 def run(spec, output=None, *, chunk: int | None = None, progress: bool = True, force: bool = False,
-        resume: bool = False, device: str | None = None, precision: str | None = None) -> xr.Dataset:
+        resume: bool = False, device: str | None = None, precision: str | None = None,
+        values: dict | None = None) -> xr.Dataset:
     """Integrate every member of a run and return its dataset.
 
     spec: a run file's path (a Path, or a str ending in .toml), run-file TOML text, or the same as a dict.
     output: the NetCDF file to write (its folder is made). None writes a temporary file: a result of at most
     IN_MEMORY_BYTES comes back in memory and the file is deleted; a larger one is opened lazily from the file,
     which is deleted when Python exits. chunk, force, resume and device are `ensemble run`'s options.
+    values: parameters given member by member, name -> an array over the run's members (or over a sweep
+    point's, each point taking the same), one value or one row (per site or spring) a member: start states you
+    computed, say. They replace what the run file says; the result's `parameters_given` attribute names them.
     The progress bar is a notebook widget in Jupyter (with ipywidgets) and text elsewhere.
     """
     from . import preflight
@@ -45,6 +49,10 @@ def run(spec, output=None, *, chunk: int | None = None, progress: bool = True, f
     if chunk is not None and (isinstance(chunk, bool) or not isinstance(chunk, (int, np.integer))):
         raise preflight.RunRefused(f"chunk: a whole number of members, not {chunk!r}")
     spec, runfile, described = _spec(spec)
+    if values:
+        from .spec import with_values
+
+        spec = with_values(spec, values)
     folder = Path(tempfile.mkdtemp(prefix="ensemble-")) if output is None else None
     out = folder / "result.nc" if folder else Path(output)
     spec, rounded, problem = preflight.check(spec, out, runfile, device=device, chunk=chunk, force=force,

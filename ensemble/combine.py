@@ -19,8 +19,8 @@ class CombineError(EnsembleError, ValueError):
 
 
 #: Global attributes kept per run, as variables over `run`.
-RUN_ATTRIBUTES = ("title", "history", "source", "method", "spec", "seed", "members_written", "members_per_sweep_point",
-                  "sweep_axes", "scene_sources_sha256", "engine_sha256", "compile_target")
+RUN_ATTRIBUTES = ("title", "history", "source", "method", "spec", "seed", "draws", "members_written",
+                  "members_per_sweep_point", "sweep_axes", "scene_sources_sha256", "engine_sha256", "compile_target")
 
 
 def open_results(paths) -> xr.Dataset:

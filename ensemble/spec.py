@@ -18,6 +18,8 @@ Parsing imports no Numba: a run file is checked before any kernel is loaded.
 from __future__ import annotations
 
 import difflib
+import hashlib
+import io
 import itertools
 import math
 import re
@@ -49,8 +51,9 @@ class SpecError(EnsembleError, ValueError):
 TOP_LEVEL = {
     "scene": str, "method": str, "dt": float, "rtol": float, "atol": float, "t_end": float, "save_dt": float,
     "members": int, "seed": int, "save": list, "parameters": dict, "sweep": (dict, list), "observe": dict,
-    "measure": dict, "blowup_factor": float, "device": str, "precision": str,
+    "measure": dict, "blowup_factor": float, "device": str, "precision": str, "draws": str,
 }
+DRAWS = ("each member", "same at every point")  # whose stream a member's drawn parameters come from
 DEVICES = ("cpu", "cuda")  # where the kernels run: this machine's cores, or an NVIDIA GPU (ensemble.engine.gpu)
 PRECISIONS = ("float64", "float32")  # float32 on a GPU only
 OBSERVE_KEYS = ("noise",)
@@ -73,6 +76,22 @@ EIGENPROBLEM_ARRAYS = 3  # n x n arrays per member while mode starts are solved:
 MAX_REPEATS = 100  # [measure] repeats: timed kernel calls per chunk
 MAX_NOISE = 1e150  # observation noise's stddev: far below it a Gaussian draw (at most ~40 sd) stays finite
 POLYGON = "polygon"  # a shape given by its mass and its vertices (a run constant), not by lengths
+
+
+@dataclass(frozen=True, eq=False)
+class PerMember:
+    """A parameter's values given member by member (a run file's `{ file = "x0.npy" }`, or ensemble.run's
+    `values=`): (values, ...) over the run's members, or over the replicas of a sweep point (each point then
+    takes the same), with one value, or one per site or spring, each."""
+    values: np.ndarray
+    source: str  # where they came from: the file and its SHA-256, or "ensemble.run(values=...)"
+
+    def take(self, start: int, n: int, shape: tuple[int, ...], members: int, n_members: int) -> np.ndarray:
+        """Members start .. start + n - 1's values, of shape `shape` (n, ...)."""
+        index = np.arange(start, start + n)
+        if len(self.values) != n_members:
+            index = index % members
+        return np.asarray(self.values[index], dtype=float).reshape(shape)
 
 
 @dataclass(frozen=True)
@@ -119,6 +138,7 @@ class Spec:
     blowup_factor: float = DEFAULT_BLOWUP_FACTOR  # a member fails when its state outgrows its start this much
     device: str = "cpu"  # one of DEVICES
     precision: str = "float64"  # one of PRECISIONS
+    draws: str = "each member"  # one of DRAWS: "same at every point" gives replica r the same draws at every point
     table: dict[str, np.ndarray] | None = field(default=None, repr=False, compare=False)  # see members_table
     # a user's scene: the identity of its sources when the run file was read (model refuses any other)
     sources: str | None = field(default=None, compare=False)
@@ -231,6 +251,10 @@ def _distribution(key: str, value: dict) -> Distribution:
 
 def _parameter(key: str, value, parameter: Parameter):
     """A parameter's value in one of the forms its declaration accepts."""
+    if isinstance(value, PerMember):
+        if parameter.integer or parameter.choices or parameter.constant:
+            raise SpecError(key, "is one value for the whole run, not one per member")
+        return value
     if parameter.integer:
         return _expect(key, value, int)
     if parameter.choices:
@@ -241,6 +265,8 @@ def _parameter(key: str, value, parameter: Parameter):
         if set(value) != {"mode", "amplitude"}:
             raise SpecError(key, f"a mode start is {{ mode = j, amplitude = A }}, got {value!r}")
         return Mode(_expect(f"{key}.mode", value["mode"], int), _expect(f"{key}.amplitude", value["amplitude"], float))
+    if isinstance(value, dict) and "file" in value:
+        raise SpecError(key, f"values from a file are {{ file = \"NAME.npy\" }} alone, got {value!r}")
     if isinstance(value, dict):
         return _distribution(key, value)
     if isinstance(value, list) and parameter.per:
@@ -336,12 +362,16 @@ def parse(text: str, path: str = "<string>") -> Spec:
         raise SpecError("blowup_factor", f"must be > 1 (a member fails when its state grows this many times its "
                                          f"size at the start), got {blowup_factor!r}")
     device, precision = _device(values.get("device", "cpu"), values.get("precision", "float64"))
+    draws = values.get("draws", DRAWS[0])
+    if draws not in DRAWS:
+        raise SpecError("draws", f"must be one of {', '.join(map(repr, DRAWS))}, got {draws!r}")
     noise = _noise(values.get("observe", {}), save, module)
     measure = _measure(values.get("measure", {}), module)
 
+    folder = Path(path).parent if path != "<string>" else Path.cwd()
     parameters, grids, constants, declared = _parameters(
-        values.get("parameters", {}), [{k: v for k, v in grid.items() if k not in SETTINGS} for grid in grids],
-        labels, module)
+        _from_files(values.get("parameters", {}), folder), [{k: v for k, v in grid.items() if k not in SETTINGS}
+                                                           for grid in grids], labels, module)
     for grid, axes in zip(grids, setting_axes):
         grid.update(axes)
 
@@ -349,7 +379,7 @@ def parse(text: str, path: str = "<string>") -> Spec:
                 t_end=t_end, save_dt=save_dt, members=values["members"], seed=values["seed"], save=save,
                 parameters=parameters, grids=tuple(grids), constants=constants, noise=noise,
                 declared=declared, rtol=settings.get("rtol"), atol=settings.get("atol"), measure=measure,
-                blowup_factor=blowup_factor, device=device, precision=precision,
+                blowup_factor=blowup_factor, device=device, precision=precision, draws=draws,
                 sources=identity(module.module) if hasattr(module, "module") else None)
     sizes = module.sizes(constants)
     need = 8 * spec.n_members * (sum(sizes[p.per] if p.per else 1 for p in declared.values()) + len(SETTINGS) + 1)
@@ -359,6 +389,27 @@ def parse(text: str, path: str = "<string>") -> Spec:
                                    f"{MAX_TABLE_BYTES / 1e9:.3g} GB")
     # Drawing every member's values checks them; keep them, as mode starts may cost an eigensolve each.
     return replace(spec, table=_build_table(spec))
+
+
+def _from_files(given: dict, folder: Path) -> dict:
+    """[parameters] with each `{ file = "NAME.npy" }` read (a path relative to the run file's folder): PerMember
+    values, checked to be finite numbers."""
+    out = dict(given)
+    for name, value in given.items():
+        if not (isinstance(value, dict) and set(value) == {"file"}):
+            continue
+        where = folder / _expect(f"parameters.{name}.file", value["file"], str)
+        try:
+            data = where.read_bytes()
+            values = np.load(io.BytesIO(data), allow_pickle=False)
+        except (OSError, ValueError, EOFError) as e:
+            raise SpecError(f"parameters.{name}.file", f"{where}: cannot be read as a .npy array "
+                                                       f"({getattr(e, 'strerror', None) or e})") from None
+        if values.dtype.kind not in "iuf" or values.ndim not in (1, 2) or not np.all(np.isfinite(values)):
+            raise SpecError(f"parameters.{name}.file", f"{where}: must hold finite numbers, one row a member, "
+                                                       f"got {values.dtype} of shape {values.shape}")
+        out[name] = PerMember(values.astype(float), f"{where} (sha256 {hashlib.sha256(data).hexdigest()[:16]})")
+    return out
 
 
 def _device(device: str, precision: str) -> tuple[str, str]:
@@ -629,6 +680,33 @@ def load(path: str | Path) -> Spec:
     return parse(text, str(path))
 
 
+def with_values(spec: Spec, values: dict) -> Spec:
+    """`spec` with parameters given member by member (name: an array over the run's members, or over a sweep
+    point's, each member a number or a row of one per site or spring), in place of what the run file says."""
+    parameters, declared = dict(spec.parameters), dict(spec.declared)
+    for name, given in values.items():
+        known = spec.model.PARAMETERS.get(name)
+        if known is None or name in spec.sweep or known.constant:
+            raise SpecError(f"values.{name}", f"is not a per-member parameter of the {spec.model.NAME} scene that "
+                                              f"this run does not sweep")
+        try:
+            array = np.array(given, dtype=float)
+        except (TypeError, ValueError):
+            raise SpecError(f"values.{name}", f"must be an array of numbers, got {type(given).__name__}") from None
+        if array.ndim not in (1, 2) or not np.all(np.isfinite(array)):
+            raise SpecError(f"values.{name}", f"must be finite numbers, one row a member, got shape {array.shape}")
+        parameters[name] = _parameter(f"values.{name}", PerMember(array, "ensemble.run(values=...)"), known)
+        declared[name] = known
+    spec = replace(spec, parameters=parameters, declared=declared)
+    return replace(spec, table=_build_table(spec))
+
+
+def given_values(spec: Spec) -> str:
+    """Where the parameters given member by member came from ("" if none): "name: source; ..."."""
+    return "; ".join(f"{name}: {value.source}" for name, value in spec.parameters.items()
+                     if isinstance(value, PerMember))
+
+
 def members_table(spec: Spec, start: int = 0, stop: int | None = None) -> dict[str, np.ndarray]:
     """The parameter values of members start .. stop - 1 (default: every member), each an array over those
     members: a slice of the table parse built, or (a spec sent without it, as to a Dask worker) built for
@@ -710,9 +788,27 @@ def _values(spec: Spec, name: str, value, start: int, n: int, sizes: dict[str, i
     """Parameter `name` of members start .. start + n - 1: (n,), or (n, sites or springs) for a per-site one."""
     per = spec.declared[name].per
     shape = (n, sizes[per]) if per else (n,)
+    if isinstance(value, PerMember):
+        given = value.values.shape
+        if given[0] not in (spec.n_members, spec.members) or given[1:] != shape[1:]:
+            each = f"{shape[1]} values (one per {per})" if per else "one value"
+            point = f", or of the {spec.members} of a sweep point" if spec.members != spec.n_members else ""
+            raise SpecError(f"parameters.{name}", f"{value.source}: has shape {given}; it takes {each} for each of "
+                                                  f"the run's {spec.n_members} members{point}")
+        return value.take(start, n, shape, spec.members, spec.n_members)
     if isinstance(value, Distribution):
         per_member = math.prod(shape[1:])
-        return value.draw(spec.seed, name, start * per_member, n * per_member).reshape(shape)
+        if spec.draws == "each member":
+            return value.draw(spec.seed, name, start * per_member, n * per_member).reshape(shape)
+        out = np.empty((n, per_member))  # member j draws what replica j % members draws at the first point
+        done = 0
+        while done < n:
+            replica = (start + done) % spec.members
+            run = min(n - done, spec.members - replica)
+            out[done:done + run] = value.draw(spec.seed, name, replica * per_member, run * per_member).reshape(
+                run, per_member)
+            done += run
+        return out.reshape(shape)
     if isinstance(value, list):
         if len(value) != shape[1]:
             raise SpecError(f"parameters.{name}", f"has {len(value)} values; one per {per} takes {shape[1]}")

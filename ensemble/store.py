@@ -22,7 +22,7 @@ import numpy as np
 from . import __version__
 from .errors import EnsembleError
 from .results import Status
-from .spec import Spec
+from .spec import Spec, given_values
 
 TIMES_AT_ONCE = 2**20  # saved times written at a time: a member may save 10^8 samples
 
@@ -124,6 +124,8 @@ def global_attributes(spec: Spec, table: dict[str, np.ndarray], command: str | N
         "save_dt": spec.save_dt,
         "t_end": spec.t_end,
         "seed": spec.seed,
+        "draws": spec.draws,
+        **({"parameters_given": given_values(spec)} if given_values(spec) else {}),  # files or the API
         "blowup_factor": spec.blowup_factor,
         "device": device_name(spec.device),  # where the kernels ran, the GPU's name included
         **kernels_identity(spec),

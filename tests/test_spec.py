@@ -275,3 +275,47 @@ def test_a_first_trial_step_longer_than_the_run_still_runs(write_runfile, tmp_pa
 
     with xr.open_dataset(out) as ds:
         assert np.allclose(ds.omega, reference.omega, rtol=1e-6, atol=1e-6)
+
+
+def test_the_same_draws_at_every_sweep_point_when_asked():
+    """`draws = "same at every point"` (issue 53): replica r of every sweep point draws what replica r of the
+    first does, so that a sweep over methods compares the same members; one sweep point draws as by default, and
+    any range of members is drawn as in the whole table."""
+    text = top_runfile(method=None, members=5, sweep={"method": ["rk4", "split2", "euler"]})
+    default, shared = parse(text), parse(text.replace("seed = 7", 'seed = 7\ndraws = "same at every point"'))
+    tilt = members_table(shared)["tilt0"].reshape(3, 5)
+    assert np.array_equal(tilt, np.tile(members_table(default)["tilt0"][:5], (3, 1)))
+    assert not np.array_equal(members_table(default)["tilt0"][5:10], tilt[0])  # by default each member its own
+    assert np.array_equal(members_table(shared, 3, 12)["tilt0"], tilt.ravel()[3:12])
+    single = top_runfile(members=5)
+    assert np.array_equal(members_table(parse(single.replace("seed = 7", 'seed = 7\ndraws = "same at every point"')))
+                          ["tilt0"], members_table(parse(single))["tilt0"])
+    with pytest.raises(SpecError, match="draws: must be one of 'each member', 'same at every point'"):
+        parse(text.replace("seed = 7", 'seed = 7\ndraws = "shared"'))
+
+
+def test_parameters_given_member_by_member_from_a_file_or_the_api(tmp_path):
+    """A run file's `x0 = { file = "x0.npy" }` and ensemble.run(values=...) (issue 53): one row a member, of the
+    whole run or of a sweep point; the result records where they came from; a wrong shape or a file that is not
+    an array of numbers is one line naming the key."""
+    import hashlib
+
+    import ensemble
+
+    tilts = np.linspace(0.02, 0.2, 4)
+    np.save(tmp_path / "tilt.npy", tilts)
+    text = top_runfile(members=4, parameters={"tilt0": None, "c": None}, sweep={"c": [1e-4, 2e-4]})
+    (tmp_path / "run.toml").write_text(text.replace("[parameters]", '[parameters]\ntilt0 = { file = "tilt.npy" }'))
+    ds = ensemble.run(tmp_path / "run.toml", progress=False)
+    assert np.array_equal(ds.tilt0.values, np.tile(tilts, 2))  # one row per replica: each point takes them
+    digest = hashlib.sha256((tmp_path / "tilt.npy").read_bytes()).hexdigest()[:16]
+    assert ds.attrs["parameters_given"] == f"tilt0: {tmp_path / 'tilt.npy'} (sha256 {digest})"
+    every = np.linspace(0.05, 0.15, 8)
+    ds = ensemble.run(tmp_path / "run.toml", progress=False, values={"tilt0": every})
+    assert np.array_equal(ds.tilt0.values, every) and ds.attrs["parameters_given"] == "tilt0: ensemble.run(values=...)"
+    with pytest.raises(ensemble.EnsembleError, match=r"has shape \(3,\); it takes one value for each of the run's 8 "
+                                                     r"members, or of the 4 of a sweep point"):
+        ensemble.run(tmp_path / "run.toml", progress=False, values={"tilt0": every[:3]})
+    np.save(tmp_path / "tilt.npy", np.array(["a", "b"]))
+    with pytest.raises(SpecError, match=r"parameters.tilt0.file: .*tilt.npy: must hold finite numbers"):
+        spec_module.load(tmp_path / "run.toml")
