@@ -128,40 +128,16 @@ def compute_on(client, spec: Spec, todo: list[tuple[int, int]], parts, tally, ba
     stop, repeats, carried, segment) (runner.segment_task) computes one segment at a time, and each finished
     segment is saved as a segment file (parts.SegmentLog) before the next task continues from it: a run stopped
     inside a long member resumes from its last segment, here or on the cluster."""
-    from dataclasses import replace
-
     from distributed import as_completed
 
-    segmented = segment is not None
-    light = replace(spec, table=None)  # a few kB: each worker draws its own members (not scattered: a worker
-    # that dies would take scattered data with it)
+    jobs = _Jobs(client, spec, todo, parts, repeats, task, segment)
     limit = IN_FLIGHT_PER_THREAD * max(1, sum(client.nthreads().values()))
-    pending = iter(todo)
-    jobs: dict = {}
-
-    def submit(job: _Job):
-        where = {"workers": [job.worker], "allow_other_workers": True} if job.worker else {}
-        more = [job.carried, segment] if segmented else []
-        future = client.submit(task, light, job.start, job.stop, repeats, *more, pure=False, **where)
-        jobs[future] = job
-        return future
-
-    def next_job():
-        for start, stop in pending:
-            job = _Job(start, stop)
-            if segmented:
-                job.writer = parts.begin(start, stop)
-                job.log = job.writer.log(start, stop)
-                job.carried = job.log.kept()
-            return submit(job)
-        return None
-
-    running = as_completed([f for f in (next_job() for _ in range(limit)) if f is not None])
+    running = as_completed([f for f in (jobs.next() for _ in range(limit)) if f is not None])
     failed, cause = [], ""
     try:
         for future in running:
             interrupts.check()  # a Ctrl-C that a library swallowed
-            job = jobs.pop(future)
+            job = jobs.running.pop(future)
             try:
                 result = future.result()
             except Exception as e:  # a worker that kept dying (KilledWorker), or the task raised
@@ -169,26 +145,68 @@ def compute_on(client, spec: Spec, todo: list[tuple[int, int]], parts, tally, ba
                 cause = cause or f"{type(e).__name__}: {str(e).split('. ')[0]}".rstrip(": ")  # its first sentence
                 if job.writer is not None:
                     job.writer.abandon()  # its segment files stay: --resume continues from them
+                following = jobs.next()
             else:
-                if segmented and "records" not in result:
-                    _keep_segment(job, result)
-                    running.add(submit(job))
-                else:
-                    _keep(job, result if segmented else {"samples": result[0], "records": result[1]}, parts)
+                following = jobs.finished(job, result)
+                if job.writer is not None and job.writer.done:
                     tally.add(job.writer.records)
                     bar.n = parts.members_done()
                     bar.refresh()
-                    following = next_job()
-                    if following is not None:
-                        running.add(following)
             future.release()
+            if following is not None:
+                running.add(following)
     except BaseException:
-        for job in jobs.values():
-            if job.writer is not None:
-                job.writer.abandon()
+        jobs.abandon()
         raise
     if failed:
         raise Incomplete(sorted(failed), cause)
+
+
+class _Jobs:
+    """The member ranges a run computes on the cluster: submitted as tasks, a few at a time (next), and kept as
+    their results come (finished)."""
+
+    def __init__(self, client, spec: Spec, todo: list[tuple[int, int]], parts, repeats: int, task,
+                 segment: int | None):
+        from dataclasses import replace
+
+        self.client, self.parts, self.repeats, self.task, self.segment = client, parts, repeats, task, segment
+        self.light = replace(spec, table=None)  # a few kB: each worker draws its own members (not scattered: a
+        # worker that dies would take scattered data with it)
+        self.pending, self.running = iter(todo), {}
+
+    def submit(self, job: _Job):
+        where = {"workers": [job.worker], "allow_other_workers": True} if job.worker else {}
+        more = [job.carried, self.segment] if self.segment is not None else []
+        future = self.client.submit(self.task, self.light, job.start, job.stop, self.repeats, *more, pure=False,
+                                    **where)
+        self.running[future] = job
+        return future
+
+    def next(self):
+        """The next range's first task (None when every range has been submitted)."""
+        for start, stop in self.pending:
+            job = _Job(start, stop)
+            if self.segment is not None:
+                job.writer = self.parts.begin(start, stop)
+                job.log = job.writer.log(start, stop)
+                job.carried = job.log.kept()
+            return self.submit(job)
+        return None
+
+    def finished(self, job: _Job, result):
+        """Keep what a task returned; the task to run next (the range's next segment, or the next range's)."""
+        if self.segment is not None and "records" not in result:
+            _keep_segment(job, result)
+            return self.submit(job)
+        _keep(job, result if self.segment is not None else {"samples": result[0], "records": result[1]},
+              self.parts)
+        return self.next()
+
+    def abandon(self) -> None:
+        for job in self.running.values():
+            if job.writer is not None:
+                job.writer.abandon()
 
 
 def _keep_segment(job: _Job, found: dict) -> None:

@@ -393,6 +393,7 @@ class PartWriter:
         self._nc = None
         self.sums = {name: 0 for name in parts.spec.save}  # sample_sum of each saved variable's samples
         self.logs: list[SegmentLog] = []
+        self.done = False  # finish() was called: the part is on its way to being sealed
 
     @property
     def nc(self) -> netCDF4.Dataset:
@@ -434,6 +435,7 @@ class PartWriter:
         self.parts._sealing.submit(fsync_path, self.parts.result.temporary, release=True)
         future = self.parts._sealing.submit(self._seal)
         self.parts._sealed.append((self.start, self.stop, future))
+        self.done = True
 
     def _seal(self) -> Part:
         path = self.parts.folder / f"members-{self.start:012d}-{self.stop:012d}-{_checksum(self.temporary)}.nc"

@@ -495,9 +495,7 @@ def _run(spec: Spec, out: Path, chunk: int | None, progress: bool, force: bool, 
         chunk = chunk or (dask_chunk(spec, sum(client.nthreads().values())) if client else default_chunk(spec))
         todo = [(j, min(j + chunk, stop)) for start, stop in parts.missing() for j in range(start, stop, chunk)]
         preparing = 0.0 if client or not todo else prepare_kernels(spec, announce=progress)
-        said = tuning.pending_line()  # once the kernels compile: bad input says its one line alone
-        if said and progress:
-            print(said, file=sys.stderr, flush=True)
+        _say_tuning(progress)
         repeats = spec.measure["repeats"] if spec.measure["timing"] else 0
         tally = Tally()
         began = time.perf_counter()
@@ -510,14 +508,7 @@ def _run(spec: Spec, out: Path, chunk: int | None, progress: bool, force: bool, 
                 if client is None:
                     _compute_here(spec, todo, parts, tally, bar, repeats)
                 else:
-                    from .cluster import compute_on
-
-                    segment = segment_samples(spec)
-                    if segment < spec.n_save:  # each finished segment a unit that resumes
-                        compute_on(client, spec, one_launch_ranges(spec, todo), parts, tally, bar, repeats,
-                                   task or segment_task, segment=segment)
-                    else:
-                        compute_on(client, spec, todo, parts, tally, bar, repeats, task or chunk_task)
+                    _compute_on_cluster(client, spec, todo, parts, tally, bar, repeats, task)
             parts.settle()  # every part sealed before the result is complete
             interrupts.check()
             held.start()  # a Ctrl-C from here waits until the result is whole and the parts are gone
@@ -533,6 +524,28 @@ def _run(spec: Spec, out: Path, chunk: int | None, progress: bool, force: bool, 
     if held.stop():
         raise LateInterrupt(summary)
     return summary
+
+
+def _say_tuning(progress: bool) -> None:
+    """What there is to say of this machine's tuning (ensemble.tuning), once the kernels compile: bad input found
+    while compiling says its one line alone."""
+    said = tuning.pending_line()
+    if said and progress:
+        print(said, file=sys.stderr, flush=True)
+
+
+def _compute_on_cluster(client, spec: Spec, todo: list[tuple[int, int]], parts: Parts, tally: Tally, bar: Bar,
+                        repeats: int, task) -> None:
+    """cluster.compute_on: whole chunks a task each, or, for records run in segments, a segment a task (each
+    finished segment a unit that resumes)."""
+    from .cluster import compute_on
+
+    segment = segment_samples(spec)
+    if segment < spec.n_save:
+        compute_on(client, spec, one_launch_ranges(spec, todo), parts, tally, bar, repeats, task or segment_task,
+                   segment=segment)
+    else:
+        compute_on(client, spec, todo, parts, tally, bar, repeats, task or chunk_task)
 
 
 def _summary(spec: Spec, tally: Tally, records: dict[str, np.ndarray], seconds: float, preparing: float) -> Summary:

@@ -346,32 +346,20 @@ def parse(text: str, path: str = "<string>") -> Spec:
     _check_bounds(values["seed"], t_end, [axes.get("dt", (settings["dt"],) if "dt" in settings else ())
                                           for axes in setting_axes])
 
-    save = tuple(values.get("save", module.OBSERVABLES))
-    for i, name in enumerate(save):
-        if name not in module.OBSERVABLES:
-            raise SpecError(f"save[{i}]", f"unknown variable {name!r}; {module.NAME} saves: "
-                                          f"{', '.join(module.OBSERVABLES)}")
-    if not save:
-        raise SpecError("save", "must name at least one variable")
-    for i, name in enumerate(save):
-        if name in save[:i]:
-            raise SpecError(f"save[{i}]", f"names {name!r} a second time")
+    save = _save(tuple(values.get("save", module.OBSERVABLES)), module)
 
     blowup_factor = values.get("blowup_factor", DEFAULT_BLOWUP_FACTOR)
     if not blowup_factor > 1:
         raise SpecError("blowup_factor", f"must be > 1 (a member fails when its state grows this many times its "
                                          f"size at the start), got {blowup_factor!r}")
     device, precision = _device(values.get("device", "cpu"), values.get("precision", "float64"))
-    draws = values.get("draws", DRAWS[0])
-    if draws not in DRAWS:
-        raise SpecError("draws", f"must be one of {', '.join(map(repr, DRAWS))}, got {draws!r}")
+    draws = _one_of("draws", values.get("draws", DRAWS[0]), DRAWS)
     noise = _noise(values.get("observe", {}), save, module)
     measure = _measure(values.get("measure", {}), module)
 
-    folder = Path(path).parent if path != "<string>" else Path.cwd()
     parameters, grids, constants, declared = _parameters(
-        _from_files(values.get("parameters", {}), folder), [{k: v for k, v in grid.items() if k not in SETTINGS}
-                                                           for grid in grids], labels, module)
+        _from_files(values.get("parameters", {}), Path(path).parent if path != "<string>" else Path.cwd()),
+        [{k: v for k, v in grid.items() if k not in SETTINGS} for grid in grids], labels, module)
     for grid, axes in zip(grids, setting_axes):
         grid.update(axes)
 
@@ -389,6 +377,25 @@ def parse(text: str, path: str = "<string>") -> Spec:
                                    f"{MAX_TABLE_BYTES / 1e9:.3g} GB")
     # Drawing every member's values checks them; keep them, as mode starts may cost an eigensolve each.
     return replace(spec, table=_build_table(spec))
+
+
+def _save(save: tuple, module) -> tuple[str, ...]:
+    """The variables a run saves, checked: at least one, each the scene's, none twice."""
+    for i, name in enumerate(save):
+        if name not in module.OBSERVABLES:
+            raise SpecError(f"save[{i}]", f"unknown variable {name!r}; {module.NAME} saves: "
+                                          f"{', '.join(module.OBSERVABLES)}")
+        if name in save[:i]:
+            raise SpecError(f"save[{i}]", f"names {name!r} a second time")
+    if not save:
+        raise SpecError("save", "must name at least one variable")
+    return save
+
+
+def _one_of(key: str, value: str, allowed: tuple[str, ...]) -> str:
+    if value not in allowed:
+        raise SpecError(key, f"must be one of {', '.join(map(repr, allowed))}, got {value!r}")
+    return value
 
 
 def _from_files(given: dict, folder: Path) -> dict:
