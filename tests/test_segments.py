@@ -8,16 +8,27 @@ from ensemble.methods import METHODS
 from ensemble.scenes import SCENES
 from ensemble.spec import members_table, parse
 from tests.conftest import top_runfile
-from tests.test_cache import RUNS, SWEEPS
 from tests.test_chain import LONG
+
+SWEEPS = '[[sweep]]\nmethod = ["{0}", "{1}"]\n\n[[sweep]]\nmethod = ["dopri5"]\nrtol = [1e-8]\n'
+# Every kernel family of the body and the chain: a Runge-Kutta tableau, a splitting and the adaptive pair (the
+# chain's of runs/work_precision_chain.toml's 4 masses: kernels the suite compiles once)
+RUNS = {
+    "body": ('scene = "body"\ndt = 1e-3\nt_end = 0.3\nsave_dt = 0.1\nmembers = 130\nseed = 3\n[parameters]\n'
+             'lambda1 = 1.0\nlambda2 = 2.0\nlambda3 = 2.5\nc = 0.1\nspin0 = 10.0\ntilt0 = { uniform = [0.1, 1.0] }\n'
+             'azimuth0 = 0.5\nspin_axis = 2\n' + SWEEPS.format("euler", "rotations2")),
+    "chain": ('scene = "chain"\ndt = 0.01\nt_end = 1.0\nsave_dt = 0.5\nmembers = 70\nseed = 3\n[parameters]\nn = 4\n'
+              'm = { uniform = [0.5, 2.0] }\nk = 1.0\nx0 = { normal = [0.0, 0.1] }\nv0 = 0.0\n'
+              + SWEEPS.format("euler", "symplectic_euler")),
+}
 
 TEXTS = {
     "top": top_runfile(members=130, t_end=1.0, save_dt=0.1, method=None) + SWEEPS.format("rk4", "split2"),
     "body": RUNS["body"],
     "chain": RUNS["chain"],
-    "long chain": RUNS["chain"].split("[[sweep]]")[0].replace("n = 1\n", f"n = {LONG}\n")
+    "long chain": RUNS["chain"].split("[[sweep]]")[0].replace("n = 4\n", f"n = {LONG}\n")
     + '[[sweep]]\nmethod = ["verlet"]\n',  # the tiled splitting kernel
-    "long ring": RUNS["chain"].split("[[sweep]]")[0].replace("n = 1\n", f"n = {LONG}\nboundary = \"periodic\"\n")
+    "long ring": RUNS["chain"].split("[[sweep]]")[0].replace("n = 4\n", f"n = {LONG}\nboundary = \"periodic\"\n")
     + '[[sweep]]\nmethod = ["verlet"]\n',  # its halos live in the work arrays a later call continues from
 }
 

@@ -1,9 +1,11 @@
 """The same bits for every compile target this host can run (issue 50): each method family's kernel, compiled for
 the host's own CPU and for other CPU names through NUMBA_CPU_NAME (AVX2's generic x86-64-v3, and AVX-512's
-skylake-avx512 where the host has it), gives the same results to the last bit. Fast
-math is contraction into fused multiply-adds only, so LLVM has no licence to regroup arithmetic differently for
-another vector width or CPU. (With full fast math a chain's dopri5 took other last bits on an AMD Zen 4 than on
-an Intel Xeon, and other bits for skylake-avx512 than for x86-64-v3 on one machine.)"""
+skylake-avx512 where the host has it), gives the same results to the last bit, freshly compiled and loaded from
+Numba's disk cache alike. Fast math is contraction into fused multiply-adds only, so LLVM has no licence to
+regroup arithmetic differently for another vector width or CPU. (With full fast math a chain's dopri5 took other
+last bits on an AMD Zen 4 than on an Intel Xeon, and other bits for skylake-avx512 than for x86-64-v3 on one
+machine; kernels compiled with parallel=True once gave other bits in the process that compiled them than in
+the later ones that loaded them.)"""
 from __future__ import annotations
 
 import hashlib
@@ -58,10 +60,12 @@ print(json.dumps(found))
 """
 
 
-def _digests(cpu_name: str | None) -> dict[str, str]:
+def _digests(cpu_name: str | None, cache) -> dict[str, str]:
     """Every result variable's SHA-256 of the runs above, computed in a process compiling for `cpu_name` (None:
-    the host's own CPU)."""
-    env = {k: v for k, v in os.environ.items() if k not in ("NUMBA_CPU_NAME", "NUMBA_CPU_FEATURES")}
+    the host's own CPU) with Numba's cache and the generated kernels in `cache`."""
+    env = {k: v for k, v in os.environ.items() if k not in ("NUMBA_CPU_NAME", "NUMBA_CPU_FEATURES",
+                                                            "ENSEMBLE_KERNEL_DIR")}
+    env["NUMBA_CACHE_DIR"] = str(cache)
     if cpu_name:
         env["NUMBA_CPU_NAME"] = cpu_name
     done = subprocess.run([sys.executable, "-c", DIGEST, json.dumps({"tops": TOPS, "chains": CHAINS})], env=env,
@@ -82,11 +86,16 @@ def host_digests():
 
 
 @pytest.mark.parametrize("cpu_name", sorted(NEEDS))
-def test_every_target_the_host_runs_gives_the_host_bits(cpu_name, host_digests):
+def test_every_target_the_host_runs_gives_the_host_bits(cpu_name, host_digests, tmp_path):
     missing = NEEDS[cpu_name] - cpu()[1]
     if missing:
         pytest.skip(f"this host cannot run {cpu_name} code (no {', '.join(sorted(missing))})")
-    found = _digests(cpu_name)
-    assert found.keys() == host_digests.keys()
-    differ = sorted(key for key in found if found[key] != host_digests[key])
-    assert not differ, f"compiled for {cpu_name}, these differ from the host's own: {differ}"
+    cache = tmp_path / "cache"
+    for how in ("compiled", "cached"):  # an empty cache: every kernel compiles; then every one loads
+        found = _digests(cpu_name, cache)
+        assert found.keys() == host_digests.keys()
+        differ = sorted(key for key in found if found[key] != host_digests[key])
+        assert not differ, f"{how} for {cpu_name}, these differ from the host's own: {differ}"
+        if how == "compiled":
+            compiled = sorted(path.name for path in cache.rglob("*.nbc"))
+    assert len(compiled) >= 5 and sorted(path.name for path in cache.rglob("*.nbc")) == compiled  # none again

@@ -286,19 +286,37 @@ def test_a_kernel_that_does_not_compile_leaves_no_folder_and_says_one_line(tmp_p
     assert not (tmp_path / "new").exists()
 
 
+@pytest.fixture(scope="module")
+def fitted_decay(tmp_path_factory):
+    """A result of decay.py whose fit(ds) does what the environment's DECAY_FIT says (one kernel compiled)."""
+    folder = tmp_path_factory.mktemp("fit")
+    (folder / "decay.py").write_text("RATE = 1.0\nNAME = 'decay'\n" + DECAY + FIT_BY_ENVIRONMENT)
+    out = folder / "out.nc"
+    assert cli.main(["run", str(_runfile(folder, "rk4", members=2)), "-o", str(out), "--quiet"]) == 0
+    return out
+
+
+FIT_BY_ENVIRONMENT = '''
+def fit(ds):
+    import os
+    if os.environ["DECAY_FIT"] == "raise":
+        raise ValueError("my fit broke")
+    return {"rate": 1.0}
+'''
+
+
 @pytest.mark.parametrize("fit, expected", [
-    ('    raise ValueError("my fit broke")', "the decay scene's fit(ds) raised ValueError: my fit broke"),
-    ('    return {"rate": 1.0}', "the decay scene's fit(ds) returned a dict, not an xarray.Dataset over member"),
+    ("raise", "the decay scene's fit(ds) raised ValueError: my fit broke"),
+    ("dict", "the decay scene's fit(ds) returned a dict, not an xarray.Dataset over member"),
 ])
-def test_a_scenes_fit_that_raises_or_returns_no_dataset_is_one_line(tmp_path, capsys, fit, expected):
-    (tmp_path / "decay.py").write_text("RATE = 1.0\nNAME = 'decay'\n" + DECAY + "\ndef fit(ds):\n" + fit + "\n")
-    out = tmp_path / "out.nc"
-    assert cli.main(["run", str(_runfile(tmp_path, "rk4", members=2)), "-o", str(out), "--quiet"]) == 0
-    assert cli.main(["fit", str(out)]) == 2
+def test_a_scenes_fit_that_raises_or_returns_no_dataset_is_one_line(fitted_decay, monkeypatch, capsys, fit,
+                                                                    expected):
+    monkeypatch.setenv("DECAY_FIT", fit)
+    assert cli.main(["fit", str(fitted_decay)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert err == [f"ensemble: error: {out}: {expected}"], err
+    assert err == [f"ensemble: error: {fitted_decay}: {expected}"], err
     with pytest.raises(ensemble.EnsembleError, match=re.escape(expected)):
-        ensemble.fit(out)
+        ensemble.fit(fitted_decay)
 
 
 @pytest.mark.parametrize("options, expected", [

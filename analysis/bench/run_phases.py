@@ -94,6 +94,8 @@ def main(argv=None) -> None:
     parser.add_argument("--save-dt", type=float, help="replace the run file's save_dt (s): what saving costs, "
                                                      "against the same run saving less")
     parser.add_argument("--growth", action="store_true", help="measure growth_per_step ([measure] growth = true)")
+    parser.add_argument("--no-limit", action="store_true", help="leave out the C limit before and after (its "
+                                                                "timing takes most of this script's half minute)")
     args = parser.parse_args(argv)
     if (args.runfile is None) == (args.workload is None):
         parser.error("give a run file or --workload")
@@ -115,12 +117,14 @@ def main(argv=None) -> None:
     timed(store, "put_samples", "  writing")
     timed(parts, "fsync_path", "fsync")
     print(host(), flush=True)
-    print_limit("C limit, before", c_limit())
+    if not args.no_limit:
+        print_limit("C limit, before", c_limit())
     with tempfile.TemporaryDirectory() as folder:
         start = time.perf_counter()
         summary = runner.run(spec, Path(folder) / "out.nc", progress=False)
         seconds = time.perf_counter() - start
-    print_limit("C limit, after", c_limit())
+    if not args.no_limit:
+        print_limit("C limit, after", c_limit())
     print(f"{spec.n_members} members, {summary.member_steps:.3g} member-steps, {spec.n_save} samples: start-up "
           f"{imports:.2f} s (this script's imports), the run {seconds:.2f} s (of which {summary.preparing:.2f} s "
           "loading kernels)")
