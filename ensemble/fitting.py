@@ -291,6 +291,10 @@ def _crossing(t, spin, after, sigma):
     return origin + fit.x[2], noise * covariance[2, 2]
 
 
+FIT_TITLES = {"tilt_decay": "tilt decay rate", "mode_frequencies": "normal-mode frequencies",
+              "body_rates": "growth rate, wobble frequency and flip period"}  # what a physicist calls each fit
+
+
 def dataset(ds: xr.Dataset, data: dict, dims, *, noise: float, fit: str,
              estimates: tuple[str, ...] = ("rate", "frequency")) -> xr.Dataset:
     """A fit's Dataset over members (and modes) from data: name -> (values, units, long_name). Members whose run
@@ -312,7 +316,7 @@ def dataset(ds: xr.Dataset, data: dict, dims, *, noise: float, fit: str,
     failed = int(np.all(~np.isfinite(found), axis=1).sum())  # members with no estimate at all
     out.attrs = {
         "Conventions": "CF-1.9",
-        "title": f"{fit} fits of {ds.attrs.get('title', 'an ensemble result')}",
+        "title": f"{FIT_TITLES.get(fit, fit)} fits of {ds.attrs.get('title', 'an ensemble result')}",
         "fit": fit,
         "source": ds.attrs.get("source", ""),
         "method": ds.attrs.get("method", ""),

@@ -277,7 +277,10 @@ def _fit_charts(plt, ds, fits, table, stem, args) -> list[Path]:
         except Exception as e:  # noqa: BLE001 (a scene's own charts: one line, the other charts still drawn)
             print(f"ensemble: error: the {ds.attrs.get('scene')} scene's charts raised {type(e).__name__}: {e}",
                   file=sys.stderr)
-    title = fits.attrs.get("fit", "fit").replace("_", " ")  # tilt_decay (the file's name): "tilt decay"
+    from .fitting import FIT_TITLES
+
+    fit = fits.attrs.get("fit", "fit")
+    title = FIT_TITLES.get(fit, fit.replace("_", " "))  # "tilt decay rate", not the file name's tilt_decay
     return [*paths, charts.draw_misses(plt, fits, stem, args.against, title)]
 
 
