@@ -172,7 +172,8 @@ def test_ctrl_c_on_local_workers_is_one_line(tmp_path, write_runfile):
                            text=True, start_new_session=True,
                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))  # whatever pytest's is
     deadline = time.monotonic() + 120
-    while not list(folder_of(out).glob("members-*")) and run.poll() is None and time.monotonic() < deadline:
+    # a sealed part (members-*.nc), not one being written (members-*.tmp): then a chunk has finished
+    while not list(folder_of(out).glob("members-*.nc")) and run.poll() is None and time.monotonic() < deadline:
         time.sleep(0.1)
     os.killpg(run.pid, signal.SIGINT)
     _, err = run.communicate(timeout=60)
