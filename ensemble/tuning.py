@@ -353,7 +353,7 @@ def sites_layouts() -> list[tuple[int, int, bool]]:
     """The fields of sites' layouts `ensemble tune` times, (sites, members per block, fused sweeps): at 16 sites,
     whose blocks' rows fit the L1 cache, blocks of two SIMD vectors (the rule's) and four; at 1024, whose rows
     outgrow it, blocks of one vector fused in tiles (the rule's) and swept one piece at a time. The rule's first
-    in each. (At 1024 sites blocks of two vectors in tiles ran within 5% of one on the Intel Xeon, 2026-11-26.)"""
+    in each."""
     from .engine.sites import vector_doubles
 
     vector = vector_doubles()

@@ -68,35 +68,10 @@ def block_size(constants: dict, method: Method) -> int:
     data cache (l1_data_bytes): then two SIMD vectors of this host, but never fewer than 16. From 16 sites on,
     64 for fixed-step Runge-Kutta, and for splittings and adaptive pairs two SIMD vectors (vector_doubles: 8
     members with AVX2, 16 with AVX-512), or one where a block's work rows (4n + 2 for a splitting) would
-    outgrow the L1 data cache, but never fewer than 8 for a pair.
-
-    A splitting member's arithmetic does not depend on its block: results are the same bits on every host. An
-    adaptive pair's takes the same steps in every block, but its values can differ in the last places between
-    blocks, so between hosts whose L1 caches or vectors differ from 3 sites on (LLVM's fast-math code
-    differs). Measured with
-    `python analysis/bench/bench_chain.py --n 16 64 128 --repeats 5 --steps 1000 --block B` (2^20 masses):
-
-    - verlet on an AVX-512 host (AMD EPYC Zen 5, 48 KiB L1d; 2026-11-25, commit 0d9a3d3), blocks of 8, 16 and
-      32: n = 16 1.37e10, 1.57e10 and 1.17e10 mass-steps/s; n = 64 1.52e10, 1.59e10 and 1.11e10; n = 128
-      1.56e10, 1.19e10 and 6.9e9 (the C of ../shared/limit 9e9 to 1.1e10 in the same rounds). At n = 2 (`--n 2`),
-      blocks of 16, 32 and 64 gave 4.0e9, 9.9e9 and 1.09e10. Compiled for AVX2 on that host
-      (NUMBA_CPU_NAME=znver3), blocks of 4, 8 and 16 gave 8.3e9, 1.50e10 and 1.52e10 at n = 16, and 1.15e10,
-      1.66e10 and 1.21e10 at n = 128.
-    - per member-step at n = 16 on an AVX2 host (AMD EPYC Zen 3; `analysis/bench/bench_dopri5.py`'s chains), blocks
-      of 4, 8, 16 and 64: rk4 8.96e-8, 1.62e-7, 1.06e-7 and 6.86e-8 s; dopri5, in the same run as rk4 at 64,
-      6.4, 2.3, 2.8 and 6.0 times rk4 (and 5.5 at 32). That was before a pair's accepted steps moved in selects.
-    - dopri5 over rk4 on the AVX-512 host, after that: see analysis/bench/README.md (bench_dopri5.py --chain-block B).
-      Below 16 sites there, dopri5 in blocks of 64 and 16 took 8.3e-9 and 1.05e-8 s per member-step at n = 3,
-      1.02e-8 and 1.17e-8 at n = 4, 1.35e-8 and 1.30e-8 at n = 5, 2.3e-8 and 1.75e-8 at n = 6, and 6.6e-8 and
-      2.4e-8 at n = 12; 64 members' rows fill 0.8, 1.0, 1.2, 1.4 and 2.7 times its 48 KiB L1 cache. Compiled
-      for AVX2, blocks of 16 beat blocks of 8 from n = 6 to 12.
-
-    A tableau's stage sums gain from longer rows; an adaptive block's members wait for the block's slowest, and
-    its seven stages' rows outgrow the L1 cache in long blocks.
-
-    `ensemble tune` may replace a splitting's block from 16 sites on, where its rows fit the L1 cache, by a
-    measured one (ensemble.tuning.Tuning.sites_block).
-    """
+    outgrow the L1 data cache, but never fewer than 8 for a pair. A member's arithmetic does not depend on its
+    block: the bits are the same in every block, on every host. `ensemble tune` may replace a splitting's block
+    from 16 sites on by a measured one (ensemble.tuning.Tuning.sites_block). The measurements behind the rule:
+    analysis/bench/README.md, "How the kernels are laid out"."""
     n = constants["n"]
     pair = 2 * vector_doubles()
     member_bytes = (stage_rows(n, method.tableau.stages)[-1] + CONTROL_ROWS) * 8 if method.adaptive else 0
