@@ -41,8 +41,16 @@ def physics_functions(where: str, names: tuple[str, ...], expected: str) -> tupl
     return tuple(f if isinstance(f, CPUDispatcher) else _inlined(f) for f in found)
 
 
+INLINED_ARGUMENTS = 30  # Numba inlines a function into the kernel's IR only up to this many arguments
+
+
 @cache
 def _inlined(function):
+    """A scene's plain function compiled for the kernels: inlined into them by Numba where it can be; a larger
+    state (Lorenz-96 over 40 sites, say) is left to LLVM to inline, as Numba's own inlining refuses a call of more
+    than INLINED_ARGUMENTS arguments ("Calling a closure with *args is unsupported")."""
+    if function.__code__.co_argcount > INLINED_ARGUMENTS:
+        return njit(**FAST)(function)
     return njit(inline="always", **FAST)(function)
 
 
