@@ -74,13 +74,14 @@ def against_theory(plt, stem: Path, chart: str, series: list[tuple], *, theory_l
     return save(plt, fig, stem, chart)
 
 
-def draw_misses(plt, fits: xr.Dataset, stem: Path, against: str, title: str) -> Path:
-    """How the fits miss their reference, STEM_z.png: z against N(0, 1) when the result has observation noise;
-    without noise z has no distribution to follow (its error bar is the fit's own residual), so the relative
-    miss (fitted / reference - 1) of each member is drawn at its member number."""
+def draw_misses(plt, fits: xr.Dataset, stem: Path, against: str, title: str, noisy: bool) -> Path:
+    """How the fits miss their reference, STEM_z.png: z against N(0, 1) when the result has observation noise
+    (`noisy`) and the fit gives z; without noise z has no distribution to follow (its error bar is the fit's own
+    residual), so the relative miss (fitted / reference - 1) of each member is drawn at its member number, beside
+    the bound --check holds a sweep point's mean to."""
     fig, ax = plt.subplots(figsize=(6.5, 4.5), layout="constrained")
     what = "theory" if against == "theory" else "what the method shows"
-    if fits.attrs.get("observation_noise_stddev", 0.0) > 0:
+    if noisy and ("z" if against == "theory" else "z_method") in fits:
         z_histogram(ax, fits["z" if against == "theory" else "z_method"].values.ravel(), "fits", what)
         ax.set_title(f"{title}: fitted against {what}", fontsize=9)
         return save(plt, fig, stem, "z")
@@ -93,10 +94,12 @@ def draw_misses(plt, fits: xr.Dataset, stem: Path, against: str, title: str) -> 
         if shown.any():
             ax.plot(member[shown], miss[shown], marker, ms=3, mfc="none", label=name.replace("_", " "))
     ax.axhline(0.0, color="k", lw=0.5)
-    ax.axhspan(-RTOL, RTOL, color="g", alpha=0.15, label=f"+-{RTOL:g}: --check's bound on a sweep point's mean")
+    bound = max((float(fits[name].attrs.get("check_rtol", RTOL)) for name in fitted_values(fits)), default=RTOL)
+    ax.axhspan(-bound, bound, color="g", alpha=0.15, label=f"+-{bound:g}: --check's bound on a sweep point's mean")
     ax.set_xlabel("member" + (" (every mode at its member)" if "mode" in fits.dims else ""))
     ax.set_ylabel(f"fitted / {what} - 1")
-    ax.set_title(f"{title}: relative miss of each member (noise-free: no z)", fontsize=9)
+    why = "the fit gives no z" if noisy else "noise-free: no z"
+    ax.set_title(f"{title}: relative miss of each member ({why})", fontsize=9)
     ax.legend(fontsize=8)
     return save(plt, fig, stem, "z")
 

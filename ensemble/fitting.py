@@ -61,6 +61,11 @@ def noise_of(var: xr.DataArray) -> float:
     return float(var.attrs.get("observation_noise_stddev", 0.0))
 
 
+def has_noise(ds: xr.Dataset) -> bool:
+    """Whether a result carries observation noise on any variable (its z values then follow N(0, 1))."""
+    return any(noise_of(ds[name]) > 0 for name in ds.data_vars)
+
+
 def _members(ds: xr.Dataset) -> dict[str, xr.DataArray]:
     coords = {"member": ds["member"]}
     if "sweep_point" in ds:

@@ -15,6 +15,7 @@ import xarray as xr
 
 from .api import not_a_result
 from .errors import EXIT_BAD_INPUT, EXIT_CHECK_FAILED, EXIT_OK
+from .fitting import FIT_TITLES, has_noise
 
 Z_TOLERANCE = 5.0  # a noisy sweep point passes when its mean is within this many standard errors of theory...
 RTOL = 1e-6  # ...or within this relative difference, a noise-free one (whose z has no meaning) only within it;
@@ -234,7 +235,7 @@ def fit_command(args) -> int:
         return EXIT_BAD_INPUT
     ds, fits = loaded
     named = str(args.results[0]) + (f" and {len(args.results) - 1} more" if len(args.results) > 1 else "")
-    noisy = any(float(ds[name].attrs.get("observation_noise_stddev", 0.0)) > 0 for name in ds.data_vars)
+    noisy = has_noise(ds)
     if args.members and max(args.members) >= ds.sizes["member"]:
         print(f"ensemble: error: --members: {max(args.members)} is not in 0..{ds.sizes['member'] - 1}", file=sys.stderr)
         return EXIT_BAD_INPUT
@@ -277,11 +278,9 @@ def _fit_charts(plt, ds, fits, table, stem, args) -> list[Path]:
         except Exception as e:  # noqa: BLE001 (a scene's own charts: one line, the other charts still drawn)
             print(f"ensemble: error: the {ds.attrs.get('scene')} scene's charts raised {type(e).__name__}: {e}",
                   file=sys.stderr)
-    from .fitting import FIT_TITLES
-
     fit = fits.attrs.get("fit", "fit")
     title = FIT_TITLES.get(fit, fit.replace("_", " "))  # "tilt decay rate", not the file name's tilt_decay
-    return [*paths, charts.draw_misses(plt, fits, stem, args.against, title)]
+    return [*paths, charts.draw_misses(plt, fits, stem, args.against, title, has_noise(ds))]
 
 
 def _write(result: Path, charts: Path | None, table: xr.Dataset, name: str, what: str, draw) -> None:

@@ -209,26 +209,30 @@ def kernel_seconds_per_step(scene, method: Method, values: dict[str, np.ndarray]
         settings["dt"] = subset["dt"]
     run_span = settings["save_dt"]  # s: the run's, from its start to t_end
 
-    def timed(steps: int, calls: int) -> tuple[float, float]:
-        """The best time of `calls` calls in which each member takes about `steps` steps, and their member-steps."""
+    def launch_for(steps: int) -> launch.Launch:
+        """A launch in which each member takes about `steps` steps."""
         span = steps * settings["dt"] if not method.adaptive else run_span * steps * members / taken
-        call = launch.Launch(scene, method, subset, constants, **{**settings, "save_dt": span})
-        best = np.inf
+        return launch.Launch(scene, method, subset, constants, **{**settings, "save_dt": span})
+
+    def best(call: launch.Launch, calls: int) -> float:
+        """The best time of `calls` runs of `call` (inf for none)."""
+        seconds = np.inf
         for _ in range(calls):
             start = time.perf_counter()
             call.run(threads=1)  # one thread: how many blocks a point has cannot leave threads idle
-            best = min(best, time.perf_counter() - start)
-        counts = call.outcome().counts
-        return best, float(counts[0].sum() + counts[1].sum())
+            seconds = min(seconds, time.perf_counter() - start)
+        return seconds
 
     steps = TIMED_STEPS_PER_MEMBER
-    seconds, taken_timed = timed(steps, 1)
+    call = launch_for(steps)
+    seconds = best(call, 1)
     while seconds < TIMED_SECONDS:
         steps = math.ceil(steps * min(10.0, 1.2 * TIMED_SECONDS / max(seconds, 1e-9)))
-        seconds, taken_timed = timed(steps, 1)
-    if repeats > 1:
-        seconds = min(seconds, timed(steps, repeats - 1)[0])
-    return seconds / taken_timed
+        call = launch_for(steps)
+        seconds = best(call, 1)
+    seconds = min(seconds, best(call, repeats - 1))
+    counts = call.outcome().counts
+    return seconds / float(counts[0].sum() + counts[1].sum())
 
 
 def noise_streams(spec: Spec, name: str, first: int, members: int) -> list[np.random.Generator]:

@@ -422,10 +422,8 @@ def _from_files(given: dict, folder: Path) -> dict:
 def _device(device: str, precision: str) -> tuple[str, str]:
     """The run file's device and precision, checked (not whether this machine has the device: see
     ensemble.engine.gpu.require_gpu)."""
-    if device not in DEVICES:
-        raise SpecError("device", f"must be one of {', '.join(map(repr, DEVICES))}, got {device!r}")
-    if precision not in PRECISIONS:
-        raise SpecError("precision", f"must be one of {', '.join(map(repr, PRECISIONS))}, got {precision!r}")
+    _one_of("device", device, DEVICES)
+    _one_of("precision", precision, PRECISIONS)
     if precision == "float32" and device != "cuda":
         raise SpecError("precision", 'float32 runs on a GPU only (device = "cuda"); the CPU kernels are float64')
     return device, precision

@@ -125,7 +125,7 @@ def global_attributes(spec: Spec, table: dict[str, np.ndarray], command: str | N
         "t_end": spec.t_end,
         "seed": spec.seed,
         "draws": spec.draws,
-        **({"parameters_given": given_values(spec)} if given_values(spec) else {}),  # files or the API
+        **({"parameters_given": given} if (given := given_values(spec)) else {}),  # files or the API
         "blowup_factor": spec.blowup_factor,
         "device": device_name(spec.device),  # where the kernels ran, the GPU's name included
         **kernels_identity(spec),
