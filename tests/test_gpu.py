@@ -151,6 +151,19 @@ def test_float32_on_the_gpu_agrees_with_float64_to_single_precision():
     assert 1e-12 < error < 1e-5  # single precision: not float64's result, but within float32's rounding
 
 
+@pytest.mark.parametrize("precision, kept", [("float64", 1e-40), ("float32", 0.0)])
+def test_a_subnormal_of_the_runs_precision_is_flushed_to_zero(precision, kept):
+    """As the CPU flushes float64's subnormals (below 2.2e-308) at the start and at each save, a float32 run flushes
+    float32's (below 1.2e-38): 1e-40 is a normal float64 and a subnormal float32."""
+    spec = spec_of({**USER, "parameters": USER["parameters"].replace("x0 = 0.2", "x0 = 1e-40")
+                    .replace("F = 0.5", "F = 0.0")}, "rk4")
+    values = runner.members_table(spec, 0, spec.n_members)
+    settings = {**runner._settings(spec, METHODS["rk4"], values), "device": "cuda", "precision": precision}
+    outcome = launch.integrate(spec.model, METHODS["rk4"], values, spec.constants, **settings)
+    assert np.all(outcome.samples[0, 0] == kept)  # x at the start
+    assert np.all(outcome.status == 0)
+
+
 @pytest.mark.parametrize("key, value, problem", [
     ("device", '"tpu"', "device: must be one of 'cpu', 'cuda', got 'tpu'"),
     ("precision", '"float16"', "precision: must be one of 'float64', 'float32', got 'float16'"),
