@@ -5,14 +5,8 @@ own), stored as NetCDF, and their fits against theory.
     ds = ensemble.run("runs/aerobie.toml")   # an xarray.Dataset
     fits = ensemble.fit(ds)                  # fitted rates against c (1/lambda1 - 1/lambda3)
 """
-from importlib.metadata import PackageNotFoundError, version
-
-try:
-    __version__ = version("ensemble")
-except PackageNotFoundError:  # running from a source tree that is not installed
-    __version__ = "0+unknown"
-
-from . import tuning as _tuning  # noqa: E402
+from . import tuning as _tuning
+from .version import __version__
 
 _tuning.prepare()  # this machine's `ensemble tune` choices, before any Numba function of ours is made
 

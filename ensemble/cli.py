@@ -275,11 +275,11 @@ def _stopped(error: BaseException, runfile: Path, out: Path, resume: str, spec) 
 
 
 def _tune(args) -> int:
-    from . import tuning
+    from . import tuner, tuning
 
     print(f"tuning this machine: {tuning.host_key()['cpu']}")
     try:
-        chosen, measured = tuning.tune(say=lambda line: print(line, flush=True))
+        chosen, measured = tuner.tune(say=lambda line: print(line, flush=True))
         print(f"chosen: {chosen.summary()}")
         if args.dry_run:
             print("kept nothing (--dry-run)")

@@ -22,9 +22,10 @@ from importlib.metadata import version
 
 import numpy as np
 
-from . import __version__, interrupts
+from . import interrupts
 from .errors import EnsembleError, Incomplete
 from .spec import Spec
+from .version import __version__
 
 IN_FLIGHT_PER_THREAD = 2  # tasks submitted per worker thread at a time: one running, one queued
 CONNECT_SECONDS = 10

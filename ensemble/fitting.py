@@ -27,6 +27,11 @@ from scipy.signal.windows import blackmanharris
 from .errors import EnsembleError
 from .methods import METHODS
 
+Z_TOLERANCE = 5.0  # a noisy sweep point passes when its mean is within this many standard errors of theory...
+RTOL = 1e-6  # ...or within this relative difference, a noise-free one (whose z has no meaning) only within it;
+#              a fitted variable's own `check_rtol` attribute replaces it
+
+
 MIN_SAMPLES = 5  # usable samples a member needs for a fit
 PEAK_FALSE_ALARM = 30.0  # a spectral peak counts when its power exceeds this many times the noise's
 PEAK_DYNAMIC_RANGE = 1e-7  # peaks weaker than this fraction of the strongest are rounding, not modes
@@ -416,3 +421,8 @@ def convergence_order(table: xr.Dataset, line: str) -> tuple[float, int]:
     if usable.sum() < 3:
         return np.nan, int(usable.sum())
     return float(np.polyfit(np.log(dt[usable]), np.log(error[usable]), 1)[0]), int(usable.sum())
+
+
+def fitted_values(fits: xr.Dataset) -> list[str]:
+    """The fitted quantities of a fit dataset: variables with a `<name>_theory` beside them."""
+    return [name for name in fits.data_vars if f"{name}_theory" in fits]

@@ -54,10 +54,10 @@ import netCDF4
 import numba
 import numpy as np
 
-from . import __version__
 from .errors import EnsembleError
 from .spec import Spec, members_table
 from .store import RUN_RECORDS, fsync_path, kernels_identity, put_records, record_names, temporary_path
+from .version import __version__
 
 MANIFEST = "manifest.json"
 PARTS_FORMAT = "2"  # 2: parts carry their range, run file and sample checksums (ensemble 0.5.0)

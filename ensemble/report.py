@@ -15,11 +15,7 @@ import xarray as xr
 
 from .api import not_a_result
 from .errors import EXIT_BAD_INPUT, EXIT_CHECK_FAILED, EXIT_OK
-from .fitting import FIT_TITLES, has_noise
-
-Z_TOLERANCE = 5.0  # a noisy sweep point passes when its mean is within this many standard errors of theory...
-RTOL = 1e-6  # ...or within this relative difference, a noise-free one (whose z has no meaning) only within it;
-#              a fitted variable's own `check_rtol` attribute replaces it
+from .fitting import FIT_TITLES, RTOL, Z_TOLERANCE, fitted_values, has_noise
 
 
 @dataclass(frozen=True)
@@ -146,11 +142,6 @@ def print_table(title: str, rows_: list[Row], units: str) -> None:
     else:
         rule = f"noise-free: no z. pass: |miss| <= {rtol:g} relative"
     print(f"miss: mean over members of fitted - {what}, +- its standard error; {rule}. Units: {units}")
-
-
-def fitted_values(fits: xr.Dataset) -> list[str]:
-    """The fitted quantities of a fit dataset: variables with a `<name>_theory` beside them."""
-    return [name for name in fits.data_vars if f"{name}_theory" in fits]
 
 
 def label(sel, point, mode) -> str:
@@ -294,7 +285,7 @@ def _write(result: Path, charts: Path | None, table: xr.Dataset, name: str, what
     print(f"{what}: {out}")
     if charts is None:
         return None
-    from .charts import pyplot
+    from .plotting import pyplot
 
     plt = pyplot()
     try:

@@ -19,10 +19,10 @@ from pathlib import Path
 import netCDF4
 import numpy as np
 
-from . import __version__
 from .errors import EnsembleError
 from .results import Status
 from .spec import Spec, given_values
+from .version import __version__
 
 TIMES_AT_ONCE = 2**20  # saved times written at a time: a member may save 10^8 samples
 

@@ -236,9 +236,9 @@ def test_z_histograms_say_what_they_clip():
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from ensemble import charts
+    from ensemble import plotting
     fig, ax = plt.subplots()
-    charts.z_histogram(ax, np.array([0.1, -0.5, 1.2, 400.0, -90.0, np.nan]), "fits")
+    plotting.z_histogram(ax, np.array([0.1, -0.5, 1.2, 400.0, -90.0, np.nan]), "fits")
     labels = ax.get_legend_handles_labels()[1]
     plt.close(fig)
     assert set(labels) == {"N(0, 1)", "fits (5, 2 beyond +-50 drawn at the edges)"}

@@ -10,7 +10,7 @@ import sys
 
 import pytest
 
-from ensemble import cli, runner, tuning
+from ensemble import cli, runner, tuner, tuning
 from ensemble.engine import kernels
 from ensemble.methods import METHODS
 from ensemble.scenes import SCENES
@@ -121,15 +121,15 @@ def _fake_measurements(monkeypatch, rates=None, sites=None, jitter=(1.0,)):
     def measured(bits, tops, chain=True, layouts=()):
         counts[bits] = counts.get(bits, -1) + 1
         scale = rates[bits] * jitter[counts[bits] % len(jitter)]
-        out = {tuning.top_name(*top): 1e9 * scale * (1.02 if top[0] == 64 else 1.0)
-               * sites.get(tuning.top_name(*top), 1.0) for top in tops}
-        out.update({tuning.layout_name(*lay): 4e9 * scale * sites.get(tuning.layout_name(*lay), 1.0)
+        out = {tuner.top_name(*top): 1e9 * scale * (1.02 if top[0] == 64 else 1.0)
+               * sites.get(tuner.top_name(*top), 1.0) for top in tops}
+        out.update({tuner.layout_name(*lay): 4e9 * scale * sites.get(tuner.layout_name(*lay), 1.0)
                     for lay in layouts})
         return {**out, **({"chain verlet N=16": 4e9 * scale, "chain verlet N=2": 1e9 * scale} if chain else {})}
 
-    monkeypatch.setattr(tuning, "_measured", measured)
-    monkeypatch.setattr(tuning, "_compiled", lambda asks: None)
-    monkeypatch.setattr(tuning, "host_key", lambda: {"vectors": "avx,avx2,avx512f", "cpu": "x", "numba": "y",
+    monkeypatch.setattr(tuner, "_measured", measured)
+    monkeypatch.setattr(tuner, "_compiled", lambda asks: None)
+    monkeypatch.setattr(tuner, "host_key", lambda: {"vectors": "avx,avx2,avx512f", "cpu": "x", "numba": "y",
                                                       "engine": "z"})
     return rates, sites
 
@@ -138,12 +138,12 @@ def test_tune_keeps_a_candidate_only_when_it_is_clearly_faster(fresh, monkeypatc
     """The choice logic on given rates: 512-bit vectors 20% faster than 256 win; within 5% LLVM's own choice (one
     of the two) stays; blocks within 5% of the default lose."""
     rates, _ = _fake_measurements(monkeypatch, {None: 1.0, 512: 1.2, 256: 1.0})
-    chosen, table = tuning.tune(say=lambda line: None)
+    chosen, table = tuner.tune(say=lambda line: None)
     assert chosen == tuning.Tuning(vector_bits=512, block=None)
     rates[512] = 1.04
-    assert tuning.tune(say=lambda line: None)[0] == tuning.Tuning(vector_bits=None, block=None)
+    assert tuner.tune(say=lambda line: None)[0] == tuning.Tuning(vector_bits=None, block=None)
     rates[256] = 1.3
-    assert tuning.tune(say=lambda line: None)[0] == tuning.Tuning(vector_bits=256, block=None)
+    assert tuner.tune(say=lambda line: None)[0] == tuning.Tuning(vector_bits=256, block=None)
     tuning.save(chosen, table)
     assert tuning.load() == (chosen, None)
 
@@ -154,23 +154,23 @@ def test_tune_keeps_the_rule_when_a_gain_is_within_the_spread_it_measured(fresh,
     beat the rule by more."""
     rates, _ = _fake_measurements(monkeypatch, {None: 1.0, 512: 1.1, 256: 1.0}, jitter=(1.0, 1.15))
     said = []
-    chosen, table = tuning.tune(say=said.append)
+    chosen, table = tuner.tune(say=said.append)
     assert chosen == tuning.Tuning() and table["spread"] == pytest.approx(1.15)
     assert any("up to 1.150x" in line for line in said), said
     rates[512] = 1.3
-    assert tuning.tune(say=said.append)[0] == tuning.Tuning(vector_bits=512)
+    assert tuner.tune(say=said.append)[0] == tuning.Tuning(vector_bits=512)
 
 
 def test_tune_chooses_a_field_of_sites_layout_only_when_it_is_clearly_faster(fresh, monkeypatch):
     """Fields of sites: blocks of four vectors at 16 sites 20% faster, and one piece at a time at 1024 sites 20%
     faster, replace the rule's; 3% faster do not. The choices reach the blocks and the tiles, and survive the
     file."""
-    _, short, long, separate = tuning.sites_layouts()
+    _, short, long, separate = tuner.sites_layouts()
     _, sites = _fake_measurements(monkeypatch)
-    sites.update({tuning.layout_name(*short): 1.03, tuning.layout_name(*separate): 1.03})
-    assert tuning.tune(say=lambda line: None)[0] == tuning.Tuning()
-    sites.update({tuning.layout_name(*short): 1.2, tuning.layout_name(*separate): 1.2})
-    chosen, table = tuning.tune(say=lambda line: None)
+    sites.update({tuner.layout_name(*short): 1.03, tuner.layout_name(*separate): 1.03})
+    assert tuner.tune(say=lambda line: None)[0] == tuning.Tuning()
+    sites.update({tuner.layout_name(*short): 1.2, tuner.layout_name(*separate): 1.2})
+    chosen, table = tuner.tune(say=lambda line: None)
     assert chosen == tuning.Tuning(sites_block=short[1], fused_sweeps=False)
     tuning.save(chosen, table)
     assert tuning.load() == (chosen, None)
@@ -191,10 +191,10 @@ def test_stages_outside_are_kept_only_when_clearly_faster_and_give_the_same_bits
     the same order, with no fast-math licence to regroup it; under full fast-math they agreed to 1e-12 only)
     and keep rk4's error against the closed form."""
     _, rates = _fake_measurements(monkeypatch)
-    rates[tuning.top_name(kernels.BLOCK, True)] = 1.03
-    assert tuning.tune(say=lambda line: None)[0] == tuning.Tuning()
-    rates[tuning.top_name(kernels.BLOCK, True)] = 1.2
-    assert tuning.tune(say=lambda line: None)[0] == tuning.Tuning(stages_outside=True)
+    rates[tuner.top_name(kernels.BLOCK, True)] = 1.03
+    assert tuner.tune(say=lambda line: None)[0] == tuning.Tuning()
+    rates[tuner.top_name(kernels.BLOCK, True)] = 1.2
+    assert tuner.tune(say=lambda line: None)[0] == tuning.Tuning(stages_outside=True)
     text = top_runfile(members=20, t_end=2.0, save_dt=0.5, method=None) + (
         '[[sweep]]\nmethod = ["rk4", "euler"]\n[measure]\nerror = true\n')
     spec = load(write_runfile(text))

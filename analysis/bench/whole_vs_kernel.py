@@ -6,7 +6,7 @@ Two workloads that take the C of ../shared/limit about 10 s each: 262,144 tops (
 omega and tilt every second) and 65,536 16-mass chains (verlet, dt 0.01 s, t_end 400 s, x every 20 s). Each
 runs once untimed (compiling or loading its kernels), then --repeats times as a whole `ensemble run` process
 (benchmark.whole_run); then the kernels alone are timed in a fresh process with this machine's tuning
-(ensemble.tuning.measure_here: the top's rk4 at the engine's block, the chain's verlet at 16 masses). Prints
+(ensemble.tuner.measure_here: the top's rk4 at the engine's block, the chain's verlet at 16 masses). Prints
 the host and limit.py's C before and after, each run's wall seconds and its own rate (its work over its own
 seconds: start-up and loading left out), and both as shares of the kernel alone.
 """
@@ -31,12 +31,12 @@ WORKLOADS = {
                              "chain verlet N=16"),
 }
 KERNELS = """import json
-from ensemble import tuning
+from ensemble import tuner, tuning
 from ensemble.engine.kernels import BLOCK
 chosen = tuning.applied()
 block = chosen.block or BLOCK
-rates = tuning.measure_here(chosen.vector_bits, [(block, bool(chosen.stages_outside))], chain=True)
-print(json.dumps({"top rk4": rates[tuning.top_name(block, bool(chosen.stages_outside))],
+rates = tuner.measure_here(chosen.vector_bits, [(block, bool(chosen.stages_outside))], chain=True)
+print(json.dumps({"top rk4": rates[tuner.top_name(block, bool(chosen.stages_outside))],
                   "chain verlet N=16": rates["chain verlet N=16"]}))"""
 
 

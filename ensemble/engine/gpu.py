@@ -27,8 +27,8 @@ from ..errors import DeviceUnavailable
 from ..methods import Method
 from ..results import DEFAULT_BLOWUP_FACTOR, Outcome, Status
 from .blocks import FIRST_LOG2_ERR_PREVIOUS, adaptive_constants, method_constants
+from .inputs import adaptive_control, blowup_limits, fixed_counts
 from .kernels import factor_counts, load_source, loaded, scene_identity
-from .launch import _fixed_counts, _limits, adaptive_control
 
 THREADS = 128  # threads per CUDA block
 PRECISIONS = {"float64": np.float64, "float32": np.float32}
@@ -437,7 +437,7 @@ class GpuLaunch:
         state0, rate = scene.inputs(values, constants)
         self.state_rows = state0.shape[0]
         self.kernel = kernel(scene, method, constants, precision)
-        self.limit = cuda.to_device(_limits(state0, blowup_factor).astype(self.real))
+        self.limit = cuda.to_device(blowup_limits(state0, blowup_factor).astype(self.real))
         self.state0 = cuda.to_device(np.ascontiguousarray(state0, dtype=self.real))
         self.rate = cuda.to_device(np.ascontiguousarray(rate, dtype=self.real))
         if method.adaptive:
@@ -525,7 +525,7 @@ class GpuLaunch:
         if self.method.adaptive:
             counts = self.counts.copy_to_host().astype(np.int64)
         else:
-            counts = _fixed_counts(self.method, self.scene, failure_time, self.dt,
+            counts = fixed_counts(self.method, self.scene, failure_time, self.dt,
                                    self.steps_per_save * (self.n_save - 1))
         return Outcome(getattr(self, "samples", None), counts, status, failure_time)
 

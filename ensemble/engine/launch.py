@@ -27,7 +27,6 @@ Numba's parallel lowering made compiling a kernel take twice as long
 from __future__ import annotations
 
 import errno
-import math
 import sys
 import threading
 from pathlib import Path
@@ -41,6 +40,7 @@ from ..results import DEFAULT_BLOWUP_FACTOR, Outcome
 from ..scenes.contract import SceneError
 from . import kernels
 from .blocks import flush_subnormals, restore_float_mode
+from .inputs import adaptive_control, blowup_limits, fixed_counts
 
 
 def work_rows(scene, method: Method, constants: dict) -> int:
@@ -102,7 +102,7 @@ class Launch:
         state0, rate = scene.inputs(values, constants)
         block = kernels.block_size(scene, constants, method)
         self.kernel = kernels.kernel(scene, method, constants)
-        limit = _limits(state0, blowup_factor)
+        limit = blowup_limits(state0, blowup_factor)
         if method.adaptive:
             control = adaptive_control(dt, rtol, atol, self.members)
             state0, rate, control, limit = _padded((state0, rate, control, limit[None]), block)
@@ -189,7 +189,7 @@ class Launch:
         if self.method.adaptive:
             counts = self.counts[:, :n].astype(np.int64)
         else:
-            counts = _fixed_counts(self.method, self.scene, failure_time, self.dt,
+            counts = fixed_counts(self.method, self.scene, failure_time, self.dt,
                                    self.steps_per_save * (self.n_save - 1))
         return Outcome(samples, counts, self.status[:n].astype(np.int8), failure_time)
 
@@ -250,13 +250,6 @@ def run_blocks(kernel, arguments: tuple, blocks: int, threads: int | None = None
         raise failures[0]
     if watch is not None:
         watch()  # once more when every block is done
-
-
-def _fixed_counts(method: Method, scene, failure_time: np.ndarray, dt: float, steps: int) -> np.ndarray:
-    """Step counts (3, members) of a fixed-step run: every step up to t_end, or up to a member's failure."""
-    taken = np.where(np.isnan(failure_time), steps, np.rint(failure_time / dt))
-    return np.stack([taken, np.zeros(taken.shape),
-                     taken * method.evaluations_per_step(scene.EVALUATING_PIECES)]).astype(np.int64)
 
 
 def prepare(scene, method: Method, constants: dict, device: str = "cpu", precision: str = "float64",
@@ -341,20 +334,6 @@ def _call_once(scene, method: Method, constants: dict) -> None:
                         failure_time, progress, works, 0, 0, 1)
     else:
         kernel.function(state0, rate, 1.0, 1, limit, samples, status, failure_time, progress, works, 0, 0, 1)
-
-
-def adaptive_control(dt, rtol, atol, members: int) -> np.ndarray:
-    """An adaptive kernel's per-member control (3, members): first trial step (s; 0: estimate it), rtol, atol, each
-    one value or one per member (dt None or NaN: estimated)."""
-    return np.stack([np.nan_to_num(np.broadcast_to(np.asarray(x, dtype=float), (members,)), nan=0.0)
-                     for x in (np.nan if dt is None else dt, rtol, atol)])
-
-
-def _limits(state0: np.ndarray, blowup_factor: float) -> np.ndarray:
-    """Each member's largest allowed |state component|: blowup_factor times its largest at the start."""
-    if math.isinf(blowup_factor):  # only non-finite states fail (inf * 0 would be NaN)
-        return np.full(state0.shape[1], np.inf)
-    return np.ascontiguousarray(blowup_factor * np.abs(state0).max(axis=0))
 
 
 def _padded(arrays, block: int) -> tuple[np.ndarray, ...]:

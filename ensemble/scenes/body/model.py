@@ -368,17 +368,3 @@ def amplitudes(samples: np.ndarray, values: dict[str, np.ndarray], constants: di
     w = samples.transpose(1, 0, 2)
     k, i, j = spin_axes(values["spin_axis"])
     return np.stack((np.hypot(_pick(w, i), _pick(w, j)), np.abs(_pick(w, k)))).transpose(2, 0, 1)
-
-
-def fit(ds):
-    """The scene's fit of a result (ensemble.scenes.body.fits.body_rates), an xarray Dataset over its members."""
-    from .fits import body_rates  # scipy and xarray: only when fitting
-
-    return body_rates(ds)
-
-
-def charts(plt, ds, fits, rows, stem, members=None) -> list:
-    """The scene's charts of its fit, PNG files STEM_<chart>.png (ensemble.scenes.body.plots.draw)."""
-    from .plots import draw  # matplotlib: only when charting
-
-    return draw(plt, ds, fits, rows, stem, members)

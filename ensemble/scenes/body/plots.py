@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ... import charts
+from ... import plotting
 from . import model as body
 
 
@@ -16,20 +16,20 @@ def draw(plt, ds, fits, rows, stem, members=None) -> list:
                f"{name.replace('_', ' ')}, every member")
               for name in ("growth_rate", "wobble_frequency") if np.isfinite(fits[name].values).any()]
     if series:
-        paths.append(charts.against_theory(plt, stem, "rates", series, theory_label="linear theory",
+        paths.append(plotting.against_theory(plt, stem, "rates", series, theory_label="linear theory",
                                            quantity="rate or frequency", units="1/s or rad/s",
                                            title="growth rates and wobble frequencies of small tilts"))
     period, theory = fits["flip_period"].values, fits["flip_period_theory"].values
     if (np.isfinite(period) & np.isfinite(theory)).any():
-        paths.append(charts.against_theory(
+        paths.append(plotting.against_theory(
             plt, stem, "flips", [(theory, period, fits["flip_period_stderr"].values, "every member that flips")],
             theory_label="elliptic period 4 K(m) / Omega", quantity="flip period", units="s",
             title="flip period against theory"))
         if fits.attrs.get("observation_noise_stddev", 0.0) > 0:
             fig, ax = plt.subplots(figsize=(5.5, 4.5), layout="constrained")
-            charts.z_histogram(ax, fits["flip_z"].values, "flip periods")
+            plotting.z_histogram(ax, fits["flip_z"].values, "flip periods")
             ax.set_title("flip periods: fitted against theory")
-            paths.append(charts.save(plt, fig, stem, "flip_z"))
+            paths.append(plotting.save(plt, fig, stem, "flip_z"))
     return paths
 
 
@@ -39,7 +39,7 @@ def _tilt_chart(plt, ds, fits, stem, members):
     fig, ax = plt.subplots(figsize=(8, 4.5), layout="constrained")
     t = ds["t"].values
     tilts = body.tilt(ds["omega"].values.transpose(2, 1, 0), ds["spin_axis"].values).T  # (member, t)
-    for i, member in enumerate(charts.sample_members(ds, members)):
+    for i, member in enumerate(plotting.sample_members(ds, members)):
         color = f"C{i % 10}"
         tilt = tilts[member]
         used, rate = int(fits["samples_used"].values[member]), fits["growth_rate"].values[member]
@@ -54,5 +54,5 @@ def _tilt_chart(plt, ds, fits, stem, members):
     ax.set_xlabel("t (s)")
     ax.set_ylabel("tilt (rad)")
     ax.set_title("tilt of sample members (dots); dashed: the fitted growth where the tilt grows")
-    ax.legend(**charts.LEGEND_OUTSIDE)
-    return charts.save(plt, fig, stem, "tilt")
+    ax.legend(**plotting.LEGEND_OUTSIDE)
+    return plotting.save(plt, fig, stem, "tilt")

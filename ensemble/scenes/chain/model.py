@@ -308,17 +308,3 @@ def conserved_energy(ds) -> np.ndarray:
     if "energy" not in ds:
         raise KeyError("energy")
     return ds["energy"].values
-
-
-def fit(ds):
-    """The scene's fit of a result (ensemble.scenes.chain.fits.mode_frequencies), an xarray Dataset over its members."""
-    from .fits import mode_frequencies  # scipy and xarray: only when fitting
-
-    return mode_frequencies(ds)
-
-
-def charts(plt, ds, fits, rows, stem, members=None) -> list:
-    """The scene's charts of its fit, PNG files STEM_<chart>.png (ensemble.scenes.chain.plots.draw)."""
-    from .plots import draw  # matplotlib: only when charting
-
-    return draw(plt, ds, fits, rows, stem, members)

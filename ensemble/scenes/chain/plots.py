@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.signal.windows import blackmanharris
 
-from ... import charts
+from ... import plotting
 
 
 def draw(plt, ds, fits, rows, stem, members=None) -> list:
@@ -32,14 +32,14 @@ def draw(plt, ds, fits, rows, stem, members=None) -> list:
     ax.set_xlabel("angular frequency (rad/s)")
     ax.set_ylabel("power (relative to the largest)")
     ax.set_title("spectrum of x(t)")
-    ax.legend(**charts.LEGEND_OUTSIDE)
-    paths = [charts.save(plt, fig, stem, "spectrum")]
+    ax.legend(**plotting.LEGEND_OUTSIDE)
+    paths = [plotting.save(plt, fig, stem, "spectrum")]
     theory = fits["frequency_theory"].values.ravel()
     series = [(theory, fits["frequency"].values.ravel(), fits["frequency_stderr"].values.ravel(),
                "fitted, every member and mode")]
     if "frequency_method" in fits and np.isfinite(fits["frequency_method"].values).any():
         series.append((theory, fits["frequency_method"].values.ravel(), None, f"what {ds.attrs['method']} shows"))
-    paths.append(charts.against_theory(plt, stem, "frequencies", series, theory_label="eigenfrequency",
+    paths.append(plotting.against_theory(plt, stem, "frequencies", series, theory_label="eigenfrequency",
                                        quantity="frequency", units="rad/s",
                                        title="fitted frequencies against theory"))
     return paths

@@ -269,17 +269,3 @@ def observe(samples: np.ndarray, names, values: dict[str, np.ndarray], constants
     if "tilt" in names:
         out["tilt"] = observed_tilt(omega)
     return out
-
-
-def fit(ds):
-    """The scene's fit of a result (ensemble.scenes.top.fits.tilt_decay), an xarray Dataset over its members."""
-    from .fits import tilt_decay  # scipy and xarray: only when fitting
-
-    return tilt_decay(ds)
-
-
-def charts(plt, ds, fits, rows, stem, members=None) -> list:
-    """The scene's charts of its fit, PNG files STEM_<chart>.png (ensemble.scenes.top.plots.draw)."""
-    from .plots import draw  # matplotlib: only when charting
-
-    return draw(plt, ds, fits, rows, stem, members)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ... import charts
+from ... import plotting
 
 
 def draw(plt, ds, fits, rows, stem, members=None) -> list:
@@ -12,7 +12,7 @@ def draw(plt, ds, fits, rows, stem, members=None) -> list:
     sweep point's mean fitted rate against c (1/lambda1 - 1/lambda3), with residuals."""
     fig, ax = plt.subplots(figsize=(8, 4.5), layout="constrained")
     t = ds["t"].values
-    for i, member in enumerate(charts.sample_members(ds, members)):
+    for i, member in enumerate(plotting.sample_members(ds, members)):
         color = f"C{i % 10}"
         rate = fits["rate"].values[member]
         ax.semilogy(t, np.tan(ds["tilt"].values[member]), ".", ms=3, color=color, zorder=3,
@@ -23,13 +23,13 @@ def draw(plt, ds, fits, rows, stem, members=None) -> list:
     ax.set_xlabel("t (s)")
     ax.set_ylabel("tan(tilt)")
     ax.set_title("tilt of sample members (dots) and their fitted lines (dashed)")
-    ax.legend(**charts.LEGEND_OUTSIDE)
-    paths = [charts.save(plt, fig, stem, "tilt")]
+    ax.legend(**plotting.LEGEND_OUTSIDE)
+    paths = [plotting.save(plt, fig, stem, "tilt")]
     theory, mean, error = (np.array([getattr(r, name) for r in rows]) for name in ("theory", "mean", "error"))
     series = [(theory, mean, error, "fitted mean per sweep point")]
     if np.isfinite([r.method for r in rows]).any():
         series.append((theory, np.array([r.method for r in rows]), None, f"what {ds.attrs['method']} shows"))
-    paths.append(charts.against_theory(plt, stem, "rates", series, theory_label="c (1/lambda1 - 1/lambda3)",
+    paths.append(plotting.against_theory(plt, stem, "rates", series, theory_label="c (1/lambda1 - 1/lambda3)",
                                        quantity="tilt decay rate", units="1/s",
                                        title="tilt decay rate per sweep point"))
     return paths
