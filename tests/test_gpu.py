@@ -235,13 +235,13 @@ def test_a_long_record_on_the_gpu_continues_from_its_last_segment(tmp_path, monk
 
 @pytest.mark.parametrize("boundary", ["fixed", "periodic"])
 def test_a_long_chain_as_a_block_of_threads_gives_the_results_of_one_thread_per_chain(monkeypatch, boundary):
-    """Chains of gpu.SHARED_SITES masses or more run as a block of threads each, a thread owning a few sites and
+    """Chains of gpu_sites.SHARED_SITES masses or more run as a block of threads each, a thread owning a few sites and
     the positions in shared memory. Here 5 masses on 2 threads (the second owning one site fewer) give the bits
     of one thread per chain for splittings and Runge-Kutta, unstable members failing at the same saved time, also
     in segments. dopri5 adds its error norm over the threads in another order: the same steps, to rounding. (The
     simulator's barriers are slow: a ring only with verlet and rk4, dopri5 on the heavy chains, which take few
     steps.)"""
-    from ensemble.engine import gpu
+    from ensemble.engine import gpu_launch, gpu_sites
     from ensemble.scenes import resolve
 
     chain, n = resolve("chain"), 5
@@ -256,10 +256,10 @@ def test_a_long_chain_as_a_block_of_threads_gives_the_results_of_one_thread_per_
             values = {name: value[2:] for name, value in values.items()}
         one = launch.integrate(chain, METHODS[method], values, constants, **settings)
         with monkeypatch.context() as patch:
-            patch.setattr(gpu, "SHARED_SITES", 2)
-            patch.setattr(gpu, "MOST_SITE_THREADS", 2)
-            patch.setattr(gpu, "WARP", 1)
-            assert gpu.kernel(chain, METHODS[method], constants).threads == 2
+            patch.setattr(gpu_sites, "SHARED_SITES", 2)
+            patch.setattr(gpu_sites, "MOST_SITE_THREADS", 2)
+            patch.setattr(gpu_sites, "WARP", 1)
+            assert gpu_launch.kernel(chain, METHODS[method], constants).threads == 2
             block = launch.integrate(chain, METHODS[method], values, constants, **settings)
             segments = launch.Launch(chain, METHODS[method], values, constants, **settings, segment=2)
             segments.run()  # each call continues from where the block's threads left their sites in works

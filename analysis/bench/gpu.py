@@ -30,7 +30,7 @@ sys.path.insert(0, str(Path(__file__).parent))
 from hostinfo import host  # noqa: E402
 
 from ensemble.engine import (
-    gpu,  # noqa: E402
+    gpu_sites,  # noqa: E402
     launch,  # noqa: E402
 )
 from ensemble.engine.gpu import require_gpu, simulated  # noqa: E402
@@ -160,16 +160,16 @@ def top_rates(sizes: dict, repeats: int) -> list[dict]:
 
 def chain_layouts(n: int):
     """Each layout a chain of n masses is timed in, by name: from BOTH_LAYOUTS masses on, a block of threads per
-    chain and one thread per chain, whatever gpu.SHARED_SITES says, so that the two can be compared; below, the
-    engine's one (""). While a name is yielded, gpu.SHARED_SITES makes its layout the engine's; after, it is as it
+    chain and one thread per chain, whatever gpu_sites.SHARED_SITES says, so that the two can be compared; below, the
+    engine's one (""). While a name is yielded, gpu_sites.SHARED_SITES makes its layout the engine's; after, it is as it
     was."""
-    shared_sites = gpu.SHARED_SITES
+    shared_sites = gpu_sites.SHARED_SITES
     try:
         for layout in ("block", "thread") if n >= BOTH_LAYOUTS else ("",):
-            gpu.SHARED_SITES = {"thread": n + 1, "block": min(n, shared_sites)}.get(layout, shared_sites)
+            gpu_sites.SHARED_SITES = {"thread": n + 1, "block": min(n, shared_sites)}.get(layout, shared_sites)
             yield layout
     finally:
-        gpu.SHARED_SITES = shared_sites
+        gpu_sites.SHARED_SITES = shared_sites
 
 
 def chain_rates(sizes: dict, repeats: int) -> list[dict]:
@@ -187,7 +187,7 @@ def chain_rates(sizes: dict, repeats: int) -> list[dict]:
                     rate, steps, seconds = calibrated(chain, METHODS[name], values, {"n": n, "boundary": "fixed"},
                                                       dt=CHAIN_DT, probe_steps=20, device="cuda", repeats=repeats,
                                                       **tolerances)
-                    threads = gpu.site_threads(n, METHODS[name])
+                    threads = gpu_sites.site_threads(n, METHODS[name])
                     rows.append(dict(scene=f"chain N={n}", method=name, members=members, steps=steps, layout=layout,
                                      seconds=seconds, rate=rate * n, unit="mass-steps/s", threads_per_chain=threads))
                     print(f"chain N={n:<5d} {name:8s} members {members:>9,d}, {threads:3d} threads per chain: "

@@ -77,7 +77,7 @@ def kernels(precisions: tuple[str, ...]):
     chains of CHAINS masses in each layout."""
     from gpu import chain_layouts  # analysis/bench/gpu.py, beside this file
 
-    from ensemble.engine import gpu
+    from ensemble.engine import gpu_launch
     from ensemble.scenes import methods_for, resolve
 
     cases = [(resolve(name), {}) for name in ("top", "body")]
@@ -88,7 +88,7 @@ def kernels(precisions: tuple[str, ...]):
             for _ in chain_layouts(constants.get("n", 0)):
                 for precision in precisions:
                     what = f"{scene.NAME} {constants.get('n', '')} {method.name} {precision}".replace("  ", " ")
-                    yield what, gpu.kernel(scene, method, constants, precision), method
+                    yield what, gpu_launch.kernel(scene, method, constants, precision), method
 
 
 def main() -> int:

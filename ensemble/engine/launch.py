@@ -78,12 +78,12 @@ def integrate(scene, method: Method, values: dict[str, np.ndarray], constants: d
 class Launch:
     """`integrate` in parts: the constructor lays out the inputs in the kernel's blocks; `segments` runs the kernel
     on them (anew each time), `segment` samples per kernel call, and yields each call's samples; `run` keeps them
-    all; `outcome` returns what the last run did. With device="cuda" it is an ensemble.engine.gpu.GpuLaunch,
+    all; `outcome` returns what the last run did. With device="cuda" it is an ensemble.engine.gpu_launch.GpuLaunch,
     which does the same on a GPU (in `precision`, "float64" or "float32")."""
 
     def __new__(cls, scene, method: Method, *args, device: str = "cpu", **kwargs):
         if device == "cuda" and not method.closed_form:  # a closed form is evaluated with NumPy, on the CPU
-            from .gpu import GpuLaunch
+            from .gpu_launch import GpuLaunch
 
             return GpuLaunch(scene, method, *args, **kwargs)
         return super().__new__(cls)

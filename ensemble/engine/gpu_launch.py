@@ -1,0 +1,134 @@
+"""A scene's CUDA kernel, chosen (`kernel`: one thread per member, or a field of sites' layout), and launched
+(`GpuLaunch`: launch.Launch on a GPU, the arrays on the GPU, samples copied back on a stream of their own)."""
+from __future__ import annotations
+
+import numpy as np
+
+from ..methods import Method
+from ..results import DEFAULT_BLOWUP_FACTOR, Outcome
+from .gpu import PRECISIONS, THREADS, GpuKernel, member_kernel, require_gpu
+from .gpu_sites import site_threads, sites_kernel
+from .inputs import adaptive_control, blowup_limits, fixed_counts
+from .kernels import scene_identity
+
+
+def kernel(scene, method: Method, constants: dict, precision: str = "float64") -> GpuKernel:
+    """The CUDA kernel of a stepping method for a scene (compiled when first launched)."""
+    D, P = scene.kernel_rows(constants)
+    sources = scene_identity(scene)  # a cache key: an edited scene is another kernel
+    if getattr(scene, "SITES", False):
+        return sites_kernel(scene.NAME, scene.PHYSICS, sources, tuple(scene.PIECES), method, constants["n"],
+                            constants["boundary"] == "periodic", precision, site_threads(constants["n"], method))
+    return member_kernel(scene.NAME, scene.PHYSICS, sources, tuple(scene.PIECES), method, D, P, precision)
+
+
+class GpuLaunch:
+    """launch.Launch on a GPU: the same arguments, `segments`, `run` and `outcome`; the arrays live on the GPU, one
+    thread per member. Each segment's samples are copied back on a stream of their own while the next segment
+    integrates."""
+
+    def __init__(self, scene, method: Method, values: dict[str, np.ndarray], constants: dict, *, n_save: int,
+                 save_dt: float, dt=None, rtol=None, atol=None, blowup_factor: float = DEFAULT_BLOWUP_FACTOR,
+                 segment: int | None = None, precision: str = "float64"):
+        from numba import cuda
+
+        require_gpu()
+        self.scene, self.method, self.n_save, self.save_dt, self.dt = scene, method, n_save, save_dt, dt
+        self.segment = max(1, min(segment or n_save, n_save))
+        self.members = len(next(iter(values.values())))
+        self.real = PRECISIONS[precision]
+        self.buffers = {}  # see _buffer
+        state0, rate = scene.inputs(values, constants)
+        self.state_rows = state0.shape[0]
+        self.kernel = kernel(scene, method, constants, precision)
+        self.limit = cuda.to_device(blowup_limits(state0, blowup_factor).astype(self.real))
+        self.state0 = cuda.to_device(np.ascontiguousarray(state0, dtype=self.real))
+        self.rate = cuda.to_device(np.ascontiguousarray(rate, dtype=self.real))
+        if method.adaptive:
+            self.control = cuda.to_device(adaptive_control(dt, rtol, atol, self.members))
+            self.head = (self.state0, self.rate, self.control, float(save_dt), self.limit)
+        else:
+            self.steps_per_save = round(save_dt / dt)
+            self.head = (self.state0, self.rate, float(dt), int(self.steps_per_save), self.limit)
+
+    def segments(self, threads: int | None = None, watch=None, resume: tuple[int, dict] | None = None):
+        """As launch.Launch.segments (threads is ignored): yields (first, samples) per kernel call, samples()
+        returning (count, state rows, members) float64 in host memory. Segment k + 1 integrates while the caller
+        handles segment k, whose samples are overwritten by segment k + 2: the caller copies what it keeps."""
+        from numba import cuda
+
+        n = self.members
+        compute, copy = cuda.stream(), cuda.stream()
+        start = {"status": np.zeros(n, np.int8), "failure_time": np.full(n, np.nan),
+                 "works": np.zeros((self.kernel.rows, n)), **({"counts": np.zeros((3, n))} if self.method.adaptive
+                                                                else {}), **(resume[1] if resume else {})}
+        for name, value in start.items():
+            setattr(self, name, cuda.to_device(value))
+        tail = ((self.counts,) if self.method.adaptive else ()) + (self.status, self.failure_time, self.works)
+        per_block = THREADS if self.kernel.threads == 1 else 1  # members per block of threads
+        grid, block = max(1, -(-n // per_block)), THREADS if per_block > 1 else self.kernel.threads
+        copied, waiting = {}, None
+        for k, first in enumerate(range(resume[0] if resume else 0, self.n_save, self.segment)):
+            count = min(self.segment, self.n_save - first)
+            shape = (count, self.state_rows, n)
+            if k >= 2:
+                copied[k - 2].wait(compute)  # its buffer is copied out before this segment overwrites it
+            samples = self._buffer(("device", k % 2, shape), lambda: cuda.device_array(shape, dtype=self.real))
+            self.kernel.function[grid, block, compute](*self.head, samples, *tail, first, n)
+            snapshot = {name: getattr(self, name).copy_to_host(
+                self._buffer(("state", k % 2, name), lambda name=name: cuda.pinned_array_like(start[name])),
+                stream=compute) for name in start} if self.segment < self.n_save else {}  # state() of a
+            # segment handed on; a record in one call is never continued, and needs no copy of its kernel state
+            integrated = cuda.event()
+            integrated.record(compute)
+            integrated.wait(copy)
+            host = self._buffer(("host", k % 2, shape), lambda: cuda.pinned_array(shape, dtype=self.real))
+            samples.copy_to_host(host, stream=copy)
+            copied[k] = cuda.event()
+            copied[k].record(copy)
+            if waiting is not None:
+                yield self._handed(waiting, watch)
+            waiting = (first, count, host, copied[k], snapshot)
+        if waiting is not None:
+            yield self._handed(waiting, watch)
+        cuda.synchronize()
+
+    def _buffer(self, key, make):
+        """A buffer kept for later segments and runs of this launch: allocating pinned memory costs about as much
+        as copying into it (0.3 s for 512 MB). Segments alternate between two: segment k's samples are handed on
+        (the caller is done with them) before segment k + 2 is copied into the same buffer."""
+        if key not in self.buffers:
+            self.buffers[key] = make()
+        return self.buffers[key]
+
+    def _handed(self, waiting, watch):
+        first, count, host, event, self._state = waiting
+        event.synchronize()
+        if watch is not None:
+            watch(min(1.0, (first + count - 1) / max(self.n_save - 1, 1)))
+        return first, lambda: host if host.dtype == np.float64 else host.astype(np.float64)
+
+    def state(self) -> dict[str, np.ndarray]:
+        """As launch.Launch.state: copies, in host memory, of what the last segment handed on left (empty for a
+        record in one kernel call, which is never continued)."""
+        return {name: value.copy() for name, value in self._state.items()}
+
+    def takes(self, state: dict[str, np.ndarray]) -> bool:
+        n, rows = self.members, self.kernel.rows
+        mine = {"status": ((n,), np.int8), "failure_time": ((n,), np.float64), "works": ((rows, n), np.float64),
+                **({"counts": ((3, n), np.float64)} if self.method.adaptive else {})}
+        return mine.keys() == state.keys() and all((v.shape, v.dtype) == mine[k] for k, v in state.items())
+
+    def run(self, threads: int | None = None, watch=None) -> None:
+        keep = np.array if self.segment < self.n_save else np.asarray  # segments share two buffers: copies
+        parts = [keep(samples()) for _, samples in self.segments(threads, watch)]
+        self.samples = parts[0] if len(parts) == 1 else np.concatenate(parts)
+
+    def outcome(self) -> Outcome:
+        status, failure_time = self.status.copy_to_host(), self.failure_time.copy_to_host()
+        if self.method.adaptive:
+            counts = self.counts.copy_to_host().astype(np.int64)
+        else:
+            counts = fixed_counts(self.method, self.scene, failure_time, self.dt,
+                                   self.steps_per_save * (self.n_save - 1))
+        return Outcome(getattr(self, "samples", None), counts, status, failure_time)
