@@ -465,7 +465,7 @@ class SegmentLog:
         self.paths = [segment.path for segment in writer.parts.segments.pop((start, stop), [])]
 
     def resumed(self, call, record) -> tuple[int, dict] | None:
-        """Where the kept segments end, (sample, kernel state), with `record` (runner._Record) and the part's
+        """Where the kept segments end, (sample, kernel state), with `record` (records.Record) and the part's
         checksums restored to that point; None (and the segments deleted) when there are none, or when they are
         of another kernel layout than `call`'s."""
         kept = self.kept()
@@ -500,7 +500,7 @@ class SegmentLog:
 
     def save(self, first: int, data: dict[str, np.ndarray], state: dict[str, np.ndarray], record: dict) -> None:
         """Samples first, first + 1, ... of the members, just written as `data` (name: (members, samples, ...)),
-        are finished: with the kernel's `state` and the record's (runner._Record.state), a segment file says so,
+        are finished: with the kernel's `state` and the record's (records.Record.state), a segment file says so,
         once the samples are on the disk."""
         end = first + len(next(iter(data.values()))[0])
         inside = {"first_member": self.start, "stop_member": self.stop, "first_sample": first, "stop_sample": end,

@@ -9,7 +9,6 @@ import sys
 import tempfile
 import threading
 import time
-import zlib
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -22,8 +21,8 @@ from .engine import launch
 from .interrupts import HeldInterrupts, LateInterrupt
 from .methods import METHODS, Method
 from .parts import Parts
-from .records import error_records, growth_per_step, measured_growth, relative_error
-from .results import COUNTS, Outcome, Status
+from .records import Record, kernel_seconds_per_step, measured_growth
+from .results import Outcome, Status
 from .spec import Spec, members_table
 from .store import Writer
 
@@ -183,130 +182,6 @@ def integrate(spec: Spec, method: Method, values: dict[str, np.ndarray], repeats
     return outcome, kernel_seconds_per_step(scene, method, values, spec.constants, outcome, repeats, stepping)
 
 
-TIMED_KERNEL_BLOCKS = 16  # blocks in a timed call, whatever the point's members: one block costs more per step
-TIMED_STEPS_PER_MEMBER = 1000  # steps each member takes at least in a timed call
-TIMED_SECONDS = 0.05  # a timed call lasts at least this long (as timeit's autorange does): the timer, the call's
-#                       own cost and each member's first steps stay small against it
-
-
-def kernel_seconds_per_step(scene, method: Method, values: dict[str, np.ndarray], constants: dict, outcome: Outcome,
-                            repeats: int, settings: dict) -> float:
-    """The kernel's seconds per member-step on one thread: the best of `repeats` calls over their member-steps.
-
-    Every point is timed in one configuration, so that its cost grows in proportion to its steps: the point's
-    members repeated (in order) to TIMED_KERNEL_BLOCKS whole blocks, from their start over as many steps as
-    make a call last at least TIMED_SECONDS (at least TIMED_STEPS_PER_MEMBER each; `settings` are the run's,
-    `outcome` what it did). It times stepping alone: no layout, no output, on one thread whatever the point's
-    member count. A run on T threads costs about 1/T of it per member-step."""
-    taken = int(outcome.counts[0].sum() + outcome.counts[1].sum())
-    if taken == 0:
-        return np.nan
-    members = len(outcome.status)
-    chosen = np.resize(np.arange(members), TIMED_KERNEL_BLOCKS * launch.block_size(scene, constants, method))
-    subset = {name: np.asarray(v)[chosen] for name, v in values.items()}
-    settings = {**settings, "rtol": subset["rtol"], "atol": subset["atol"]}
-    if method.adaptive:
-        settings["dt"] = subset["dt"]
-    run_span = settings["save_dt"]  # s: the run's, from its start to t_end
-
-    def launch_for(steps: int) -> launch.Launch:
-        """A launch in which each member takes about `steps` steps."""
-        span = steps * settings["dt"] if not method.adaptive else run_span * steps * members / taken
-        return launch.Launch(scene, method, subset, constants, **{**settings, "save_dt": span})
-
-    def best(call: launch.Launch, calls: int) -> float:
-        """The best time of `calls` runs of `call` (inf for none)."""
-        seconds = np.inf
-        for _ in range(calls):
-            start = time.perf_counter()
-            call.run(threads=1)  # one thread: how many blocks a point has cannot leave threads idle
-            seconds = min(seconds, time.perf_counter() - start)
-        return seconds
-
-    steps = TIMED_STEPS_PER_MEMBER
-    call = launch_for(steps)
-    seconds = best(call, 1)
-    while seconds < TIMED_SECONDS:
-        steps = math.ceil(steps * min(10.0, 1.2 * TIMED_SECONDS / max(seconds, 1e-9)))
-        call = launch_for(steps)
-        seconds = best(call, 1)
-    seconds = min(seconds, best(call, repeats - 1))
-    counts = call.outcome().counts
-    return seconds / float(counts[0].sum() + counts[1].sum())
-
-
-def noise_streams(spec: Spec, name: str, first: int, members: int) -> list[np.random.Generator]:
-    """The observation noise streams of variable `name` for members first .. first + members - 1: member i's is
-    seeded by (seed, crc32("noise:" + name), i). Drawn in time order, a segment at a time."""
-    stream = zlib.crc32(f"noise:{name}".encode())
-    return [np.random.default_rng([spec.seed, stream, first + i]) for i in range(members)]
-
-
-class _Record:
-    """What a launch's samples become: saved variables (with observation noise) handed to write_samples(first
-    sample, variables) as they come, and the amplitudes and errors that [measure] asks for, kept for the
-    per-member records."""
-
-    def __init__(self, spec: Spec, method: Method, values: dict[str, np.ndarray], first: int, members: int,
-                 write_samples):
-        self.spec, self.method, self.values, self.write_samples = spec, method, values, write_samples
-        self.scene = spec.model
-        self.noise = {name: noise_streams(spec, name, first, members) for name in spec.noise}
-        self.amplitudes, self.errors = [], []
-
-    def add(self, start: int, samples: np.ndarray) -> dict[str, np.ndarray]:
-        """Samples start, start + 1, ... (count, state rows, members) of the launch; returns the saved variables
-        written for them (name: (members, count, ...))."""
-        spec, scene = self.spec, self.scene
-        data = scene.observe(samples, spec.save, self.values, spec.constants)
-        for name, streams in self.noise.items():
-            data[name] = data[name] + spec.noise[name] * np.stack([g.standard_normal(data[name].shape[1:])
-                                                                   for g in streams])
-        self.write_samples(start, data)
-        if spec.measure["growth"] and not self.method.closed_form:
-            self.amplitudes.append(scene.amplitudes(samples, self.values, spec.constants))
-        if spec.measure["error"]:
-            exact = scene.exact(self.values, spec.constants, spec.times(start, start + len(samples)))
-            self.errors.append(relative_error(samples, exact))
-        return data
-
-    def state(self) -> dict:
-        """What the record continues from after the last `add`: its noise streams' states ("noise") and that
-        add's pieces of the amplitudes and errors (arrays)."""
-        state = {"noise": {name: [g.bit_generator.state for g in streams] for name, streams in self.noise.items()}}
-        for name in ("amplitudes", "errors"):
-            if getattr(self, name):
-                state[name] = getattr(self, name)[-1]
-        return state
-
-    def restore(self, noise: dict, amplitudes: list[np.ndarray], errors: list[np.ndarray]) -> None:
-        """Continue from the pieces that `state` gave, add by add, and the noise states of the last."""
-        for name, states in noise.items():
-            for generator, state in zip(self.noise[name], states):
-                generator.bit_generator.state = state
-        self.amplitudes, self.errors = list(amplitudes), list(errors)
-
-    def records(self, outcome: Outcome, seconds_per_step=None) -> dict[str, np.ndarray]:
-        """The per-member records (member,) once every sample is added; seconds_per_step() times the kernel when
-        the run measures timing."""
-        spec, method, members = self.spec, self.method, len(outcome.status)
-        records = dict(zip(COUNTS, outcome.counts), status=outcome.status, failure_time=outcome.failure_time)
-        if spec.measure["growth"]:
-            records["growth_per_step"] = (np.full(members, np.nan) if method.closed_form else growth_per_step(
-                self.scene, method, self.values, _joined(self.amplitudes, axis=2), outcome, spec.times(), spec.t_end))
-        if spec.measure["error"]:
-            records["error_max"], records["error_final"] = error_records(_joined(self.errors, axis=0))
-        if spec.measure["timing"]:
-            records["seconds_per_step"] = np.full(members, np.nan if method.closed_form else seconds_per_step())
-        return records
-
-
-def _joined(pieces: list[np.ndarray], axis: int) -> np.ndarray:
-    """np.concatenate of pieces along axis, without copying a single piece. A chunk's kernel call makes one,
-    and copying its amplitudes into new memory took up to 5 ms a chunk in a 262,144-top run."""
-    return pieces[0] if len(pieces) == 1 else np.concatenate(pieces, axis=axis)
-
-
 def integrate_members(spec: Spec, method: Method, values: dict[str, np.ndarray], first: int, write_samples,
                       repeats: int = 0, watch=None, threads: int | None = None, log=None, segment: int | None = None):
     """Integrate members first, first + 1, ... (one method and dt); returns finish(), which hands their saved
@@ -320,7 +195,7 @@ def integrate_members(spec: Spec, method: Method, values: dict[str, np.ndarray],
     settings = _settings(spec, method, values)
     segment = segment or segment_samples(spec)
     call = launch.Launch(scene, method, values, spec.constants, **settings, segment=segment)
-    record = _Record(spec, method, values, first, call.members, write_samples)
+    record = Record(spec, method, values, first, call.members, write_samples)
     whole = []
     resume = log and log.resumed(call, record)
     for start, samples in call.segments(threads, watch=watch, resume=resume):

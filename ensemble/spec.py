@@ -1,4 +1,5 @@
-"""Reading and validating run files, and expanding them into a members table.
+"""Reading and validating run files, and expanding them into a members table (ensemble.members; one value's
+checks and the draws are in ensemble.runfile).
 
 A run file is TOML (see README.md). Every problem is a SpecError naming the
 key, so the command line can print one line and exit with status 2.
@@ -17,36 +18,43 @@ Parsing imports no Numba: a run file is checked before any kernel is loaded.
 """
 from __future__ import annotations
 
-import difflib
 import hashlib
 import io
-import itertools
 import math
 import re
 import tomllib
-import zlib
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 
-from .errors import EnsembleError
-from .inertia import SHAPES, polygon
+from .inertia import SHAPES
+from .members import (  # noqa: F401 (given_values, members_table, with_values: spec's API, built in members)
+    MAX_TABLE_BYTES,
+    build_table,
+    given_values,
+    members_table,
+    with_values,
+)
 from .methods import METHODS
 from .parameter import Mode, Parameter, ParameterError
 from .results import DEFAULT_BLOWUP_FACTOR
+from .runfile import (
+    POLYGON,
+    SETTINGS,
+    Distribution,
+    PerMember,
+    SpecError,
+    axis_values,
+    expect,
+    parameter_value,
+    positive,
+    shape_table,
+    unknown,
+    vertices_text,
+)
 from .scenes import SceneError, absolute, applies, methods_for, resolve
 from .scenes.contract import SceneChanged, identity
-
-
-class SpecError(EnsembleError, ValueError):
-    """A problem in a run file, tied to the key where it is."""
-
-    def __init__(self, key: str, problem: str):
-        super().__init__(f"{key}: {problem}")
-        self.key = key
-        self.problem = problem
-
 
 TOP_LEVEL = {
     "scene": str, "method": str, "dt": float, "rtol": float, "atol": float, "t_end": float, "save_dt": float,
@@ -60,57 +68,15 @@ OBSERVE_KEYS = ("noise",)
 MEASURE_KEYS = {"error": bool, "timing": bool, "repeats": int, "growth": bool}
 REQUIRED = ("scene", "t_end", "save_dt", "members", "seed")
 # How each member integrates; each may be a top-level value or a sweep axis.
-SETTINGS = ("method", "dt", "rtol", "atol")
-DEFAULT_TOLERANCES = {"rtol": 1e-6, "atol": 1e-9}  # for adaptive methods
-DISTRIBUTIONS = ("uniform", "normal", "loguniform")
 _STEP_RTOL = 1e-9  # how close save_dt / dt and t_end / save_dt must be to whole numbers
-MAY_BE_INFINITE = ("blowup_factor",)  # inf: only a non-finite state fails a member
 # What a run file may ask for, refused before anything is allocated:
 MAX_RUN_FILE_BYTES = 1_000_000  # a run file is a short text
 MAX_NESTING = 32  # levels of arrays, inline tables and dotted keys: deeper, tomllib recurses past Python's limit
 # or (dotted keys) takes time that grows with the square of the depth
 MAX_STEPS = 10**12  # steps per member (t_end / dt), and saved samples per member (t_end / save_dt)
 MAX_SEED = 2**63 - 1  # the seed is stored as a 64-bit integer
-MAX_TABLE_BYTES = 2**31  # every member's parameters, held in memory for the whole run
-EIGENPROBLEM_ARRAYS = 3  # n x n arrays per member while mode starts are solved: stiffness, shapes, LAPACK's work
 MAX_REPEATS = 100  # [measure] repeats: timed kernel calls per chunk
 MAX_NOISE = 1e150  # observation noise's stddev: far below it a Gaussian draw (at most ~40 sd) stays finite
-POLYGON = "polygon"  # a shape given by its mass and its vertices (a run constant), not by lengths
-
-
-@dataclass(frozen=True, eq=False)
-class PerMember:
-    """A parameter's values given member by member (a run file's `{ file = "x0.npy" }`, or ensemble.run's
-    `values=`): (values, ...) over the run's members, or over the replicas of a sweep point (each point then
-    takes the same), with one value, or one per site or spring, each."""
-    values: np.ndarray
-    source: str  # where they came from: the file and its SHA-256, or "ensemble.run(values=...)"
-
-    def take(self, start: int, n: int, shape: tuple[int, ...], members: int, n_members: int) -> np.ndarray:
-        """Members start .. start + n - 1's values, of shape `shape` (n, ...)."""
-        index = np.arange(start, start + n)
-        if len(self.values) != n_members:
-            index = index % members
-        return np.asarray(self.values[index], dtype=float).reshape(shape)
-
-
-@dataclass(frozen=True)
-class Distribution:
-    kind: str  # one of DISTRIBUTIONS
-    args: tuple[float, float]
-
-    def draw(self, seed: int, name: str, start: int, count: int) -> np.ndarray:
-        """Values start .. start + count - 1 of parameter `name`'s stream (see the module's docstring)."""
-        bits = np.random.PCG64([seed, zlib.crc32(name.encode())])
-        bits.advance(start)
-        lo, hi = self.args
-        if self.kind == "uniform":
-            return np.random.Generator(bits).uniform(lo, hi, count)
-        if self.kind == "normal":
-            from scipy.special import ndtri
-
-            return lo + hi * ndtri(((bits.random_raw(count) >> 12) + 0.5) * 2.0**-52)  # 52 bits, never 0 or 1
-        return np.exp(np.random.Generator(bits).uniform(math.log(lo), math.log(hi), count))
 
 
 @dataclass(frozen=True)
@@ -188,39 +154,6 @@ class Spec:
         return np.arange(first, self.n_save if stop is None else min(stop, self.n_save)) * self.save_dt
 
 
-def _type_name(kind) -> str:
-    if isinstance(kind, tuple):
-        return " or ".join(map(_type_name, kind))
-    return {float: "a number", int: "an integer", str: "a string", list: "a list", dict: "a table",
-            bool: "true or false"}[kind]
-
-
-def _expect(key: str, value, kind):
-    """Check the TOML type of a value; ints count as numbers, bools as nothing else. Every number a run file gives
-    passes here, so this is the one place that refuses NaN and infinity (TOML has both): a number must be finite
-    unless its key is in MAY_BE_INFINITE."""
-    ok = isinstance(value, kind) and (kind is bool or not isinstance(value, bool))
-    if kind is float:
-        ok = isinstance(value, (int, float)) and not isinstance(value, bool)
-    if not ok:
-        raise SpecError(key, f"must be {_type_name(kind)}, got {type(value).__name__} {value!r}")
-    if kind is float and not math.isfinite(value) and not (math.isinf(value) and key in MAY_BE_INFINITE):
-        raise SpecError(key, f"must be a finite number, got {value!r}")
-    return float(value) if kind is float else value
-
-
-def _unknown(key: str, name: str, known) -> SpecError:
-    close = difflib.get_close_matches(name, list(known), n=1)
-    hint = f" (did you mean {close[0]!r}?)" if close else ""
-    return SpecError(key, f"unknown key{hint}; known keys: {', '.join(sorted(known))}")
-
-
-def _positive(key: str, value: float) -> float:
-    if not value > 0 or not math.isfinite(value):
-        raise SpecError(key, f"must be > 0 and finite, got {value!r}")
-    return value
-
-
 def _whole_ratio(key: str, num: float, den: float, what: str) -> None:
     ratio = num / den
     if not ratio <= MAX_STEPS:
@@ -228,52 +161,6 @@ def _whole_ratio(key: str, num: float, den: float, what: str) -> None:
                              f"may ask for")
     if round(ratio) < 1 or abs(ratio - round(ratio)) > _STEP_RTOL * ratio:
         raise SpecError(key, f"must be a whole multiple of {what} ({num!r} / {den!r} = {ratio:.12g})")
-
-
-def _distribution(key: str, value: dict) -> Distribution:
-    if len(value) != 1 or next(iter(value)) not in DISTRIBUTIONS:
-        raise SpecError(key, f"a distribution is one of {{uniform=[lo,hi]}}, {{normal=[mu,sd]}}, "
-                             f"{{loguniform=[lo,hi]}}; got {value!r}")
-    kind, args = next(iter(value.items()))
-    if not (isinstance(args, list) and len(args) == 2):
-        raise SpecError(f"{key}.{kind}", f"must be a list of two numbers, got {args!r}")
-    lo, hi = (_expect(f"{key}.{kind}", x, float) for x in args)
-    if kind == "normal" and hi < 0:
-        raise SpecError(f"{key}.normal", f"standard deviation must be >= 0, got {hi!r}")
-    if kind != "normal" and lo > hi:
-        raise SpecError(f"{key}.{kind}", f"lower bound {lo!r} is above upper bound {hi!r}")
-    if kind == "uniform" and not math.isfinite(hi - lo):
-        raise SpecError(f"{key}.uniform", f"the range {lo!r} to {hi!r} is wider than a float64 can hold")
-    if kind == "loguniform" and lo <= 0:
-        raise SpecError(f"{key}.loguniform", f"bounds must be > 0, got {lo!r}")
-    return Distribution(kind, (lo, hi))
-
-
-def _parameter(key: str, value, parameter: Parameter):
-    """A parameter's value in one of the forms its declaration accepts."""
-    if isinstance(value, PerMember):
-        if parameter.integer or parameter.choices or parameter.constant:
-            raise SpecError(key, "is one value for the whole run, not one per member")
-        return value
-    if parameter.integer:
-        return _expect(key, value, int)
-    if parameter.choices:
-        if value not in parameter.choices:
-            raise SpecError(key, f"must be one of {', '.join(map(repr, parameter.choices))}, got {value!r}")
-        return value
-    if isinstance(value, dict) and parameter.mode and "mode" in value:
-        if set(value) != {"mode", "amplitude"}:
-            raise SpecError(key, f"a mode start is {{ mode = j, amplitude = A }}, got {value!r}")
-        return Mode(_expect(f"{key}.mode", value["mode"], int), _expect(f"{key}.amplitude", value["amplitude"], float))
-    if isinstance(value, dict) and "file" in value:
-        raise SpecError(key, f"values from a file are {{ file = \"NAME.npy\" }} alone, got {value!r}")
-    if isinstance(value, dict):
-        return _distribution(key, value)
-    if isinstance(value, list) and parameter.per:
-        return [_expect(f"{key}[{i}]", x, float) for i, x in enumerate(value)]
-    if isinstance(value, list):
-        raise SpecError(key, "takes one value per member (a number or a distribution), got a list")
-    return _expect(key, value, float)
 
 
 def _nesting_problem(text: str) -> str | None:
@@ -305,11 +192,11 @@ def _top_level(text: str) -> dict:
         raise SpecError("TOML syntax", str(e)) from None
     for key in raw:
         if key not in TOP_LEVEL:
-            raise _unknown(key, key, TOP_LEVEL)
+            raise unknown(key, key, TOP_LEVEL)
     for key in REQUIRED:
         if key not in raw:
             raise SpecError(key, "missing (required)")
-    values = {key: _expect(key, raw[key], kind) for key, kind in TOP_LEVEL.items() if key in raw}
+    values = {key: expect(key, raw[key], kind) for key, kind in TOP_LEVEL.items() if key in raw}
     for name in SETTINGS:
         if name in values.get("parameters", {}):
             raise SpecError(f"parameters.{name}", "is a run setting: give it at the top of the run file (or sweep "
@@ -320,7 +207,7 @@ def _top_level(text: str) -> dict:
 def _grids(sweep) -> tuple[list[dict], list[str]]:
     """The sweep grids and where each is written: [sweep] is one grid, [[sweep]] tables a union of grids."""
     if isinstance(sweep, list):
-        grids = [_expect(f"sweep[{g}]", grid, dict) for g, grid in enumerate(sweep)]
+        grids = [expect(f"sweep[{g}]", grid, dict) for g, grid in enumerate(sweep)]
         return grids, [f"sweep[{g}]" for g in range(len(grids))]
     return ([sweep], ["sweep"]) if sweep else ([], [])
 
@@ -334,8 +221,8 @@ def parse(text: str, path: str = "<string>") -> Spec:
     except SceneError as error:
         raise SpecError("scene", str(error)) from None
 
-    t_end = _positive("t_end", values["t_end"])
-    save_dt = _positive("save_dt", values["save_dt"])
+    t_end = positive("t_end", values["t_end"])
+    save_dt = positive("save_dt", values["save_dt"])
     grids, labels = _grids(values.get("sweep", {}))
     settings = {key: values[key] for key in SETTINGS if key in values}
     setting_axes = [_settings(settings, {k: v for k, v in grid.items() if k in SETTINGS}, label, module, save_dt)
@@ -376,7 +263,7 @@ def parse(text: str, path: str = "<string>") -> Spec:
                                    f"{need / 1e9:.3g} GB of parameters in memory; at most "
                                    f"{MAX_TABLE_BYTES / 1e9:.3g} GB")
     # Drawing every member's values checks them; keep them, as mode starts may cost an eigensolve each.
-    return replace(spec, table=_build_table(spec))
+    return replace(spec, table=build_table(spec))
 
 
 def _save(save: tuple, module) -> tuple[str, ...]:
@@ -405,7 +292,7 @@ def _from_files(given: dict, folder: Path) -> dict:
     for name, value in given.items():
         if not (isinstance(value, dict) and set(value) == {"file"}):
             continue
-        where = folder / _expect(f"parameters.{name}.file", value["file"], str)
+        where = folder / expect(f"parameters.{name}.file", value["file"], str)
         try:
             data = where.read_bytes()
             values = np.load(io.BytesIO(data), allow_pickle=False)
@@ -456,8 +343,8 @@ def _parameters(given: dict, grids: list[dict], labels: list[str], module):
     parameters = {}
     for name, value in given.items():
         if name not in declared:
-            raise _unknown(f"parameters.{name}", name, module.PARAMETERS)
-        parameters[name] = _parameter(keys[name], value, declared[name])
+            raise unknown(f"parameters.{name}", name, module.PARAMETERS)
+        parameters[name] = parameter_value(keys[name], value, declared[name])
     axes = _parameter_axes(grids, labels, keys, declared, parameters, module)
     swept = set(axes[0]) if axes else set()
     for name, parameter in declared.items():
@@ -497,12 +384,12 @@ def _shape_parameter(name: str, given: dict, grids: list[dict], labels: list[str
         if other in given or any(other in grid for grid in grids):
             raise SpecError(f"parameters.{other}", f"is given by parameters.{name}; give "
                                                    f"{' and '.join(parameter.derives)}, or {name}, not both")
-    shape, dimensions = _shape(f"parameters.{name}", given.pop(name))
+    shape, dimensions = shape_table(f"parameters.{name}", given.pop(name))
     constants[f"{name}_shape"] = shape
     if shape == POLYGON:
         if "vertices" not in dimensions:
             raise SpecError(f"parameters.{name}.vertices", "missing (a polygon needs its vertices)")
-        constants[f"{name}_vertices"] = _vertices(f"parameters.{name}.vertices", dimensions.pop("vertices"))
+        constants[f"{name}_vertices"] = vertices_text(f"parameters.{name}.vertices", dimensions.pop("vertices"))
     lengths = ("mass", *(() if shape == POLYGON else SHAPES[shape].lengths))
     for dim in lengths:
         flat = f"{name}_{dim}"
@@ -514,12 +401,12 @@ def _shape_parameter(name: str, given: dict, grids: list[dict], labels: list[str
         if dim in dimensions:
             given[flat] = dimensions.pop(dim)
     for dim in dimensions:
-        raise _unknown(f"parameters.{name}.{dim}", dim, ("shape", *lengths))
+        raise unknown(f"parameters.{name}.{dim}", dim, ("shape", *lengths))
     for grid, label in zip(grids, labels):
-        swept = _expect(f"{label}.{name}", grid.pop(name, {}), dict)
+        swept = expect(f"{label}.{name}", grid.pop(name, {}), dict)
         for dim, axis in swept.items():
             if dim not in lengths:
-                raise _unknown(f"{label}.{name}.{dim}", dim, lengths)
+                raise unknown(f"{label}.{name}.{dim}", dim, lengths)
             grid[f"{name}_{dim}"] = axis
 
 
@@ -532,27 +419,17 @@ def _parameter_axes(grids: list[dict], labels: list[str], keys: dict, declared: 
         for name, axis in grid.items():
             key = f"{label}.{keys[name].removeprefix('parameters.')}" if name in keys else f"{label}.{name}"
             if name not in declared:
-                raise _unknown(key, name, (*module.PARAMETERS, *SETTINGS))
+                raise unknown(key, name, (*module.PARAMETERS, *SETTINGS))
             if declared[name].constant:
                 raise SpecError(key, "is a run constant and cannot be swept; use one run file per value")
             if name in parameters:
                 raise SpecError(key, "is both a parameter and a sweep axis; give it in one place only")
-            checked[name] = _axis(key, axis, float)
+            checked[name] = axis_values(key, axis, float)
         if axes and set(checked) != set(axes[0]):
             raise SpecError(label, f"sweeps parameters {sorted(checked)}, but {labels[0]} sweeps {sorted(axes[0])}: "
                                    f"every grid must sweep the same parameters (methods and steps may differ)")
         axes.append(checked)
     return axes
-
-
-def _axis(key: str, axis, kind) -> tuple:
-    if not isinstance(axis, list) or not axis:
-        raise SpecError(key, f"a sweep axis must be a non-empty list, got {axis!r}")
-    values = tuple(_expect(key, x, kind) for x in axis)
-    repeated = [x for i, x in enumerate(values) if x in values[:i]]
-    if repeated:
-        raise SpecError(key, f"repeats the value {repeated[0]!r}: each sweep point once")
-    return values
 
 
 def _settings(top: dict, axes: dict, label: str, module, save_dt: float) -> dict[str, tuple]:
@@ -564,7 +441,7 @@ def _settings(top: dict, axes: dict, label: str, module, save_dt: float) -> dict
     for key, axis in axes.items():
         if key in top:
             raise SpecError(f"{label}.{key}", "is both a top-level value and a sweep axis; give it in one place only")
-        out[key] = _axis(f"{label}.{key}", axis, str if key == "method" else float)
+        out[key] = axis_values(f"{label}.{key}", axis, str if key == "method" else float)
     where = {key: f"{label}.{key}" if key in out else key for key in SETTINGS}
     if "method" not in top and "method" not in out:
         raise SpecError("method", "missing (required)")
@@ -574,7 +451,7 @@ def _settings(top: dict, axes: dict, label: str, module, save_dt: float) -> dict
             if not value > 0 or not math.isfinite(value):
                 raise SpecError(where[key], f"must be > 0 and finite, got {value!r}")
     for value in out.get("dt", (top["dt"],) if "dt" in top else ()):
-        _positive(where["dt"], value)
+        positive(where["dt"], value)
     for method in out.get("method", (top.get("method"),)):
         _check_method(method, module, where, tolerances, "dt" in out, "dt" in top or "dt" in out)
         if not METHODS[method].adaptive and ("dt" in top or "dt" in out):
@@ -611,8 +488,8 @@ def _measure(measure: dict, module) -> dict[str, object]:
     out = {"error": False, "timing": False, "repeats": 3, "growth": False}
     for key, value in measure.items():
         if key not in MEASURE_KEYS:
-            raise _unknown(f"measure.{key}", key, MEASURE_KEYS)
-        out[key] = _expect(f"measure.{key}", value, MEASURE_KEYS[key])
+            raise unknown(f"measure.{key}", key, MEASURE_KEYS)
+        out[key] = expect(f"measure.{key}", value, MEASURE_KEYS[key])
     if not 1 <= out["repeats"] <= MAX_REPEATS:
         raise SpecError("measure.repeats", f"must be in 1..{MAX_REPEATS} (timed kernel calls per chunk), got "
                                            f"{out['repeats']}")
@@ -626,41 +503,20 @@ def _derived(name: str, module, constants: dict) -> bool:
     return any(name in p.derives and f"{source}_shape" in constants for source, p in module.PARAMETERS.items())
 
 
-def _shape(key: str, value) -> tuple[str, dict]:
-    """A shape table { shape = "...", mass = ..., <lengths> = ... }: the shape and the rest."""
-    if not isinstance(value, dict) or "shape" not in value:
-        raise SpecError(key, f'must be a shape table such as {{ shape = "annulus", mass = 0.1, r_inner = 0.1, '
-                             f'r_outer = 0.13 }}, got {value!r}')
-    value = dict(value)
-    shape = value.pop("shape")
-    if not isinstance(shape, str) or (shape not in SHAPES and shape != POLYGON):
-        raise SpecError(f"{key}.shape", f"unknown shape {shape!r}; shapes: {', '.join(SHAPES)}, {POLYGON}")
-    return shape, value
-
-
-def _vertices(key: str, value) -> str:
-    """A polygon's vertices [[x1, y1], [x2, y2], ...] (m), as the text "x1,y1 x2,y2 ..." the dataset records."""
-    if not isinstance(value, list) or not all(isinstance(v, list) and len(v) == 2 for v in value):
-        raise SpecError(key, f"must be a list of [x, y] pairs in m, such as [[0, 0], [0.3, 0], [0, 0.3]], "
-                             f"got {value!r}")
-    pairs = [[_expect(key, x, float) for x in v] for v in value]
-    return " ".join(f"{x!r},{y!r}" for x, y in pairs)
-
-
 def _noise(observe: dict, save: tuple[str, ...], module) -> dict[str, float]:
     """The [observe] table: noise = { variable = standard deviation (the variable's units) }."""
     for key in observe:
         if key not in OBSERVE_KEYS:
-            raise _unknown(f"observe.{key}", key, OBSERVE_KEYS)
-    noise = _expect("observe.noise", observe.get("noise", {}), dict)
+            raise unknown(f"observe.{key}", key, OBSERVE_KEYS)
+    noise = expect("observe.noise", observe.get("noise", {}), dict)
     out = {}
     for name, sigma in noise.items():
         key = f"observe.noise.{name}"
         if name not in module.OBSERVABLES:
-            raise _unknown(key, name, module.OBSERVABLES)
+            raise unknown(key, name, module.OBSERVABLES)
         if name not in save:
             raise SpecError(key, f"{name!r} is not saved; add it to save")
-        sigma = _expect(key, sigma, float)
+        sigma = expect(key, sigma, float)
         if not 0 <= sigma <= MAX_NOISE:
             raise SpecError(key, f"must be a standard deviation in 0..{MAX_NOISE:g} (a larger one turns values into "
                                  f"inf), got {sigma}")
@@ -685,161 +541,3 @@ def load(path: str | Path) -> Spec:
     return parse(text, str(path))
 
 
-def with_values(spec: Spec, values: dict) -> Spec:
-    """`spec` with parameters given member by member (name: an array over the run's members, or over a sweep
-    point's, each member a number or a row of one per site or spring), in place of what the run file says."""
-    parameters, declared = dict(spec.parameters), dict(spec.declared)
-    for name, given in values.items():
-        known = spec.model.PARAMETERS.get(name)
-        if known is None or name in spec.sweep or known.constant:
-            raise SpecError(f"values.{name}", f"is not a per-member parameter of the {spec.model.NAME} scene that "
-                                              f"this run does not sweep")
-        try:
-            array = np.array(given, dtype=float)
-        except (TypeError, ValueError):
-            raise SpecError(f"values.{name}", f"must be an array of numbers, got {type(given).__name__}") from None
-        if array.ndim not in (1, 2) or not np.all(np.isfinite(array)):
-            raise SpecError(f"values.{name}", f"must be finite numbers, one row a member, got shape {array.shape}")
-        parameters[name] = _parameter(f"values.{name}", PerMember(array, "ensemble.run(values=...)"), known)
-        declared[name] = known
-    spec = replace(spec, parameters=parameters, declared=declared)
-    return replace(spec, table=_build_table(spec))
-
-
-def given_values(spec: Spec) -> str:
-    """Where the parameters given member by member came from ("" if none): "name: source; ..."."""
-    return "; ".join(f"{name}: {value.source}" for name, value in spec.parameters.items()
-                     if isinstance(value, PerMember))
-
-
-def members_table(spec: Spec, start: int = 0, stop: int | None = None) -> dict[str, np.ndarray]:
-    """The parameter values of members start .. stop - 1 (default: every member), each an array over those
-    members: a slice of the table parse built, or (a spec sent without it, as to a Dask worker) built for
-    that range alone, in time proportional to its length.
-
-    Members are ordered sweep point major, replica minor; the table also holds
-    `sweep_point`, the index of each member's point on the sweep grids, and how
-    each member integrates: `method` (names), `dt`, `rtol`, `atol` (NaN where
-    the method takes none).
-    """
-    stop = spec.n_members if stop is None else stop
-    if spec.table is None:
-        return _build_table(spec, start, stop)
-    if (start, stop) == (0, spec.n_members):
-        return spec.table
-    return {name: values[start:stop] for name, values in spec.table.items()}
-
-
-def _build_table(spec: Spec, start: int = 0, stop: int | None = None) -> dict[str, np.ndarray]:
-    stop = spec.n_members if stop is None else stop
-    n = stop - start
-    points = [dict(zip(grid, combination)) for grid in spec.grids
-              for combination in itertools.product(*grid.values())] or [{}]
-    point = np.arange(start, stop) // spec.members
-    table = {"sweep_point": point}
-    for name in spec.sweep:
-        if name not in SETTINGS:
-            table[name] = np.array([p[name] for p in points], dtype=float)[point]
-    table.update(_member_settings(spec, points, point))
-    scene = spec.model
-    sizes = scene.sizes(spec.constants)
-    modes = {name: value for name, value in spec.parameters.items() if isinstance(value, Mode)}
-    for name, value in spec.parameters.items():
-        if name not in modes:
-            table[name] = _values(spec, name, value, start, n, sizes)
-    for name in spec.sweep:
-        per = spec.declared[name].per if name in spec.declared else None
-        if per:
-            table[name] = np.repeat(table[name][:, None], sizes[per], axis=1)
-    for source, parameter in scene.PARAMETERS.items():
-        if f"{source}_shape" in spec.constants:
-            table.update(_from_shape(spec, source, table))
-    closed_form = spec.measure["error"] or any(METHODS[m].closed_form for m in set(table["method"]))
-    try:
-        scene.check(table)
-        table.update(scene.derive(table, spec.constants))
-        if closed_form and hasattr(scene, "check_exact"):
-            scene.check_exact(table)
-    except ParameterError as e:
-        raise SpecError(f"{'sweep' if e.name in spec.sweep else 'parameters'}.{e.name}", e.problem) from None
-    except SceneError as e:  # the scene's check raised something else than a ParameterError
-        raise SpecError("scene", str(e)) from None
-    for name, mode in modes.items():
-        if not 1 <= mode.number <= sizes["site"]:
-            raise SpecError(f"parameters.{name}.mode", f"must be in 1..{sizes['site']}, got {mode.number}")
-        need = EIGENPROBLEM_ARRAYS * 8 * sizes["site"] ** 2 * n
-        if need > MAX_TABLE_BYTES:
-            raise SpecError(f"parameters.{name}", f"a mode start solves each member's {sizes['site']} x "
-                                                  f"{sizes['site']} eigenproblem at once: {n} member(s) need "
-                                                  f"{need / 1e9:.3g} GB; at most {MAX_TABLE_BYTES / 1e9:.3g} GB")
-        table[name] = scene.mode_start(mode, table["m"], table["k"], spec.constants["boundary"])
-    return table
-
-
-def _member_settings(spec: Spec, points: list[dict], point: np.ndarray) -> dict[str, np.ndarray]:
-    """Each member's method, dt, rtol and atol (NaN where its method takes none), from its sweep point."""
-    top_level = {"method": spec.method, "dt": spec.dt, "rtol": spec.rtol, "atol": spec.atol}
-    settings = [{key: p.get(key, top_level[key]) for key in SETTINGS} for p in points]
-    for s in settings:
-        if METHODS[s["method"]].adaptive:
-            s.update({key: value for key, value in DEFAULT_TOLERANCES.items() if s[key] is None})
-    out = {"method": np.array([s["method"] for s in settings])[point]}
-    for key in ("dt", "rtol", "atol"):
-        out[key] = np.array([np.nan if s[key] is None else s[key] for s in settings], dtype=float)[point]
-    return out
-
-
-def _values(spec: Spec, name: str, value, start: int, n: int, sizes: dict[str, int]) -> np.ndarray:
-    """Parameter `name` of members start .. start + n - 1: (n,), or (n, sites or springs) for a per-site one."""
-    per = spec.declared[name].per
-    shape = (n, sizes[per]) if per else (n,)
-    if isinstance(value, PerMember):
-        given = value.values.shape
-        if given[0] not in (spec.n_members, spec.members) or given[1:] != shape[1:]:
-            each = f"{shape[1]} values (one per {per})" if per else "one value"
-            point = f", or of the {spec.members} of a sweep point" if spec.members != spec.n_members else ""
-            raise SpecError(f"parameters.{name}", f"{value.source}: has shape {given}; it takes {each} for each of "
-                                                  f"the run's {spec.n_members} members{point}")
-        return value.take(start, n, shape, spec.members, spec.n_members)
-    if isinstance(value, Distribution):
-        per_member = math.prod(shape[1:])
-        if spec.draws == "each member":
-            return value.draw(spec.seed, name, start * per_member, n * per_member).reshape(shape)
-        out = np.empty((n, per_member))  # member j draws what replica j % members draws at the first point
-        done = 0
-        while done < n:
-            replica = (start + done) % spec.members
-            run = min(n - done, spec.members - replica)
-            out[done:done + run] = value.draw(spec.seed, name, replica * per_member, run * per_member).reshape(
-                run, per_member)
-            done += run
-        return out.reshape(shape)
-    if isinstance(value, list):
-        if len(value) != shape[1]:
-            raise SpecError(f"parameters.{name}", f"has {len(value)} values; one per {per} takes {shape[1]}")
-        return np.tile(np.array(value, dtype=float), (n, 1))
-    return np.full(shape, value, dtype=float)
-
-
-def _from_shape(spec: Spec, source: str, table: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-    """The parameters that shape parameter `source` derives, for every member."""
-    name = spec.constants[f"{source}_shape"]
-    try:
-        with np.errstate(over="ignore", invalid="ignore"):  # moments past a float64 are refused below
-            if name == POLYGON:
-                vertices = [[float(x) for x in pair.split(",")]
-                            for pair in spec.constants[f"{source}_vertices"].split()]
-                body = polygon(table[f"{source}_mass"], vertices)
-            else:
-                shape = SHAPES[name]
-                body = shape.build(**{dim: table[f"{source}_{dim}"] for dim in ("mass", *shape.lengths)})
-    except ParameterError as e:
-        where = "sweep" if f"{source}_{e.name}" in spec.sweep else "parameters"
-        raise SpecError(f"{where}.{source}.{e.name}", e.problem) from None
-    if not np.all(np.isfinite(body.inertia)):
-        raise SpecError(f"parameters.{source}", "its moments of inertia (mass times length squared) are beyond a "
-                                                "float64's range (1.8e308 kg m2)")
-    try:
-        return spec.model.from_body(body, source)
-    except ParameterError as e:
-        raise SpecError(f"parameters.{e.name}", e.problem) from None

@@ -5,7 +5,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from ensemble import fitting, runner
+from ensemble import fitting, records, runner
 from ensemble.engine import launch
 from ensemble.methods import DOPRI5, METHODS
 from ensemble.records import measured_error
@@ -340,8 +340,8 @@ def test_timed_cost_grows_in_proportion_to_the_steps_whatever_the_members(monkey
             steps.sum()) * (1 + 1 / -(-self.members // block))
 
     monkeypatch.setattr(launch.Launch, "run", costed)
-    monkeypatch.setattr(runner, "time", SimpleNamespace(perf_counter=lambda: clock[0]))
-    step = 3e-9 * (1 + 1 / runner.TIMED_KERNEL_BLOCKS)
+    monkeypatch.setattr(records, "time", SimpleNamespace(perf_counter=lambda: clock[0]))
+    step = 3e-9 * (1 + 1 / records.TIMED_KERNEL_BLOCKS)
     cost = {}
     for t_end, members in ((0.08, 2), (8.0, 2), (0.08, 3000)):
         spec = parse(top_runfile(t_end=t_end, save_dt=t_end / 4, members=members))

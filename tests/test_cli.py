@@ -332,7 +332,7 @@ def test_interrupt_before_the_file_opens_is_one_line_naming_no_file(where, expec
     def interrupted(*args, **kwargs):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(*((launch, "prepare") if where == "kernels" else (spec_module, "_build_table")), interrupted)
+    monkeypatch.setattr(*((launch, "prepare") if where == "kernels" else (spec_module, "build_table")), interrupted)
     out = tmp_path / "out.nc"
     assert cli.main(["run", str(write_runfile(top_runfile())), "-o", str(out)]) == 130
     assert capsys.readouterr().err.strip().splitlines() == [expected]

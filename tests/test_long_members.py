@@ -8,7 +8,7 @@ import netCDF4
 import numpy as np
 import pytest
 
-from ensemble import cli, parts, runner
+from ensemble import cli, parts, records, runner
 from ensemble.parts import folder_of
 from ensemble.spec import load, parse
 
@@ -45,13 +45,13 @@ def _interrupted_after(spec, out, saves: int, monkeypatch) -> None:
 
 def _segments_added(monkeypatch) -> list[int]:
     """The first sample of every segment the run computes from now on."""
-    real, added = runner._Record.add, []
+    real, added = records.Record.add, []
 
     def add(self, start, samples):
         added.append(start)
         return real(self, start, samples)
 
-    monkeypatch.setattr(runner._Record, "add", add)
+    monkeypatch.setattr(records.Record, "add", add)
     return added
 
 

@@ -40,7 +40,7 @@ began = time.perf_counter()
 from benchmark import WORKLOADS, c_limit, print_limit  # noqa: E402
 from hostinfo import host  # noqa: E402
 
-from ensemble import cli, parts, runner, store  # noqa: E402
+from ensemble import cli, parts, records, runner, store  # noqa: E402
 from ensemble.arguments import OneLineParser, positive_int  # noqa: E402
 from ensemble.engine import launch  # noqa: E402
 from ensemble.spec import SpecError, load, parse  # noqa: E402
@@ -113,7 +113,7 @@ def main(argv=None) -> None:
     timed(spec.model, "amplitudes", "  amplitudes")
     time_kernel_calls()
     timed(runner, "_keep", "finishing")
-    timed(runner, "growth_per_step", "  growth fit")
+    timed(records, "growth_per_step", "  growth fit")
     timed(store, "put_samples", "  writing")
     timed(parts, "fsync_path", "fsync")
     print(host(), flush=True)
