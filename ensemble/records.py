@@ -143,7 +143,7 @@ def kernel_seconds_per_step(scene, method: Method, values: dict[str, np.ndarray]
     def launch_for(steps: int) -> launch.Launch:
         """A launch in which each member takes about `steps` steps."""
         span = steps * settings["dt"] if not method.adaptive else run_span * steps * members / taken
-        return launch.Launch(scene, method, subset, constants, **{**settings, "save_dt": span})
+        return launch.new_launch(scene, method, subset, constants, **{**settings, "save_dt": span})
 
     def best(call: launch.Launch, calls: int) -> float:
         """The best time of `calls` runs of `call` (inf for none)."""

@@ -194,7 +194,7 @@ def integrate_members(spec: Spec, method: Method, values: dict[str, np.ndarray],
     scene = spec.model
     settings = _settings(spec, method, values)
     segment = segment or segment_samples(spec)
-    call = launch.Launch(scene, method, values, spec.constants, **settings, segment=segment)
+    call = launch.new_launch(scene, method, values, spec.constants, **settings, segment=segment)
     record = Record(spec, method, values, first, call.members, write_samples)
     whole = []
     resume = log and log.resumed(call, record)

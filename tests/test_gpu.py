@@ -116,9 +116,9 @@ def test_a_run_in_segments_gives_the_bits_of_one_call(method):
     spec = spec_of(case, method)
     values = runner.members_table(spec, 0, spec.n_members)
     settings = {**runner._settings(spec, METHODS[method], values), "device": "cuda"}
-    whole = launch.Launch(spec.model, METHODS[method], values, spec.constants, **settings)
+    whole = launch.new_launch(spec.model, METHODS[method], values, spec.constants, **settings)
     whole.run()
-    parts = launch.Launch(spec.model, METHODS[method], values, spec.constants, **settings, segment=1)
+    parts = launch.new_launch(spec.model, METHODS[method], values, spec.constants, **settings, segment=1)
     parts.run()
     assert whole.samples.tobytes() == parts.samples.tobytes()
     assert whole.outcome().counts.tobytes() == parts.outcome().counts.tobytes()
@@ -261,7 +261,7 @@ def test_a_long_chain_as_a_block_of_threads_gives_the_results_of_one_thread_per_
             patch.setattr(gpu_sites, "WARP", 1)
             assert gpu_launch.kernel(chain, METHODS[method], constants).threads == 2
             block = launch.integrate(chain, METHODS[method], values, constants, **settings)
-            segments = launch.Launch(chain, METHODS[method], values, constants, **settings, segment=2)
+            segments = launch.new_launch(chain, METHODS[method], values, constants, **settings, segment=2)
             segments.run()  # each call continues from where the block's threads left their sites in works
         assert segments.samples.tobytes() == block.samples.tobytes()
         assert np.array_equal(one.counts, block.counts) and np.array_equal(one.status, block.status), method

@@ -99,7 +99,7 @@ def timed(scene, method, values, constants, *, dt, t_end, device, repeats, **tol
     """(median seconds of a launch over t_end, its outcome); inputs are laid out once, outside the timing. A timed
     launch is the kernel and its two samples (start and end) copied to the host as the device hands them on: not
     converted to float64 (as Launch.run does for a float32 run's samples)."""
-    call = launch.Launch(scene, method, values, constants, n_save=2, save_dt=t_end, dt=dt, device=device,
+    call = launch.new_launch(scene, method, values, constants, n_save=2, save_dt=t_end, dt=dt, device=device,
                          **tolerances)
     call.run()  # compiles
     seconds = []

@@ -69,28 +69,32 @@ def integrate(scene, method: Method, values: dict[str, np.ndarray], constants: d
     depends only on its own values: never on how many members run with it,
     the chunking or the thread count. watch(fraction done) is called every WATCH_SECONDS while the kernel runs.
     """
-    call = Launch(scene, method, values, constants, n_save=n_save, save_dt=save_dt, dt=dt, rtol=rtol, atol=atol,
-                  blowup_factor=blowup_factor, device=device, precision=precision)
+    call = new_launch(scene, method, values, constants, n_save=n_save, save_dt=save_dt, dt=dt, rtol=rtol, atol=atol,
+                      blowup_factor=blowup_factor, device=device, precision=precision)
     call.run(watch=watch)
     return call.outcome()
 
 
+def new_launch(scene, method: Method, values: dict[str, np.ndarray], constants: dict, *, device: str = "cpu",
+               **settings):
+    """A launch of `values` on `device`: a Launch on this machine's cores, or for "cuda" an
+    ensemble.engine.gpu_launch.GpuLaunch, which does the same on a GPU (in settings' `precision`, "float64" or
+    "float32"). A closed form is evaluated with NumPy, on the CPU, whatever the device. `settings` are Launch's."""
+    if device == "cuda" and not method.closed_form:
+        from .gpu_launch import GpuLaunch
+
+        return GpuLaunch(scene, method, values, constants, **settings)
+    return Launch(scene, method, values, constants, **settings)
+
+
 class Launch:
-    """`integrate` in parts: the constructor lays out the inputs in the kernel's blocks; `segments` runs the kernel
-    on them (anew each time), `segment` samples per kernel call, and yields each call's samples; `run` keeps them
-    all; `outcome` returns what the last run did. With device="cuda" it is an ensemble.engine.gpu_launch.GpuLaunch,
-    which does the same on a GPU (in `precision`, "float64" or "float32")."""
-
-    def __new__(cls, scene, method: Method, *args, device: str = "cpu", **kwargs):
-        if device == "cuda" and not method.closed_form:  # a closed form is evaluated with NumPy, on the CPU
-            from .gpu_launch import GpuLaunch
-
-            return GpuLaunch(scene, method, *args, **kwargs)
-        return super().__new__(cls)
+    """`integrate` in parts, on this machine's cores (new_launch chooses the device): the constructor lays out the
+    inputs in the kernel's blocks; `segments` runs the kernel on them (anew each time), `segment` samples per
+    kernel call, and yields each call's samples; `run` keeps them all; `outcome` returns what the last run did."""
 
     def __init__(self, scene, method: Method, values: dict[str, np.ndarray], constants: dict, *, n_save: int,
                  save_dt: float, dt=None, rtol=None, atol=None, blowup_factor: float = DEFAULT_BLOWUP_FACTOR,
-                 segment: int | None = None, device: str = "cpu", precision: str = "float64"):
+                 segment: int | None = None, precision: str = "float64"):
         self.scene, self.method, self.n_save, self.save_dt, self.dt = scene, method, n_save, save_dt, dt
         self.segment = max(1, min(segment or n_save, n_save))
         self.members = len(next(iter(values.values())))
@@ -261,7 +265,7 @@ def prepare(scene, method: Method, constants: dict, device: str = "cpu", precisi
         return
     try:
         if device == "cuda":
-            Launch(scene, method, values, constants, n_save=1, save_dt=1.0, dt=values["dt"] if method.adaptive
+            new_launch(scene, method, values, constants, n_save=1, save_dt=1.0, dt=values["dt"] if method.adaptive
                    else 1.0, rtol=values["rtol"], atol=values["atol"], device=device, precision=precision).run()
             return
         _call_fresh(scene, method, constants)
