@@ -10,7 +10,7 @@ import tempfile
 import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -87,10 +87,11 @@ def _record_bytes(spec: Spec) -> tuple[int, int]:
 
 
 def run_block(spec: Spec) -> int:
-    """Members per kernel block for the run's chunks: the largest block of its methods' kernels (blocks are
-    powers of 2, so a chunk of whole blocks of it is whole blocks of every method's)."""
+    """Members per kernel block for the run's chunks: the largest block of its methods' kernels, in the run's
+    few-members block where it has one (blocks are powers of 2, so a chunk of whole blocks of it is whole blocks
+    of every method's)."""
     scene = spec.model
-    return max(launch.block_size(scene, spec.constants, METHODS[name]) for name in spec.methods)
+    return max(launch.block_size(scene, spec.constants, METHODS[name], spec.kernel_block) for name in spec.methods)
 
 
 def segment_samples(spec: Spec) -> int:
@@ -166,7 +167,8 @@ def _settings(spec: Spec, method: Method, values: dict[str, np.ndarray]) -> dict
     """A launch's settings for members that share one method and dt."""
     dt = values["dt"] if method.adaptive else float(values["dt"][0])
     return dict(n_save=spec.n_save, save_dt=spec.save_dt, dt=dt, rtol=values["rtol"], atol=values["atol"],
-                blowup_factor=spec.blowup_factor, device=spec.device, precision=spec.precision)
+                blowup_factor=spec.blowup_factor, device=spec.device, precision=spec.precision,
+                block=spec.kernel_block)
 
 
 def integrate(spec: Spec, method: Method, values: dict[str, np.ndarray], repeats: int = 0,
@@ -286,10 +288,10 @@ def segment_task(spec: Spec, start: int, stop: int, repeats: int, carried: dict 
     values = members_table(spec, start, stop)
     log = CarriedLog(carried)
     try:
-        with tuning.members_block(few_members_block(spec)):  # as a local run would
-            finish = integrate_members(spec, METHODS[str(values["method"][0])], values, start, lambda *_: None,
-                                       repeats, threads=threads, log=log, segment=segment)
-            records = finish()
+        spec = replace(spec, kernel_block=few_members_block(spec))  # as a local run would
+        finish = integrate_members(spec, METHODS[str(values["method"][0])], values, start, lambda *_: None,
+                                   repeats, threads=threads, log=log, segment=segment)
+        records = finish()
     except _SegmentDone:
         return {**log.finished, "worker": get_worker().address}
     return {"records": records, "worker": get_worker().address}
@@ -327,9 +329,9 @@ def run(spec: Spec, out: str | Path, *, chunk: int | None = None, progress: bool
     segment_task for records run in segments: cluster.compute_on); chunks that keep failing there raise
     Incomplete after the rest are done. `command` is recorded in the
     file's history (default: `ensemble run <run file>`). A run of few, long members here runs them in a smaller
-    block (few_members_block)."""
-    with tuning.members_block(None if client else few_members_block(spec)):
-        return _run(spec, Path(out), chunk, progress, force, resume, command, client, task)
+    block (few_members_block; on a cluster the workers choose it)."""
+    spec = replace(spec, kernel_block=None if client else few_members_block(spec))
+    return _run(spec, Path(out), chunk, progress, force, resume, command, client, task)
 
 
 def few_members_block(spec: Spec) -> int | None:
@@ -342,7 +344,7 @@ def few_members_block(spec: Spec) -> int | None:
     scene = spec.model
     if spec.device != "cpu" or getattr(scene, "SITES", False):
         return None
-    block = run_block(spec)
+    block = run_block(replace(spec, kernel_block=None))
     if spec.n_members >= block or steps_per_member(spec) * block < CHUNK_MEMBER_STEPS:
         return None
     return min(block, max(FEW_MEMBERS_BLOCK, 1 << (spec.n_members - 1).bit_length()))
@@ -444,8 +446,8 @@ def chunk_task(spec: Spec, start: int, stop: int, repeats: int = 0):
 
     threads = max(1, launch.thread_count() // get_worker().state.nthreads)
     sink = Collected(spec, start, stop)
-    with tuning.members_block(few_members_block(spec)):  # as a local run would
-        records = compute_chunk(spec, start, stop, sink, repeats, threads=threads)
+    spec = replace(spec, kernel_block=few_members_block(spec))  # as a local run would
+    records = compute_chunk(spec, start, stop, sink, repeats, threads=threads)
     return sink.samples, records
 
 
@@ -544,7 +546,7 @@ def prepare_kernels(spec: Spec, announce: bool = True) -> float:
     def compile_all():
         for name in spec.methods:
             launch.prepare(scene, METHODS[name], spec.constants, device=spec.device, precision=spec.precision,
-                           values=members_table(spec, 0, 1))
+                           values=members_table(spec, 0, 1), block=spec.kernel_block)
         one = np.zeros((1, 1, scene.kernel_rows(spec.constants)[0])).transpose(1, 2, 0)  # as a kernel's samples
         scene.observe(one, tuple(scene.OBSERVABLES), members_table(spec, 0, 1), spec.constants)  # what observing
         if spec.measure["growth"]:  # and the growth fit compile, too

@@ -108,6 +108,9 @@ class Spec:
     table: dict[str, np.ndarray] | None = field(default=None, repr=False, compare=False)  # see members_table
     # a user's scene: the identity of its sources when the run file was read (model refuses any other)
     sources: str | None = field(default=None, compare=False)
+    # members per block of this process's CPU kernels for a run of few long members (runner.few_members_block
+    # sets it where the kernels run); None: block_size's rule
+    kernel_block: int | None = field(default=None, compare=False)
 
     @property
     def model(self):

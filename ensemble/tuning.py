@@ -24,7 +24,6 @@ import json
 import os
 import platform
 import tempfile
-from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -189,7 +188,6 @@ BLOCKS = (32, 64, 128, 256)  # the block sizes a generated kernel may be tuned t
 TIMED_BLOCKS = (64, 128, 256)  # those `ensemble tune` times (32 was the slowest on the Intel Xeon: docs/speed.md)
 SITES_BLOCKS = (2, 4, 8, 16, 32, 64)  # the blocks a fields of sites' splitting may be tuned to
 _applied: Tuning | None = None
-_few_members: int | None = None  # members_block's
 
 
 def applied() -> Tuning:
@@ -198,21 +196,8 @@ def applied() -> Tuning:
 
 
 def generated_block(default: int) -> int:
-    """Members per block of a kernel generated from the engine's templates: members_block's while a run of few
-    members is under way, else the tuning's, else `default`."""
-    return _few_members or applied().block or default
-
-
-@contextmanager
-def members_block(block: int | None):
-    """While in the block, generated kernels run `block` members per block (None: as before): a run of fewer
-    members than a block sets it (runner.few_members_block)."""
-    global _few_members
-    previous, _few_members = _few_members, block
-    try:
-        yield
-    finally:
-        _few_members = previous
+    """Members per block of a kernel generated from the engine's templates: the tuning's, else `default`."""
+    return applied().block or default
 
 
 def apply(tuning: Tuning | None) -> str | None:

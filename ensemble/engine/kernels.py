@@ -95,25 +95,26 @@ def factor_counts(where: str, pieces: tuple[str, ...], parameters: int) -> dict[
     return counts
 
 
-def block_size(scene, constants: dict, method: Method) -> int:
+def block_size(scene, constants: dict, method: Method, block: int | None = None) -> int:
     """Members per kernel block: a field of sites' rule (ensemble.engine.sites.block_size), else the scene's BLOCK
-    if it names one, else the run's or this machine's tuning (ensemble.tuning.generated_block), else BLOCK."""
+    if it names one, else `block` (a run of few members: runner.few_members_block), else this machine's tuning
+    (ensemble.tuning.generated_block), else BLOCK."""
     if getattr(scene, "SITES", False):
         return sites.block_size(constants, method)
-    return getattr(scene, "BLOCK", None) or generated_block(BLOCK)
+    return getattr(scene, "BLOCK", None) or block or generated_block(BLOCK)
 
 
-def kernel(scene, method: Method, constants: dict) -> Kernel:
+def kernel(scene, method: Method, constants: dict, block: int | None = None) -> Kernel:
     """Kernel(function, work rows) of a stepping method for a scene: compiled, or loaded from Numba's cache. A
     scene whose member is a field of sites (SITES) gets ensemble.engine.sites's templates, for its constants' n
-    sites and boundary; every other scene the templates of ensemble.engine.templates."""
+    sites and boundary; every other scene the templates of ensemble.engine.templates, for block_size's block."""
     sources = scene_identity(scene)  # a cache key: an edited scene is another kernel
     if getattr(scene, "SITES", False):
         return _sites_generated(scene.NAME, scene.PHYSICS, sources, method, constants["n"],
                                 constants["boundary"] == "periodic", *sites.layout(constants, method))
     D, P = scene.kernel_rows(constants)
     return _generated(scene.NAME, scene.PHYSICS, sources, tuple(scene.PIECES), method, D, P,
-                      block_size(scene, constants, method), bool(applied().stages_outside))
+                      block_size(scene, constants, method, block), bool(applied().stages_outside))
 
 
 @cache

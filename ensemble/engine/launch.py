@@ -48,15 +48,15 @@ def work_rows(scene, method: Method, constants: dict) -> int:
     return 0 if method.closed_form else kernels.kernel(scene, method, constants).rows
 
 
-def block_size(scene, constants: dict, method: Method) -> int:
+def block_size(scene, constants: dict, method: Method, block: int | None = None) -> int:
     """Members per kernel block of the scene's kernel of `method` for a run's constants."""
-    return kernels.block_size(scene, constants, method)
+    return kernels.block_size(scene, constants, method, block)
 
 
 def integrate(scene, method: Method, values: dict[str, np.ndarray], constants: dict, *, n_save: int,
               save_dt: float, dt=None, rtol=None, atol=None,
               blowup_factor: float = DEFAULT_BLOWUP_FACTOR, watch=None, device: str = "cpu",
-              precision: str = "float64") -> Outcome:
+              precision: str = "float64", block: int | None = None) -> Outcome:
     """Integrate the members described by `values` with `method`, saving n_save samples every save_dt (s).
 
     Fixed-step methods take the step dt (s, one value; save_dt a whole multiple
@@ -68,9 +68,10 @@ def integrate(scene, method: Method, values: dict[str, np.ndarray], constants: d
     underflows; it stops there and its later samples are NaN. A member's result
     depends only on its own values: never on how many members run with it,
     the chunking or the thread count. watch(fraction done) is called every WATCH_SECONDS while the kernel runs.
+    `block`: members per kernel block for a run of few members (None: block_size's); the bits do not depend on it.
     """
     call = new_launch(scene, method, values, constants, n_save=n_save, save_dt=save_dt, dt=dt, rtol=rtol, atol=atol,
-                      blowup_factor=blowup_factor, device=device, precision=precision)
+                      blowup_factor=blowup_factor, device=device, precision=precision, block=block)
     call.run(watch=watch)
     return call.outcome()
 
@@ -83,6 +84,7 @@ def new_launch(scene, method: Method, values: dict[str, np.ndarray], constants: 
     if device == "cuda" and not method.closed_form:
         from .gpu_launch import GpuLaunch
 
+        settings.pop("block", None)  # a CPU kernel's layout
         return GpuLaunch(scene, method, values, constants, **settings)
     return Launch(scene, method, values, constants, **settings)
 
@@ -94,7 +96,7 @@ class Launch:
 
     def __init__(self, scene, method: Method, values: dict[str, np.ndarray], constants: dict, *, n_save: int,
                  save_dt: float, dt=None, rtol=None, atol=None, blowup_factor: float = DEFAULT_BLOWUP_FACTOR,
-                 segment: int | None = None, precision: str = "float64"):
+                 segment: int | None = None, precision: str = "float64", block: int | None = None):
         self.scene, self.method, self.n_save, self.save_dt, self.dt = scene, method, n_save, save_dt, dt
         self.segment = max(1, min(segment or n_save, n_save))
         self.members = len(next(iter(values.values())))
@@ -104,8 +106,8 @@ class Launch:
             self.exact = lambda first, count: scene.exact(values, constants, np.arange(first, first + count) * spacing)
             return
         state0, rate = scene.inputs(values, constants)
-        block = kernels.block_size(scene, constants, method)
-        self.kernel = kernels.kernel(scene, method, constants)
+        block = kernels.block_size(scene, constants, method, block)
+        self.kernel = kernels.kernel(scene, method, constants, block)
         limit = blowup_limits(state0, blowup_factor)
         if method.adaptive:
             control = adaptive_control(dt, rtol, atol, self.members)
@@ -257,18 +259,18 @@ def run_blocks(kernel, arguments: tuple, blocks: int, threads: int | None = None
 
 
 def prepare(scene, method: Method, constants: dict, device: str = "cpu", precision: str = "float64",
-            values: dict | None = None) -> None:
-    """Compile (or load from Numba's disk cache) the kernel of a stepping method, on one empty block (on a GPU, on
-    the first member of `values`, saving only its start). A scene whose functions Numba cannot compile raises
-    SceneError, one line saying why."""
+            values: dict | None = None, block: int | None = None) -> None:
+    """Compile (or load from Numba's disk cache) the kernel of a stepping method, on one empty block of `block`
+    members (None: block_size's; on a GPU, on the first member of `values`, saving only its start). A scene whose
+    functions Numba cannot compile raises SceneError, one line saying why."""
     if method.closed_form:
         return
     try:
         if device == "cuda":
             new_launch(scene, method, values, constants, n_save=1, save_dt=1.0, dt=values["dt"] if method.adaptive
-                   else 1.0, rtol=values["rtol"], atol=values["atol"], device=device, precision=precision).run()
+                       else 1.0, rtol=values["rtol"], atol=values["atol"], device=device, precision=precision).run()
             return
-        _call_fresh(scene, method, constants)
+        _call_fresh(scene, method, constants, block)
     except Exception as error:  # Numba's errors (numba-cuda has classes of its own)
         if not type(error).__module__.startswith("numba"):
             raise
@@ -284,14 +286,14 @@ def _numba_cause(message: str) -> str:
     return (useful[0] if useful else lines[0])[:300]
 
 
-def _call_fresh(scene, method: Method, constants: dict) -> None:
+def _call_fresh(scene, method: Method, constants: dict, block: int | None = None) -> None:
     """_call_once; where Numba's disk cache of the kernel cannot be loaded (a truncated or damaged file), its
     cache files are deleted, with one line said, and the kernel compiled again; where it cannot be written (a
     full disk, a folder that cannot be written), one line says so and the kernel compiled here is used."""
     try:
-        _call_once(scene, method, constants)
+        _call_once(scene, method, constants, block)
     except Exception as error:  # noqa: BLE001 (unpickling and LLVM's parser raise many kinds)
-        files = cache_files(kernels.kernel(scene, method, constants).function)
+        files = cache_files(kernels.kernel(scene, method, constants, block).function)
         cannot_write = isinstance(error, OSError) and error.errno in CANNOT_WRITE
         if not files and not cannot_write:  # nothing was cached: the kernel does not compile
             raise
@@ -299,12 +301,12 @@ def _call_fresh(scene, method: Method, constants: dict) -> None:
             file.unlink(missing_ok=True)
         if cannot_write:
             print(f"ensemble: cannot write Numba's cache of the {method.name} kernel in "
-                  f"{cache_folder(kernels.kernel(scene, method, constants).function)} ({error.strerror}); every "
+                  f"{cache_folder(kernels.kernel(scene, method, constants, block).function)} ({error.strerror}); every "
                   f"run compiles it again until it can", file=sys.stderr, flush=True)
         else:
             print(f"ensemble: Numba's cache of the {method.name} kernel in {files[0].parent} could not be loaded "
                   f"({type(error).__name__}); compiling it again", file=sys.stderr, flush=True)
-        _call_once(scene, method, constants)
+        _call_once(scene, method, constants, block)
 
 
 CANNOT_WRITE = {errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES, errno.EPERM}  # a cache that cannot be saved
@@ -325,10 +327,10 @@ def cache_files(dispatcher) -> list[Path]:
     return sorted([*folder.glob(f"{stem}.nbi"), *folder.glob(f"{stem}.*.nbc")])
 
 
-def _call_once(scene, method: Method, constants: dict) -> None:
+def _call_once(scene, method: Method, constants: dict, block: int | None = None) -> None:
     state_rows, rate_rows = scene.kernel_rows(constants)
-    block = kernels.block_size(scene, constants, method)
-    kernel = kernels.kernel(scene, method, constants)
+    block = kernels.block_size(scene, constants, method, block)
+    kernel = kernels.kernel(scene, method, constants, block)
     works = np.zeros((1, kernel.rows * block))
     state0, rate = np.zeros((1, state_rows, block)), np.zeros((1, rate_rows, block))
     samples = np.empty((block, 1, state_rows))
