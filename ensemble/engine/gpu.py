@@ -25,7 +25,7 @@ import numpy as np
 from ..errors import DeviceUnavailable
 from ..methods import Method
 from ..results import Status
-from .blocks import FIRST_LOG2_ERR_PREVIOUS, adaptive_constants, method_constants
+from .blocks import FIRST_LOG2_ERR_PREVIOUS, adaptive_constants, first_step, method_constants
 from .kernels import factor_counts, load_source, loaded
 
 THREADS = 128  # threads per CUDA block
@@ -118,7 +118,7 @@ from numba import cuda, float32, float64, int8
 
 from ensemble.engine.gpu import device_functions, device_helpers
 
-next_step, = device_helpers()
+next_step, first_step = device_helpers()
 
 {physics_import}
 
@@ -209,8 +209,7 @@ ADAPTIVE = ADAPTIVE_HEAD + '''{load_p}
             size = {size}
             slope = {slope}
             scale = atol + rtol * size
-            h = REAL(min(0.01 * (size / scale) / (slope / scale) if size / scale > 1e-5 and slope / scale > 1e-5
-                         else 1e-6, save_dt))
+            h = REAL(first_step(size / scale, slope / scale, save_dt))
         time, log2_previous, rejected_last = REAL(0.0), {first_log2}, False
         accepted_count, rejected_count, evaluations = 0.0, 0.0, 1.0
 ''' + START_CHECKED + '''    for i in range(first, samples.shape[0]):
@@ -236,9 +235,10 @@ ADAPTIVE = ADAPTIVE_HEAD + '''{load_p}
 
 @cache
 def device_helpers() -> tuple:
-    """next_step as a device function (the generated kernels import it)."""
+    """(next_step, first_step) as device functions (the generated kernels import them): first_step is the CPU
+    kernels' own (blocks.first_step), so the first trial step's guess is written once for both devices."""
     from numba import cuda
-    return (cuda.jit(device=True)(next_step),)
+    return cuda.jit(device=True)(next_step), cuda.jit(device=True)(first_step.py_func)
 
 
 def next_step(err, step, h, log2_previous, rejected_last, time, target, alpha, beta, safety, min_factor,

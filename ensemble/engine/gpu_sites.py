@@ -174,7 +174,7 @@ SITES_ADAPTIVE = ADAPTIVE_HEAD + '''    x = cuda.{x_memory}.array({N2}, REAL)
         size, slope = {max_size}, {max_slope}
         h = REAL(control[0, m])
         if h <= 0.0:
-            h = REAL(min(0.01 * size / slope if size > 1e-5 and slope > 1e-5 else 1e-6, save_dt))
+            h = REAL(first_step(size, slope, save_dt))
         time, log2_previous, rejected_last = REAL(0.0), {first_log2}, False
         accepted_count, rejected_count, evaluations = 0.0, 0.0, 1.0
         if failed(x, v, limit[m]):
