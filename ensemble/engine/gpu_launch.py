@@ -130,5 +130,5 @@ class GpuLaunch:
             counts = self.counts.copy_to_host().astype(np.int64)
         else:
             counts = fixed_counts(self.method, self.scene, failure_time, self.dt,
-                                   self.steps_per_save * (self.n_save - 1))
+                                  self.steps_per_save * (self.n_save - 1))
         return Outcome(getattr(self, "samples", None), counts, status, failure_time)

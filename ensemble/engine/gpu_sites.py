@@ -111,6 +111,16 @@ SITES_LOAD = '''    if lane() == 0:
                 x[q + 1], v[j] = REAL(works[q, m]), REAL(works[N + q, m])
 '''
 
+# A field's start, checked as every saved sample is: a member that starts beyond its limit fails at t = 0.
+SITES_START_CHECKED = '''        if failed(x, v, limit[m]):
+            alive = False
+            if lane() == 0:
+                status[m], failure_time[m] = {BLEW_UP}, 0.0
+            fail(x, v)
+        store(samples, 0, m, x, v)
+        first = 1
+'''
+
 SITES_FIXED = FIXED_HEAD + '''
     x = cuda.{x_memory}.array({N2}, REAL)  # sizes written as numbers: the arrays take constants only
     v = cuda.local.array({J}, REAL)
@@ -121,14 +131,7 @@ SITES_FIXED = FIXED_HEAD + '''
 ''' + SITES_LOAD + '''    {sync}
     first = 0
     if start == 0:
-        if failed(x, v, limit[m]):
-            alive = False
-            if lane() == 0:
-                status[m], failure_time[m] = {BLEW_UP}, 0.0
-            fail(x, v)
-        store(samples, 0, m, x, v)
-        first = 1
-    for i in range(first, samples.shape[0]):
+''' + SITES_START_CHECKED + '''    for i in range(first, samples.shape[0]):
         if alive:
             for step in range(steps_per_save):
 {step}
@@ -177,14 +180,7 @@ SITES_ADAPTIVE = ADAPTIVE_HEAD + '''    x = cuda.{x_memory}.array({N2}, REAL)
             h = REAL(first_step(size, slope, save_dt))
         time, log2_previous, rejected_last = REAL(0.0), {first_log2}, False
         accepted_count, rejected_count, evaluations = 0.0, 0.0, 1.0
-        if failed(x, v, limit[m]):
-            alive = False
-            if lane() == 0:
-                status[m], failure_time[m] = {BLEW_UP}, 0.0
-            fail(x, v)
-        store(samples, 0, m, x, v)
-        first = 1
-    else:
+''' + SITES_START_CHECKED + '''    else:
         time, h, log2_previous = REAL(works[4 * N, m]), REAL(works[4 * N + 1, m]), REAL(works[4 * N + 2, m])
         rejected_last = 0.0 != works[4 * N + 3, m]
         accepted_count, rejected_count, evaluations = works[4 * N + 4, m], works[4 * N + 5, m], works[4 * N + 6, m]

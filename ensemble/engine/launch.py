@@ -196,7 +196,7 @@ class Launch:
             counts = self.counts[:, :n].astype(np.int64)
         else:
             counts = fixed_counts(self.method, self.scene, failure_time, self.dt,
-                                   self.steps_per_save * (self.n_save - 1))
+                                  self.steps_per_save * (self.n_save - 1))
         return Outcome(samples, counts, self.status[:n].astype(np.int8), failure_time)
 
 
