@@ -23,8 +23,8 @@ def tune(say=print) -> tuple[Tuning, dict]:
     widths = [512, 256] if "avx512f" in host_key()["vectors"].split(",") else [None]
     from .engine.kernels import BLOCK
 
-    _compiled([(bits, [(BLOCK, False)], True, []) for bits in widths])
-    rounds = [{bits: _measured(bits, [(BLOCK, False)]) for bits in widths} for _ in range(ROUNDS)]
+    _compiled([(bits, [BLOCK], True, []) for bits in widths])
+    rounds = [{bits: _measured(bits, [BLOCK]) for bits in widths} for _ in range(ROUNDS)]
     rates = {bits: {case: sum(r[bits][case] for r in rounds) / ROUNDS for case in rounds[0][bits]} for bits in widths}
     for bits in widths:
         say(f"  vectors {width_name(bits):>14}: " + ", ".join(f"{k} {v:.3g}" for k, v in rates[bits].items()))
@@ -37,20 +37,18 @@ def tune(say=print) -> tuple[Tuning, dict]:
     timed = [_measured(bits, tops, chain=False, layouts=layouts) for _ in range(ROUNDS)]
     mean = {name: sum(t[name] for t in timed) / ROUNDS for name in timed[0]}
     spread = max(spread, _spread(timed))
-    say("  generated kernels under the chosen vectors: " + ", ".join(f"{top_name(*top)} {mean[top_name(*top)]:.3g}"
+    say("  generated kernels under the chosen vectors: " + ", ".join(f"{top_name(top)} {mean[top_name(top)]:.3g}"
                                                                      for top in tops))
     say("  fields of sites under the chosen vectors: " + ", ".join(f"{layout_name(*lay)} {mean[layout_name(*lay)]:.3g}"
                                                                     for lay in layouts))
     say(f"  spread of one case's rate between rounds: up to {spread:.3f}x; a candidate replaces the engine's rule "
         f"only when faster than it by more (and by {CANDIDATE_MARGIN}x at least)")
-    blocks = {b: mean[top_name(b, False)] for b, outside in tops if not outside}
-    block = _pick(blocks, BLOCK, spread)
-    outside = _pick({outside: mean[top_name(BLOCK, outside)] for b, outside in tops if b == BLOCK}, False, spread)
+    block = _pick({b: mean[top_name(b)] for b in tops}, BLOCK, spread)
     short = _pick({b: mean[layout_name(n, b, fused)] for n, b, fused in layouts if n == 16}, layouts[0][1], spread)
     fused = _pick({fused: mean[layout_name(n, b, fused)] for n, b, fused in layouts if n > 16}, True, spread)
     measured = {"vectors": {width_name(b): rates[b] for b in widths}, "layouts": mean, "spread": spread,
                 "units": "member-steps/s (top), mass-steps/s (chain)"}
-    return Tuning(vector_bits=bits, block=None if block == BLOCK else block, stages_outside=outside or None,
+    return Tuning(vector_bits=bits, block=None if block == BLOCK else block,
                   sites_block=None if short == layouts[0][1] else short,
                   fused_sweeps=None if fused else False), measured
 
@@ -67,14 +65,14 @@ def _spread(rounds: list[dict]) -> float:
     return max(max(r[case] for r in rounds) / min(r[case] for r in rounds) for case in rounds[0])
 
 
-def top_layouts(block: int) -> list[tuple[int, bool]]:
-    """The generated kernels' layouts `ensemble tune` times on the top's rk4, (members per block, stages outside):
-    the engine's block first, then the other TIMED_BLOCKS, then the engine's block with the stages outside."""
-    return [(block, False), *((b, False) for b in TIMED_BLOCKS if b != block), (block, True)]
+def top_layouts(block: int) -> list[int]:
+    """The generated kernels' blocks (members per block) `ensemble tune` times on the top's rk4: the engine's
+    block first, then the other TIMED_BLOCKS."""
+    return [block, *(b for b in TIMED_BLOCKS if b != block)]
 
 
-def top_name(block: int, outside: bool) -> str:
-    return f"top rk4, block {block}" + (", stages outside" if outside else "")
+def top_name(block: int) -> str:
+    return f"top rk4, block {block}"
 
 
 def sites_layouts() -> list[tuple[int, int, bool]]:
@@ -130,7 +128,7 @@ def _serve(asked: str) -> None:
 def measure_here(bits: int | None, tops: list, chain: bool = True, layouts: list = (),
                  compile_only: bool = False) -> dict[str, float]:
     """In a process that has compiled nothing yet, with LLVM preferring `bits`-bit vectors: the top's rk4 kernel
-    in each of `tops`, (block, stages outside), in member-steps/s; the chain's verlet at 16 masses in the engine's
+    in each of `tops` (members per block), in member-steps/s; the chain's verlet at 16 masses in the engine's
     layout (with chain) and in each of `layouts`, (n, block, fused), in mass-steps/s. Each the median of 5 calls,
     the kernels called in turn. compile_only: call each once (compiling it or loading it from the cache), and
     measure nothing."""
@@ -147,9 +145,9 @@ def measure_here(bits: int | None, tops: list, chain: bool = True, layouts: list
            "spin0": np.full(members, 60.0), "tilt0": rng.uniform(0.02, 0.2, members),
            "azimuth0": rng.uniform(0.0, 6.28, members)}
     calls = {}  # name: (launch, steps it makes)
-    for block, outside in tops:
-        apply(Tuning(block=block, stages_outside=outside or None))
-        calls[top_name(block, outside)] = (launch.Launch(SCENES["top"], METHODS["rk4"], top, {}, n_save=2,
+    for block in tops:
+        apply(Tuning(block=block))
+        calls[top_name(block)] = (launch.Launch(SCENES["top"], METHODS["rk4"], top, {}, n_save=2,
                                                           save_dt=steps * 1e-3, dt=1e-3), members * steps)
     chains = [(16, None, None), (2, None, None)] if chain else []  # a short chain too: its rate falls otherwise
     for n, block, fused in chains + [tuple(layout) for layout in layouts]:

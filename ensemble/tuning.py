@@ -27,6 +27,7 @@ import tempfile
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
+from .engine.sources import ENGINE_SOURCES
 from .errors import EnsembleError
 
 FORMAT = 1
@@ -36,9 +37,7 @@ HINT = "ensemble: this machine's kernels are untuned; `ensemble tune` (once, abo
 @dataclass(frozen=True)
 class Tuning:
     """The choices: vector_bits (512 or 256: the width LLVM is told to prefer; None: its own choice for this CPU)
-    and block (members per block of the kernels generated from the engine's templates; None: the engine's);
-    stages_outside (True: their explicit Runge-Kutta kernels sweep a block's members once per stage, slopes in work
-    rows, instead of taking each member's whole step at once with its slopes in registers; None: the latter).
+    and block (members per block of the kernels generated from the engine's templates; None: the engine's).
     For a field of sites' splittings from 16 sites on (ensemble.engine.sites): sites_block, members per block
     where a block's rows fit the L1 data cache (None: the rule's two SIMD vectors; where they outgrow it the rule's
     one vector stays), and fused_sweeps (False: long fields sweep one kick or drift at a time where the rule would
@@ -47,7 +46,6 @@ class Tuning:
     string compiles other arithmetic, a garbled one aborts LLVM)."""
     vector_bits: int | None = None
     block: int | None = None
-    stages_outside: bool | None = None
     sites_block: int | None = None
     fused_sweeps: bool | None = None
     features: str | None = field(default=None, compare=False)
@@ -56,9 +54,8 @@ class Tuning:
         """The choices in words."""
         sites = self.sites_block or "the engine's rule"
         sweeps = "swept one piece at a time" if self.fused_sweeps is False else "in tiles"
-        order = "stages outside members" if self.stages_outside else "members' steps whole"
         return (f"vectors {width_name(self.vector_bits)}, generated kernels' blocks "
-                f"{self.block or 'the engine default'}, Runge-Kutta {order}, fields of sites' splitting blocks "
+                f"{self.block or 'the engine default'}, fields of sites' splitting blocks "
                 f"{sites}, long fields {sweeps}")
 
 
@@ -140,12 +137,11 @@ def cpu() -> tuple[str, set[str]]:
 
 
 def engine_hash() -> str:
-    """SHA-256 of the engine's kernel sources: its templates (for members of D values and for fields of sites)
-    and its helpers."""
-    root = Path(__file__).parent
+    """SHA-256 of the engine's kernel sources: its templates, its family code and its helpers."""
+    root = Path(__file__).parent / "engine"
     digest = hashlib.sha256()
-    for path in (root / "engine" / "templates.py", root / "engine" / "sites.py", root / "engine" / "blocks.py"):
-        digest.update(path.read_bytes())
+    for name in ("templates.py", "sites.py", *ENGINE_SOURCES):
+        digest.update((root / name).read_bytes())
     return digest.hexdigest()
 
 
@@ -159,7 +155,7 @@ def load(path: Path | None = None) -> tuple[Tuning | None, str | None]:
         found = json.loads(path.read_text())
         choices = found["choices"]
         tuning = Tuning(vector_bits=choices.get("vector_bits"), block=choices.get("block"),
-                        stages_outside=choices.get("stages_outside"), sites_block=choices.get("sites_block"),
+                        sites_block=choices.get("sites_block"),
                         fused_sweeps=choices.get("fused_sweeps"), features=choices.get("features"))
         if not _known(tuning):
             raise ValueError("unknown choices")
@@ -180,8 +176,7 @@ def _known(tuning: Tuning) -> bool:
 
     return (tuning.vector_bits in (None, 256, 512) and (tuning.block is None or block_in(tuning.block, BLOCKS))
             and (tuning.sites_block is None or block_in(tuning.sites_block, SITES_BLOCKS))
-            and (tuning.fused_sweeps is None or tuning.fused_sweeps is False)
-            and (tuning.stages_outside is None or tuning.stages_outside is True))
+            and (tuning.fused_sweeps is None or tuning.fused_sweeps is False))
 
 
 BLOCKS = (32, 64, 128, 256)  # the block sizes a generated kernel may be tuned to

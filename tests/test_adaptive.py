@@ -278,6 +278,7 @@ def test_control_step_chooses_the_steps_of_its_formula_for_every_kind_of_member(
     from numba import njit
 
     from ensemble.engine import blocks
+    from ensemble.engine.control import control_step
 
     B, rows = 64, blocks.CONTROL_ROWS
     method = METHODS["dopri5"].control
@@ -286,8 +287,8 @@ def test_control_step_chooses_the_steps_of_its_formula_for_every_kind_of_member(
 
     @njit(**blocks.FAST)  # as the kernels that inline it are compiled
     def step_all(work, target, counts, status, failure_time):
-        blocks.control_step(work, 0, B, target, 0, status, failure_time, 6.0, alpha, beta, safety, min_factor,
-                            max_factor)
+        control_step(work, 0, B, target, 0, status, failure_time, 6.0, alpha, beta, safety, min_factor,
+                     max_factor)
         blocks.counts_out(work, 0, B, counts, 0)
 
     rng = np.random.default_rng(11)

@@ -35,8 +35,8 @@ from ensemble import tuner, tuning
 from ensemble.engine.kernels import BLOCK
 chosen = tuning.applied()
 block = chosen.block or BLOCK
-rates = tuner.measure_here(chosen.vector_bits, [(block, bool(chosen.stages_outside))], chain=True)
-print(json.dumps({"top rk4": rates[tuner.top_name(block, bool(chosen.stages_outside))],
+rates = tuner.measure_here(chosen.vector_bits, [block], chain=True)
+print(json.dumps({"top rk4": rates[tuner.top_name(block)],
                   "chain verlet N=16": rates["chain verlet N=16"]}))"""
 
 

@@ -36,12 +36,13 @@ from numba.core import cgutils
 from numba.extending import intrinsic
 
 from ..methods import Method
-from ..results import ACCEPTED, NO_STEP, REJECTED, RHS_EVALS, UNDERFLOWED, Status
+from ..results import RHS_EVALS, UNDERFLOWED, Status
+from .sources import ENGINE_SOURCES
 
-#: A hash of this file and of results.py (the status codes), held by every kernel's closure: Numba's disk cache
-#: keys a kernel on its own file and closure, and would otherwise load a kernel compiled before a helper changed.
-HELPERS = hashlib.sha256(b"".join((Path(__file__).parent / name).read_bytes()
-                                  for name in ("blocks.py", "../results.py"))).hexdigest()
+#: A hash of sources.ENGINE_SOURCES (the helpers, the families' code, the status codes), held by every kernel's
+#: file: Numba's disk cache keys a kernel on its own file, and would otherwise load a kernel compiled before a
+#: helper changed.
+HELPERS = hashlib.sha256(b"".join((Path(__file__).parent / name).read_bytes() for name in ENGINE_SOURCES)).hexdigest()
 
 #: The kernels' compile flags. Of fast-math only contraction into fused multiply-adds, which every target with FMA
 #: does alike: `nnan`/`ninf` let LLVM assume no value is NaN or inf (a right-hand side returning a constant NaN was
@@ -178,7 +179,7 @@ def cache_line_array(size):
 
 
 @njit(inline="always", **FAST)
-def _finite(x):
+def finite(x):
     """Whether the float64 x is finite, tested on its bits: fastmath assumes no float is NaN or inf, not an int."""
     return (_int_bits(x) & _EXPONENT) != _EXPONENT
 
@@ -369,81 +370,6 @@ def start_control(work, c0, B, j, rtol, atol, h):
 
 
 @njit(inline="always", **FAST)
-def control_step(work, c0, B, target, j0, status, failure_time, new_stages, alpha, beta, safety, min_factor,
-                 max_factor):
-    """After a trial step of every member in a block: accept or reject each and choose its next step.
-
-    A trial step costs `new_stages` right-hand-side evaluations (an FSAL pair reuses its last stage).
-    A trial step whose error is not a number is rejected like one with a large error. An accepted step's next
-    is h clip(safety err^-alpha err_previous^beta, min_factor, max_factor), at most h after a rejection; a
-    rejected one's h max(min_factor, safety err^-alpha) (min_factor when err is not finite).
-
-    Afterwards ERR is NO_STEP for members that had no step to take,
-    UNDERFLOWED for members whose step underflowed (they stop: H = 0, status
-    UNDERFLOW at their time), and REJECTED_LAST is 0 for members whose step
-    was accepted; the caller moves those to their new state.
-
-    Every member goes through the same operations, with `select` and & (Python's conditional expressions and
-    `and` compile to branches) and the function is inlined, so that B is a constant and LLVM can tell the rows
-    apart: the loop vectorizes. With a branch per member and libm's pow, a top's dopri5 step cost 31.5 times
-    its rk4 step; with conditional expressions 9 to 11 times; with selects 8.8 to 9 times, and 7.6 to 8.3 once
-    _count_steps counted into work rows; the same bits (analysis/bench/bench_dopri5.py). The test for a non-finite
-    error is made on its bits (_finite).
-    """
-    underflows = 0
-    for j in range(B):
-        # Every value is loaded up front and every row stored, since a load or store under a condition becomes a
-        # masked one (vmaskmovpd, slow on AMD Zen 3). LLVM still makes the stores of TIME, LOG2_ERR_PREVIOUS and
-        # REJECTED_LAST masked ones (a select that keeps the loaded value).
-        step = work[(c0 + STEP) * B + j]
-        err = work[(c0 + ERR) * B + j]
-        time = work[(c0 + TIME) * B + j]
-        h = work[(c0 + H) * B + j]
-        log2_previous = work[(c0 + LOG2_ERR_PREVIOUS) * B + j]
-        rejected_last = work[(c0 + REJECTED_LAST) * B + j]
-        moving = step > 0.0
-        finite = _finite(err)
-        usable_err = select(finite, err, 1.0e300)
-        accepted = moving & (usable_err <= 1.0)  # & and |, not and and or: those branch
-        log2_err = log2_positive(max(usable_err, 1e-10))
-        factor = safety * exp2_of(-alpha * log2_err + select(accepted, beta * log2_previous, 0.0))
-        accepted_factor = min(max_factor, max(min_factor, select(rejected_last > 0.0, min(factor, 1.0), factor)))
-        rejected_factor = select(finite, max(min_factor, factor), min_factor)
-        factor = select(accepted, accepted_factor, rejected_factor)
-        landed = step >= target - time
-        # A step clipped to land on a saved time does not shrink the next one.
-        accepted_h = max(step * factor, select(landed, h, 0.0))
-        rejected_h = step * factor
-        underflowed = moving & (not accepted) & (rejected_h <= 1e-14 * target)  # the step underflowed: give up
-        underflows += underflowed
-        work[(c0 + TIME) * B + j] = select(accepted, select(landed, target, time + step), time)
-        work[(c0 + H) * B + j] = select(accepted, accepted_h, select(underflowed, 0.0, select(moving, rejected_h, h)))
-        work[(c0 + LOG2_ERR_PREVIOUS) * B + j] = select(accepted, max(log2_err, FIRST_LOG2_ERR_PREVIOUS),
-                                                        log2_previous)
-        work[(c0 + REJECTED_LAST) * B + j] = select(moving, select(accepted, 0.0, 1.0), rejected_last)
-        work[(c0 + ERR) * B + j] = select(moving, select(underflowed, UNDERFLOWED, err), NO_STEP)
-    _count_steps(work, c0, B, j0, status, failure_time, new_stages, underflows)
-
-
-@njit(inline="always", **FAST)
-def _count_steps(work, c0, B, j0, status, failure_time, new_stages, underflows):
-    """control_step's counts, into the block's COUNTED rows (counts_out hands them on), and its failures, from
-    the rows it wrote. Loops of their own: inside its loop they kept it from vectorizing. Counting straight
-    into the `counts` array kept this loop scalar, a sixth of a top's dopri5 step."""
-    for j in range(B):
-        moving = work[(c0 + ERR) * B + j] != NO_STEP
-        accepted = moving & (work[(c0 + REJECTED_LAST) * B + j] == 0.0)
-        work[(c0 + COUNTED + ACCEPTED) * B + j] += select(accepted, 1.0, 0.0)
-        work[(c0 + COUNTED + REJECTED) * B + j] += select(moving & (not accepted), 1.0, 0.0)
-        work[(c0 + COUNTED + RHS_EVALS) * B + j] += select(moving, new_stages, 0.0)
-    if underflows:
-        for j in range(B):
-            if work[(c0 + ERR) * B + j] == UNDERFLOWED:
-                status[j0 + j] = UNDERFLOW
-                failure_time[j0 + j] = work[(c0 + TIME) * B + j]
-
-
-@njit(inline="always", **FAST)
 def counts_out(work, c0, B, counts, j0):
     """A block's counts so far (COUNTED rows) into counts (3, M), at the end of a kernel call."""
     for c in range(3):
@@ -517,23 +443,6 @@ def state_start(work, control, K, C0, B, j, j0, D, save_dt):
         scale = atol + rtol * size
         h = first_step(size / scale, slope / scale, save_dt)
     start_control(work, C0, B, j, rtol, atol, h)
-
-
-@njit(inline="always", **FAST)
-def state_error(work, K, NEW, C0, S, e, D, B):
-    """Each member's error norm of its trial step into row C0 + ERR: the RMS over the D state rows of h sum_s e_s
-    k_s over atol + rtol max(|y|, |y_new|). FSAL: the last stage was evaluated at the new state NEW."""
-    for j in range(B):
-        h = work[(C0 + STEP) * B + j]
-        rtol, atol = work[(C0 + RTOL) * B + j], work[(C0 + ATOL) * B + j]
-        total = 0.0
-        for c in range(D):
-            estimate = 0.0
-            for s in range(S):
-                estimate += e[s] * work[(K + D * s + c) * B + j]
-            q = h * estimate / (atol + rtol * max(abs(work[c * B + j]), abs(work[(NEW + c) * B + j])))
-            total += q * q
-        work[(C0 + ERR) * B + j] = math.sqrt(total / D)
 
 
 @njit(inline="always", **FAST)

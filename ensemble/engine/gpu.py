@@ -26,16 +26,18 @@ from ..errors import DeviceUnavailable
 from ..methods import Method
 from ..results import Status
 from .blocks import FIRST_LOG2_ERR_PREVIOUS, adaptive_constants, first_step, method_constants
-from .kernels import factor_counts, load_source, loaded
+from .control import controlled
+from .kernels import factor_counts, load_source, loaded, pair_of, tableau_of
+from .sources import ENGINE_SOURCES
 
 THREADS = 128  # threads per CUDA block
 PRECISIONS = {"float64": np.float64, "float32": np.float32}
 OK, BLEW_UP, UNDERFLOW = int(Status.OK), int(Status.BLEW_UP), int(Status.STEP_SIZE_UNDERFLOW)
-#: A hash of this file, gpu_sites.py, blocks.py and results.py, which every CUDA kernel's file holds: numba-cuda's
-#: disk cache (`cache=True`) keys a kernel on its own file, and would otherwise load one compiled before a device
-#: helper changed.
+#: A hash of this file, gpu_sites.py and the CPU kernels' code (sources.ENGINE_SOURCES), which every CUDA kernel's
+#: file holds: numba-cuda's disk cache (`cache=True`) keys a kernel on its own file, and would otherwise load one
+#: compiled before a device helper changed.
 GPU_HELPERS = hashlib.sha256(b"".join((Path(__file__).parent / name).read_bytes()
-                                      for name in ("gpu.py", "gpu_sites.py", "blocks.py", "../results.py"))).hexdigest()
+                                      for name in ("gpu.py", "gpu_sites.py", *ENGINE_SOURCES))).hexdigest()
 
 
 def require_gpu() -> str:
@@ -68,14 +70,33 @@ def _sin_cos(x):
     return math.sin(x), math.cos(x)
 
 
-# CPU helpers a scene's physics may call, and what a device function calls instead: blocks.sin_cos is written in
-# LLVM intrinsics for the CPU's vector units; a GPU has its own sin and cos.
-DEVICE_EQUIVALENTS = {"ensemble.engine.blocks.sin_cos": _sin_cos}
+def _finite(x):
+    return not (math.isnan(x) or math.isinf(x))
+
+
+def _log2(x):
+    return math.log2(x)
+
+
+def _exp2(y):
+    return 2.0 ** y
+
+
+def _select(condition, if_true, if_false):
+    return if_true if condition else if_false
+
+
+# CPU helpers the engine's code or a scene's physics may call, and what a device function calls instead: they are
+# written in bit operations and LLVM intrinsics for the CPU's vector units; a GPU has its own sin, cos, log2 and
+# exp2, and its own test for a finite value.
+DEVICE_EQUIVALENTS = {"ensemble.engine.blocks.sin_cos": _sin_cos, "ensemble.engine.blocks.finite": _finite,
+                      "ensemble.engine.blocks.log2_positive": _log2, "ensemble.engine.blocks.exp2_of": _exp2}
 
 
 def device_function(function, done: dict | None = None):
     """`function` (plain Python or @njit) compiled as a CUDA device function, the compiled helpers it calls
-    replaced by device functions too (DEVICE_EQUIVALENTS where the CPU's are written for vector units)."""
+    replaced by device functions too (DEVICE_EQUIVALENTS where the CPU's are written for vector units), and the
+    CPU intrinsics it calls by numba-cuda's (device_intrinsics)."""
     from numba import cuda
     from numba.core.registry import CPUDispatcher
 
@@ -84,15 +105,38 @@ def device_function(function, done: dict | None = None):
     if python in done:
         return done[python]
     names = dict(python.__globals__)
+    intrinsics = device_intrinsics()
     for name in python.__code__.co_names:
         value = names.get(name)
         if isinstance(value, CPUDispatcher):
             key = f"{value.py_func.__module__}.{value.py_func.__name__}"
             equivalent = DEVICE_EQUIVALENTS.get(key)
             names[name] = device_function(equivalent or value, done)
+        elif any(value is cpu for cpu in intrinsics):
+            names[name] = next(device for cpu, device in intrinsics.items() if value is cpu)
     rebuilt = types.FunctionType(python.__code__, names, python.__name__, python.__defaults__, python.__closure__)
     done[python] = cuda.jit(device=True)(rebuilt)
     return done[python]
+
+
+@cache
+def device_intrinsics() -> dict:
+    """The CPU intrinsics the families call (ensemble.engine.tuples) and numba-cuda's equivalents: numba-cuda
+    types calls in its own registry, where Numba's CPU intrinsics are unknown."""
+    from numba import cuda
+    from numba.cpython.unsafe.tuple import tuple_setitem
+
+    from . import tuples
+    from .blocks import select
+    if simulated():  # the simulator runs device functions as Python
+        return {tuple_setitem: lambda values, i, value: values[:i] + (value,) + values[i + 1:],
+                tuples.repeated: lambda value, like: (value,) * len(like),
+                tuples.added: lambda z, weight, slope: tuple(a + weight * b for a, b in zip(z, slope)),
+                select: _select}
+    from numba.cuda.cpython.unsafe.tuple import tuple_setitem as device_tuple_setitem
+    from numba.cuda.extending import intrinsic
+    return {tuple_setitem: device_tuple_setitem, tuples.repeated: intrinsic(tuples.repeated_typing),
+            tuples.added: intrinsic(tuples.added_typing), select: cuda.jit(device=True)(_select)}
 
 
 @cache
@@ -116,9 +160,10 @@ import math
 
 from numba import cuda, float32, float64, int8
 
-from ensemble.engine.gpu import device_functions, device_helpers
+from ensemble.engine import adaptive, runge_kutta
+from ensemble.engine.gpu import device_function, device_functions, device_helpers, device_unrolled
 
-next_step, first_step = device_helpers()
+controlled, first_step = device_helpers()
 
 {physics_import}
 
@@ -170,11 +215,9 @@ FIXED_STEP = FIXED_HEAD + '''{load_p}
 {store_works}
 '''
 
-# Every adaptive kernel's step control, after a trial step's error sum (`estimate`) over its D values.
-CONTROL_STEP = '''            err = math.sqrt(estimate / D)
-            accepted, h_next, log2_previous, underflowed, time = next_step(err, step, h, log2_previous,
-                                                                           rejected_last, time, target, ALPHA, BETA,
-                                                                           SAFETY, MIN_FACTOR, MAX_FACTOR)
+# Every adaptive kernel's step control, after a trial step's error norm `err`.
+CONTROL_STEP = '''            accepted, underflowed, h_next, log2_previous, time = controlled(
+                err, step, h, log2_previous, rejected_last, time, target, ALPHA, BETA, SAFETY, MIN_FACTOR, MAX_FACTOR)
             h = REAL(h_next)  # the step in REAL; the member's time, like the controller's state, in float64
             rejected_last = not accepted
             accepted_count += accepted
@@ -203,7 +246,7 @@ ADAPTIVE = ADAPTIVE_HEAD + '''{load_p}
     if start == 0:
 {load_start}
 {flush}
-        {k0} = rhs(REAL(0.0), {y}, {p})
+        {k0}, = rhs(REAL(0.0), {y}, {p})
         h = REAL(control[0, m])
         if h <= 0.0:
             size = {size}
@@ -217,7 +260,6 @@ ADAPTIVE = ADAPTIVE_HEAD + '''{load_p}
         while status[m] == {OK} and time < target:
             step = min(h, REAL(target - time))
 {stages}
-            estimate = REAL(0.0)
 {error}
 ''' + CONTROL_STEP + '''{accept}
             elif underflowed:
@@ -233,32 +275,21 @@ ADAPTIVE = ADAPTIVE_HEAD + '''{load_p}
 '''
 
 
+def device_unrolled(count: int):
+    """tuples.unrolled(count) of device functions (plain Python under the simulator)."""
+    from numba import cuda
+
+    from .tuples import unrolled
+    if simulated():
+        return unrolled(count, lambda function: function)
+    return unrolled(count, lambda function: cuda.jit(device=True, inline="always")(function))
+
+
 @cache
 def device_helpers() -> tuple:
-    """(next_step, first_step) as device functions (the generated kernels import them): first_step is the CPU
-    kernels' own (blocks.first_step), so the first trial step's guess is written once for both devices."""
-    from numba import cuda
-    return cuda.jit(device=True)(next_step), cuda.jit(device=True)(first_step.py_func)
-
-
-def next_step(err, step, h, log2_previous, rejected_last, time, target, alpha, beta, safety, min_factor,
-              max_factor):
-    """One member's step control after a trial step of size `step` from `time` towards the saved time `target`
-    (blocks.control_step for one member, in branches where that one is in selects over a block): returns
-    (accepted, next h, the error's log2 to remember, whether the step underflowed, the member's time after it)."""
-    finite = not (math.isnan(err) or math.isinf(err))
-    usable = err if finite else 1.0e300
-    accepted = usable <= 1.0
-    log2_err = math.log2(max(usable, 1e-10))
-    factor = safety * 2.0 ** (-alpha * log2_err + (beta * log2_previous if accepted else 0.0))
-    if accepted:
-        factor = min(max_factor, max(min_factor, min(factor, 1.0) if rejected_last else factor))
-        landed = step >= target - time  # a step clipped to land on the saved time does not shrink the next
-        return (True, max(step * factor, h if landed else 0.0), max(log2_err, FIRST_LOG2_ERR_PREVIOUS), False,
-                target if landed else time + step)
-    rejected_h = step * (max(min_factor, factor) if finite else min_factor)
-    underflowed = rejected_h <= 1e-14 * target
-    return False, 0.0 if underflowed else rejected_h, log2_previous, underflowed, time
+    """(controlled, first_step) as device functions (the generated kernels import them): the CPU kernels' own step
+    control (control.controlled) and first trial step's guess (blocks.first_step), written once for both."""
+    return device_function(controlled), device_function(first_step)
 
 
 def _names(prefix: str, count: int) -> str:
@@ -269,29 +300,23 @@ def indented(lines, indent: int) -> str:
     return "\n".join(" " * indent + line for line in lines) or " " * indent + "pass"
 
 
-def _stage_lines(S: int, a: tuple, nodes: tuple, D: int, P: int, h: str, t: str, first: int):
-    """Stages first .. S - 1 of one explicit Runge-Kutta step written out: stage s's slopes in k{s}_{c} (an FSAL
-    pair starts at 1: stage 0's are the last step's last). Coefficients that are zero are left out."""
-    p = _names("p", P)
-    lines = []
-    for s in range(first, S):
-        for c in range(D):
-            terms = "".join(f" + ({h} * REAL({a[s * S + r]!r})) * k{r}_{c}" for r in range(s) if a[s * S + r])
-            lines.append(f"z{c} = y{c}{terms}")
-        lines.append(f"{', '.join(f'k{s}_{c}' for c in range(D))}, = rhs(REAL({t} + REAL({nodes[s]!r}) * {h}), "
-                     f"{_names('z', D)}, {p})")
-    return lines
+RUNGE_KUTTA = '''
+rk_step = device_function(runge_kutta.step)  # a member's step, the CPU kernels' own
+STAGES, WEIGHTS = (tuple(tuple(REAL(x) for x in row) for row in {stages!r}),
+                   tuple(REAL(x) for x in {weights!r}))  # the tableau (kernels.tableau_of) in REAL
+STAGE_LOOP = device_unrolled(len(WEIGHTS))
+'''
 
 
 def runge_kutta(method: Method, D: int, P: int) -> dict:
-    _, S, a, b, _, _, _ = method_constants(method)
-    nodes = tuple(float(x) for x in method.tableau.c)
-    lines = ["t = ((start + i - 1) * steps_per_save + step) * h"]
-    lines += _stage_lines(S, a, nodes, D, P, "h", "t", 0)
-    for c in range(D):
-        sums = " + ".join(f"REAL({b[s]!r}) * k{s}_{c}" for s in range(S) if b[s])
-        lines.append(f"y{c} = y{c} + h * ({sums})")
-    return dict(step=indented(lines, 16), first_call="", enter="", leave="", used=("rhs",))
+    """A member's step is ensemble.engine.runge_kutta.step, as on the CPU: the tableau in REAL, so that a float32
+    kernel computes in float32."""
+    t = "REAL(((start + i - 1) * steps_per_save + step) * h)"
+    y, p = _names("y", D), _names("p", P)
+    lines = [f"{y}, = rk_step(rhs, {t}, h, ({y},), ({p},), STAGES, WEIGHTS, STAGE_LOOP)"]
+    stages, weights = tableau_of(method)
+    return dict(step=indented(lines, 16), first_call="", enter="", leave="", used=("rhs",),
+                head=RUNGE_KUTTA.format(stages=stages, weights=weights))
 
 
 def splitting(method: Method, D: int, P: int, pieces: tuple[str, ...], factors: dict[str, int],
@@ -356,19 +381,30 @@ def _common(D: int, P: int, adaptive: bool) -> dict:
         store_works=indented(store, 4), work_rows=len(rows))
 
 
+ADAPTIVE_FAMILY = '''
+trial_step = device_function(adaptive.trial_step)  # a member's trial step and error norm, the CPU kernels' own
+error_norm = device_function(adaptive.error_norm)
+STAGES, ERROR = (tuple(tuple(REAL(x) for x in row) for row in {stages!r}),
+                 tuple(REAL(x) for x in {error!r}))  # the pair (kernels.pair_of) in REAL
+STAGE_LOOP = device_unrolled(len(ERROR))
+'''
+
+
 def adaptive(method: Method, D: int, P: int) -> dict:
-    S, a, e, alpha, beta, safety, min_factor, max_factor = adaptive_constants(method)
-    nodes = tuple(float(x) for x in method.tableau.c)
-    stages = _stage_lines(S, a, nodes, D, P, "step", "time", 1)
-    error = [f"q = step * ({' + '.join(f'REAL({e[s]!r}) * k{s}_{c}' for s in range(S) if e[s])}) / "
-             f"(atol + rtol * max(abs(y{c}), abs(z{c})))\nestimate += q * q" for c in range(D)]
-    accept = [f"y{c}, k0_{c} = z{c}, k{S - 1}_{c}" for c in range(D)]
-    return dict(S=S, control=(alpha, beta, safety, min_factor, max_factor), k0=_names("k0_", D),
-                p=_names("p", P), size=f"max({', '.join(f'abs(y{c})' for c in range(D))}, ZERO)",
+    """A member's trial step, its error norm and its step control are the CPU kernels' own (ensemble.engine.adaptive,
+    .control)."""
+    S, _, _, alpha, beta, safety, min_factor, max_factor = adaptive_constants(method)
+    y, p, k0 = _names("y", D), _names("p", P), _names("k0_", D)
+    stages, error = pair_of(method)
+    lines = [f"slopes, new = trial_step(rhs, REAL(time), step, ({y},), ({p},), ({k0},), STAGES, STAGE_LOOP)",
+             f"err = error_norm(step, ({y},), new, slopes, ERROR, rtol, atol)"]
+    accept = [f"{y}, = new", f"{k0}, = slopes[S - 1]"]
+    return dict(S=S, control=(alpha, beta, safety, min_factor, max_factor), k0=k0, p=p,
+                size=f"max({', '.join(f'abs(y{c})' for c in range(D))}, ZERO)",
                 slope=f"max({', '.join(f'abs(k0_{c})' for c in range(D))}, ZERO)",
-                first_log2=f"REAL({FIRST_LOG2_ERR_PREVIOUS!r})",
-                stages=indented(stages, 12), error=indented("\n".join(error).splitlines(), 12),
-                accept=indented(accept, 16), used=("rhs",))
+                first_log2=f"REAL({FIRST_LOG2_ERR_PREVIOUS!r})", stages=indented(lines[:1], 12),
+                error=indented(lines[1:], 12), accept=indented(accept, 16), used=("rhs",),
+                head=ADAPTIVE_FAMILY.format(stages=stages, error=error))
 
 
 class GpuKernel(NamedTuple):
@@ -391,11 +427,11 @@ def member_kernel(name: str, where: str, sources: str, pieces: tuple[str, ...], 
         family, template = "splitting", FIXED_STEP
         coordinates = hasattr(loaded(where, sources), "to_pieces")
         fields = splitting(method, D, P, pieces, factor_counts(where, pieces, P), coordinates)
-    used = fields.pop("used")
+    used, head = fields.pop("used"), fields.pop("head", "")
     physics_import = f"{', '.join(used)}, = device_functions({where!r}, {used!r}, {sources!r})"
     return GpuKernel(compiled(family, name, method, precision, physics_import, sources, D, P,
-                              template.format(**common, **fields, OK=OK, BLEW_UP=BLEW_UP, UNDERFLOW=UNDERFLOW,
-                                              member="cuda.grid(1)")),
+                              head + template.format(**common, **fields, OK=OK, BLEW_UP=BLEW_UP,
+                                                     UNDERFLOW=UNDERFLOW, member="cuda.grid(1)")),
                      common["work_rows"])
 
 

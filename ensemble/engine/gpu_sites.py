@@ -196,7 +196,7 @@ SITES_ADAPTIVE = ADAPTIVE_HEAD + '''    x = cuda.{x_memory}.array({N2}, REAL)
                     qx = step * ({error_x}) / (atol + rtol * max(abs(x[q + 1]), abs(zx[q + 1])))
                     qv = step * ({error_v}) / (atol + rtol * max(abs(v[j]), abs(zv[j])))
                     estimate += qx * qx + qv * qv
-            estimate = {sum_estimate}
+            err = math.sqrt({sum_estimate} / D)
 ''' + CONTROL_STEP + '''                for j in range(J):
                     q = lane() + j * T
                     if q < N:

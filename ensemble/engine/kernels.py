@@ -1,13 +1,15 @@
-"""A scene's kernel for a method: its family's template (ensemble.engine.templates) filled in with the scene's
-physics, written as a Python file that Numba keys its disk cache on, then imported.
+"""A scene's kernel for a method, written as a Python file that Numba keys its disk cache on, then imported: for an
+explicit Runge-Kutta method or an adaptive pair, a short file that binds the scene's functions, the sizes and the
+method's coefficients to the family's code (ensemble.engine.frames, .runge_kutta, .adaptive); for a splitting, the
+family's template filled in (ensemble.engine.templates); for a field of sites, ensemble.engine.sites's.
 
 A kernel's identity is everything that decides its arithmetic. The file's name holds a hash of its text, and its
-text holds the family's template filled in (the method's coefficients, the layout), the identity of the scene's
-sources (its file and the user's modules it imports: ensemble.scenes.contract.identity), a hash of the engine's
-helpers (blocks.HELPERS) and the compile target (LLVM's CPU name and features, Numba's version, the fast-math
-flags): a change to any of them makes a new file, which compiles once. A file is imported only when its text
-matches its name (else it is written again, with one line said), and never rewritten otherwise (Numba's cache
-index checks its source file's time stamp). The files live in tuning.private_kernel_folder().
+text holds the method's coefficients and the layout, the identity of the scene's sources (its file and the user's
+modules it imports: ensemble.scenes.contract.identity), a hash of the engine's code (blocks.HELPERS) and the
+compile target (LLVM's CPU name and features, Numba's version, the fast-math flags): a change
+to any of them makes a new file, which compiles once. A file is imported only when its text matches its name (else
+it is written again, with one line said), and never rewritten otherwise (Numba's cache index checks its source
+file's time stamp). The files live in tuning.private_kernel_folder().
 """
 from __future__ import annotations
 
@@ -25,9 +27,9 @@ from numba.core.registry import CPUDispatcher
 
 from ..methods import Method
 from ..scenes.contract import SceneError, identity, load, python_function
-from ..tuning import KernelFolderError, applied, generated_block, private_kernel_folder
+from ..tuning import KernelFolderError, generated_block, private_kernel_folder
 from . import sites, templates
-from .blocks import FAST, HELPERS, Kernel
+from .blocks import CONTROL_ROWS, FAST, HELPERS, Kernel
 
 BLOCK = 128  # members per block of a scene whose kernel_rows are its whole state (rows of B floats each)
 
@@ -107,14 +109,14 @@ def block_size(scene, constants: dict, method: Method, block: int | None = None)
 def kernel(scene, method: Method, constants: dict, block: int | None = None) -> Kernel:
     """Kernel(function, work rows) of a stepping method for a scene: compiled, or loaded from Numba's cache. A
     scene whose member is a field of sites (SITES) gets ensemble.engine.sites's templates, for its constants' n
-    sites and boundary; every other scene the templates of ensemble.engine.templates, for block_size's block."""
+    sites and boundary; every other scene its family's code or template, for block_size's block."""
     sources = scene_identity(scene)  # a cache key: an edited scene is another kernel
     if getattr(scene, "SITES", False):
         return _sites_generated(scene.NAME, scene.PHYSICS, sources, method, constants["n"],
                                 constants["boundary"] == "periodic", *sites.layout(constants, method))
     D, P = scene.kernel_rows(constants)
     return _generated(scene.NAME, scene.PHYSICS, sources, tuple(scene.PIECES), method, D, P,
-                      block_size(scene, constants, method, block), bool(applied().stages_outside))
+                      block_size(scene, constants, method, block))
 
 
 @cache
@@ -125,12 +127,10 @@ def _sites_generated(name: str, where: str, sources: str, method: Method, n: int
 
 
 @cache
-def _generated(name: str, where: str, sources: str, pieces: tuple[str, ...], method: Method, D: int, P: int, B: int,
-               stages_outside: bool) -> Kernel:
-    if method.adaptive:
-        family, (body, rows), used = "adaptive", templates.adaptive(method, D, P), ("rhs",)
-    elif method.tableau is not None:
-        family, (body, rows), used = "runge_kutta", templates.runge_kutta(method, D, P, stages_outside), ("rhs",)
+def _generated(name: str, where: str, sources: str, pieces: tuple[str, ...], method: Method, D: int, P: int,
+               B: int) -> Kernel:
+    if method.tableau is not None:
+        return _runge_kutta(name, where, sources, method, D, P, B)
     else:
         module = loaded(where, sources)
         factors = factor_counts(where, pieces, P)
@@ -142,6 +142,93 @@ def _generated(name: str, where: str, sources: str, pieces: tuple[str, ...], met
                       f"{', '.join(used)}, = physics_functions({where!r}, {used!r}, {sources!r})")
     source = templates.header(family, name, method, physics_import, sources, HELPERS, D, P, B) + body
     return Kernel(load_source(source, f"{name}_{method.name}").kernel, rows)
+
+
+RUNGE_KUTTA = '''"""Generated by ensemble.engine.kernels: the {family} kernel of {scene}, method {method}.
+
+Do not edit: ensemble writes a new file whenever the scene's physics or the engine's code changes.
+"""
+# physics: {physics_hash}
+# helpers: {helpers_hash}
+from numba import njit
+
+from ensemble.engine.blocks import FAST
+from ensemble.engine.frames import adaptive, fixed_step
+from ensemble.engine.kernels import called_functions
+from ensemble.engine.runge_kutta import members_interval
+from ensemble.engine.tuples import unrolled
+
+rhs, = called_functions({where!r}, ("rhs",), {physics_hash!r})
+
+LIKE_Y, LIKE_P = (0.0,) * {D}, (0.0,) * {P}  # a member's state and parameters: their lengths matter
+B = {B}  # members per block
+TABLEAU = {tableau!r}  # the stages' Butcher rows (c_s, a_s0, .., a_s,S-1), and b (or b - b_hat: an adaptive pair)
+STAGE_LOOP = unrolled({S})  # the stages written out
+'''
+FIXED_STEP = '''
+
+@njit(nogil=True, cache=True, **FAST)
+def kernel(state0, rate, h, steps_per_save, limit, samples, status, failure_time, progress, works, start,
+           first_block, end_block):
+    fixed_step(members_interval, rhs, TABLEAU, STAGE_LOOP, LIKE_Y, LIKE_P, B, state0, rate, h, steps_per_save, limit,
+               samples, status, failure_time, progress, works, start, first_block, end_block)
+'''
+ADAPTIVE = '''CONTROLLER = {controller!r}  # alpha, beta, safety, min_factor, max_factor
+
+
+@njit(nogil=True, cache=True, **FAST)
+def kernel(state0, rate, control, save_dt, limit, samples, counts, status, failure_time, progress, works, start,
+           first_block, end_block):
+    adaptive(rhs, TABLEAU, STAGE_LOOP, CONTROLLER, LIKE_Y, LIKE_P, B, state0, rate, control, save_dt, limit,
+             samples, counts, status, failure_time, progress, works, start, first_block, end_block)
+'''
+
+
+def tableau_of(method: Method) -> tuple:
+    """An explicit Runge-Kutta method's tableau as ensemble.engine.runge_kutta takes it: its stages' Butcher rows
+    (c_s, a_s0, .., a_s,S-1) and its weights b, floats."""
+    tableau = method.tableau
+    S, a, c = tableau.stages, tableau.square_a(), tableau.c
+    return (tuple((float(c[s]), *a[s * S:(s + 1) * S]) for s in range(S)), tuple(float(x) for x in tableau.b))
+
+
+def pair_of(method: Method) -> tuple:
+    """An embedded pair as ensemble.engine.adaptive takes it: its stages' Butcher rows and its error weights."""
+    return tableau_of(method)[0], tuple(float(x) for x in method.tableau.error)
+
+
+def _runge_kutta(name: str, where: str, sources: str, method: Method, D: int, P: int, B: int) -> Kernel:
+    """The explicit Runge-Kutta kernel (ensemble.engine.runge_kutta) or the adaptive pair's (engine.adaptive) of a
+    scene and its work rows: state and parameters, and a pair's slopes, trial state and control block."""
+    head = RUNGE_KUTTA.format(family="adaptive" if method.adaptive else "runge_kutta", scene=name,
+                              method=method.name, physics_hash=sources, helpers_hash=HELPERS, where=where, D=D, P=P,
+                              B=B, tableau=pair_of(method) if method.adaptive else tableau_of(method),
+                              S=method.tableau.stages)
+    if not method.adaptive:
+        return Kernel(load_source(head + FIXED_STEP, f"{name}_{method.name}").kernel, D + P)
+    control = method.control
+    source = head + ADAPTIVE.format(controller=(control.alpha, control.beta, control.safety, control.min_factor,
+                                                control.max_factor))
+    return Kernel(load_source(source, f"{name}_{method.name}").kernel, D + P + D * method.tableau.stages + D
+                  + CONTROL_ROWS)
+
+
+@cache
+def called_functions(where: str, names: tuple[str, ...], expected: str) -> tuple:
+    """physics_functions for the families written as code, which call a scene's functions with a member's tuples
+    (`rhs(t, *y, *p)`): compiled as functions of their own, which LLVM inlines, since Numba inlines no call with
+    *args."""
+    module = loaded(where, expected)
+    return tuple(_called(getattr(module, name)) for name in names)
+
+
+def _called(function):
+    """A scene's function compiled to be called with *args: its own @njit options but inlining, or FAST."""
+    if not isinstance(function, CPUDispatcher):
+        return njit(**FAST)(function)
+    if function.targetoptions.get("inline", "never") == "never":
+        return function
+    return njit(**{**function.targetoptions, "inline": "never"})(function.py_func)
 
 
 def load_source(source: str, label: str) -> ModuleType:

@@ -321,7 +321,8 @@ import numpy as np
 from numba import njit
 
 from ensemble.engine.blocks import (ATOL, ERR, FAST, RTOL, STEP, H, block_done, cache_line_array, check_members,
-                                    control_step, counts_out, first_step, start_control, trial_steps)
+                                    counts_out, first_step, start_control, trial_steps)
+from ensemble.engine.control import control_step
 from ensemble.engine.kernels import physics_functions
 from ensemble.engine.sites import (KICK, TILE_PIECES, TILE_ROWS, accept, drift, fixed_start, load_block,
                                    refresh_halos, saved, set_ghosts, splitting_schedule, stage_sums)

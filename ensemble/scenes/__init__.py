@@ -23,8 +23,8 @@ class Scene(Protocol):
     """What a scene's model provides (its package's names). Arrays are over members on their first axis in
     `values` (name -> (members,) or (members, site)); kernel arrays are (rows, members).
 
-    PHYSICS names the module (or file) whose functions the engine's templates call: rhs(t, *state, *parameters)
-    and each piece's flow (ensemble.engine.templates); or, for a scene with SITES = True, whose member is n sites
+    PHYSICS names the module (or file) whose functions the engine's kernels call: rhs(t, *state, *parameters)
+    and each piece's flow (ensemble.engine.kernels); or, for a scene with SITES = True, whose member is n sites
     each moved by its two neighbours (the chain), acceleration(x_left, x, x_right, c_left, c_right)
     (ensemble.engine.sites, with n and boundary among its constants).
     """

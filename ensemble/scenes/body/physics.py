@@ -3,7 +3,7 @@
 The state is the body rates w1, w2, w3 (rad/s); the parameters are a1, a2, a3 (1), r1, r2, r3 (1/s), the moments
 lambda1..3 (kg m2) and their inverses (see model.rates). The splittings work in L = lambda w within a save
 interval (to_pieces and from_pieces): turning L about body axis i (the piece L_i^2 / (2 lambda_i)) keeps |L| to
-rounding. The engine (ensemble.engine.templates) builds every method's kernel from these functions.
+rounding. The engine (ensemble.engine.kernels) builds every method's kernel from these functions.
 """
 from __future__ import annotations
 

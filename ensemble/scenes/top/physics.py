@@ -1,7 +1,7 @@
 """The top's physics for the kernels: its right-hand side, its exactly solved pieces, and its compiled observables.
 
 The state is the body rates w1, w2, w3 (rad/s) and the parameters are p, r1, r3 (see model.rates). The engine
-(ensemble.engine.templates) builds every method's kernel from these functions, compiled and inlined.
+(ensemble.engine.kernels) builds every method's kernel from these functions, compiled and inlined.
 """
 from __future__ import annotations
 

@@ -1,0 +1,113 @@
+"""One member's values as tuples: the arithmetic the method families (ensemble.engine.runge_kutta, .adaptive) do
+on a member's state, written once for both devices.
+
+A member's D state values and P parameters are tuples of floats (Numba's UniTuple), so that a scene's scalar
+functions take them as `rhs(t, *y, *p)`. Loading, storing and adding tuples are intrinsics that write each value
+out (a loop of tuple_setitem goes through memory until LLVM unrolls it, which it did not for a free body's 12
+parameters: its kernel ran 17 times slower, scalar), and the families' loops over a method's stages are written
+out by `unrolled`. ensemble.engine.gpu compiles these functions as CUDA device functions, with numba-cuda's
+tuple_setitem and its own registration of the intrinsics here (gpu.device_intrinsics).
+"""
+from __future__ import annotations
+
+from functools import cache
+
+from numba import njit, types
+from numba.extending import intrinsic
+
+from .blocks import FAST
+
+
+def repeated_typing(typingctx, value, like):
+    """A tuple of len(like) copies of value (like: a tuple)."""
+    tuple_type = types.UniTuple(value, like.count)
+
+    def codegen(context, builder, signature, arguments):
+        return context.make_tuple(builder, tuple_type, [arguments[0]] * like.count)
+    return tuple_type(value, like), codegen
+
+
+repeated = intrinsic(repeated_typing)
+
+
+def _member_rows(context, builder, signature, arguments):
+    """Pointers to member j's work rows first .. first + count - 1 (row r of member j at r B + j)."""
+    work_type, first_type, B_type, j_type, values_type = signature.args
+    work, first, B, j, _ = arguments
+    intp = types.intp
+    first, B, j = (context.cast(builder, value, kind, intp) for value, kind in zip((first, B, j),
+                                                                                     (first_type, B_type, j_type)))
+    data = context.make_array(work_type)(context, builder, value=work).data
+    return [builder.gep(data, [builder.add(builder.mul(builder.add(first, context.get_constant(intp, c)), B), j)])
+            for c in range(values_type.count)]
+
+
+@intrinsic
+def loaded(typingctx, work, first, B, j, like):
+    """Member j's work rows first .. first + len(like) - 1 as a tuple (like: a tuple of that length): straight
+    loads (a loop through the work array, handed down in a tuple, kept Numba's reference counts in the members'
+    loop, which then did not vectorize)."""
+    tuple_type = types.UniTuple(work.dtype, like.count)
+
+    def codegen(context, builder, signature, arguments):
+        pointers = _member_rows(context, builder, signature, arguments)
+        return context.make_tuple(builder, tuple_type, [builder.load(pointer) for pointer in pointers])
+    return tuple_type(work, first, B, j, like), codegen
+
+
+@intrinsic
+def stored(typingctx, work, first, B, j, values):
+    """values into member j's work rows first .. first + len(values) - 1: straight stores, as `loaded`."""
+    def codegen(context, builder, signature, arguments):
+        for c, pointer in enumerate(_member_rows(context, builder, signature, arguments)):
+            builder.store(builder.extract_value(arguments[4], c), pointer)
+        return context.get_dummy_value()
+    return types.none(work, first, B, j, values), codegen
+
+
+def added_typing(typingctx, z, weight, slope):
+    """z + weight slope, value by value (tuples of one length), each value's multiply and add contracted as the
+    kernels' own arithmetic is (blocks.FAST): one fused multiply-add."""
+    def codegen(context, builder, signature, arguments):
+        z_value, weight_value, slope_value = arguments
+        weight_value = context.cast(builder, weight_value, signature.args[1], z.dtype)
+        values = []
+        for c in range(z.count):
+            product = builder.fmul(weight_value, builder.extract_value(slope_value, c), flags=("contract",))
+            values.append(builder.fadd(builder.extract_value(z_value, c), product, flags=("contract",)))
+        return context.make_tuple(builder, z, values)
+    return z(z, weight, slope), codegen
+
+
+added = intrinsic(added_typing)
+
+
+@njit(inline="always", **FAST)
+def combined(y, h, coefficients, slopes, first=0):
+    """y + sum_r (h coefficients[first + r]) slopes[r], the nonzero coefficients in order. A zero coefficient's
+    term is left out, not added as 0 k: without fast-math's licence to assume no NaN, LLVM must compute 0 k (which
+    cost the free body's rk4 a tenth of its speed), and an infinite slope would give NaN."""
+    for r in range(first, len(coefficients)):
+        if coefficients[r] != 0.0:
+            y = added(y, h * coefficients[r], slopes[r - first])
+    return y
+
+
+@cache
+def unrolled(count: int, compiled=None):
+    """run(body, carry, function, context): carry = body(i, carry, function, context) for i = 0 .. count - 1,
+    returned; written out when Numba compiles it, i a constant in each copy of body (a loop over a method's
+    stages, whose body calls the scene's `function`, is more than LLVM unrolls for a large state: a 40-value
+    Lorenz-96's rk4 ran 3 times slower as a loop). compiled(python function) compiles each link, inlined (default:
+    Numba's njit; ensemble.engine.gpu passes numba-cuda's device jit). A kernel's file makes it for its method's
+    stage count and hands it down."""
+    compiled = compiled or (lambda function: njit(inline="always", **FAST)(function))
+    if count == 0:
+        def run(body, carry, function, context):
+            return carry
+        return compiled(run)
+    previous, last = unrolled(count - 1, compiled), count - 1
+
+    def run(body, carry, function, context):
+        return body(last, previous(body, carry, function, context), function, context)
+    return compiled(run)
