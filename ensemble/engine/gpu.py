@@ -1,10 +1,12 @@
 """The method families as CUDA kernels (numba-cuda): one GPU thread per member, its state in registers.
 
-The same method data (ensemble.methods, through blocks.method_constants and adaptive_constants) and the same scene
-physics as the CPU kernels (ensemble.engine.templates): the scene's functions are compiled as CUDA device
-functions, and the stage loops, the splitting's sequence and the step control are written out for one member.
-What differs from the CPU is where a member lives: a thread (cuda.grid) instead of a block lane, its state in
-scalar variables, and the arrays in (rows, members) order so that neighbouring threads touch neighbouring memory.
+A thread runs the CPU kernels' own code for its member: an explicit Runge-Kutta step (ensemble.engine.runge_kutta),
+an adaptive pair's trial step and error norm (.adaptive) and its step control (.control), compiled as CUDA device
+functions (`device_function`, with numba-cuda's equivalents of the CPU intrinsics and the GPU's own sin, cos, log2
+and exp2), as are the scene's functions. The kernels' frames (a member's start, save intervals, failures) and the
+splittings' sequence are templates here. What differs from the CPU is where a member lives: a thread (cuda.grid)
+instead of a block lane, and the arrays in (rows, members) order so that neighbouring threads touch neighbouring
+memory.
 
 A scene whose state is a field of sites (the chain) has templates of its own (ensemble.engine.gpu_sites), built on
 the pieces here; ensemble.engine.gpu_launch picks a scene's kernel and runs it.
