@@ -277,6 +277,7 @@ ADAPTIVE = ADAPTIVE_HEAD + '''{load_p}
 '''
 
 
+@cache
 def device_unrolled(count: int):
     """tuples.unrolled(count) of device functions (plain Python under the simulator)."""
     from numba import cuda

@@ -29,7 +29,7 @@ from ..methods import Method
 from ..scenes.contract import SceneError, identity, load, python_function
 from ..tuning import KernelFolderError, generated_block, private_kernel_folder
 from . import sites, templates
-from .blocks import CONTROL_ROWS, FAST, HELPERS, Kernel
+from .blocks import CONTROL_ROWS, FAST, HELPERS, Kernel, adaptive_constants
 
 BLOCK = 128  # members per block of a scene whose kernel_rows are its whole state (rows of B floats each)
 
@@ -206,9 +206,7 @@ def _runge_kutta(name: str, where: str, sources: str, method: Method, D: int, P:
                               S=method.tableau.stages)
     if not method.adaptive:
         return Kernel(load_source(head + FIXED_STEP, f"{name}_{method.name}").kernel, D + P)
-    control = method.control
-    source = head + ADAPTIVE.format(controller=(control.alpha, control.beta, control.safety, control.min_factor,
-                                                control.max_factor))
+    source = head + ADAPTIVE.format(controller=adaptive_constants(method)[3:])  # alpha, beta, safety, min, max
     return Kernel(load_source(source, f"{name}_{method.name}").kernel, D + P + D * method.tableau.stages + D
                   + CONTROL_ROWS)
 

@@ -41,7 +41,6 @@ def kernel(state0, rate, h, steps_per_save, limit, samples, status, failure_time
     for block in range(first_block, end_block):
         j0 = block * B
         work[:] = works[block]
-{block_start}
         if start == 0:
             state_load(work, state0, rate, block, samples, D, P, B)
             check_members(work, 0, D, B, j0, limit, status, failure_time, 0.0)  # a non-finite start
@@ -165,5 +164,5 @@ def splitting(method: Method, D: int, P: int, pieces: tuple[str, ...], factors: 
         store_factors="\n".join(" " * 16 + line.replace("\n", "\n" + " " * 16) for line in store_factors)
         or " " * 16 + "pass")
     source = (SPLITTING.format(E=E, pieces=sequence, fractions=fractions, F=F)
-              + FIXED_STEP.format(block_start="", first_call=first_call, save_interval=steps))
+              + FIXED_STEP.format(first_call=first_call, save_interval=steps))
     return source, D + P + F * E
