@@ -63,6 +63,16 @@ class Splitting:
     pieces: tuple[str, ...]
     sequence: tuple[tuple[int, float], ...]
 
+    @property
+    def numbers(self) -> tuple[int, ...]:
+        """The sequence's piece numbers, in order."""
+        return tuple(int(number) for number, _ in self.sequence)
+
+    @property
+    def fractions(self) -> tuple[float, ...]:
+        """The sequence's fractions of the step, in order."""
+        return tuple(float(fraction) for _, fraction in self.sequence)
+
     def evaluations(self, evaluating: tuple[str, ...]) -> int:
         """Right-hand-side evaluations per step: the pieces named in `evaluating` (a chain's kick evaluates the
         forces), less one where a step ends with the piece the next begins with (they merge)."""

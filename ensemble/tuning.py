@@ -4,8 +4,8 @@ LLVM picks a vector width for each CPU model: on recent Intel server cores it pr
 512-bit ones are there, and the hand-written C of ../shared/limit, compiled with gcc, uses 512. On an Intel Xeon
 (Emerald Rapids) the top's rk4 kernel ran at 0.64 of that C with 256-bit vectors and at 1.02 with 512
 (docs/speed.md). No rule fits every CPU, so `ensemble tune` times the candidates here: the vector width LLVM
-prefers (a process-wide setting of Numba's code generator), the members per block and the loop order of the
-kernels the engine generates from its templates, and a field of sites' splitting layout (its blocks, and its kicks
+prefers (a process-wide setting of Numba's code generator), the members per block of the
+kernels of a member of D values, and a field of sites' splitting layout (its blocks, and its kicks
 and drifts fused in tiles or swept one at a time). The winners go to tuning_path(), keyed by the CPU model, its
 vector extensions, Numba's version and a hash of the engine's kernel sources; a file of another machine or
 engine is ignored with one line. Importing ensemble applies a valid file (`prepare`), before any Numba function
@@ -37,7 +37,7 @@ HINT = "ensemble: this machine's kernels are untuned; `ensemble tune` (once, abo
 @dataclass(frozen=True)
 class Tuning:
     """The choices: vector_bits (512 or 256: the width LLVM is told to prefer; None: its own choice for this CPU)
-    and block (members per block of the kernels generated from the engine's templates; None: the engine's).
+    and block (members per block of the kernels of a member of D values; None: the engine's).
     For a field of sites' splittings from 16 sites on (ensemble.engine.sites): sites_block, members per block
     where a block's rows fit the L1 data cache (None: the rule's two SIMD vectors; where they outgrow it the rule's
     one vector stays), and fused_sweeps (False: long fields sweep one kick or drift at a time where the rule would
@@ -137,10 +137,10 @@ def cpu() -> tuple[str, set[str]]:
 
 
 def engine_hash() -> str:
-    """SHA-256 of the engine's kernel sources: its templates, its family code and its helpers."""
+    """SHA-256 of the engine's kernel sources: its family code, its helpers and the sites' templates."""
     root = Path(__file__).parent / "engine"
     digest = hashlib.sha256()
-    for name in ("templates.py", "sites.py", *ENGINE_SOURCES):
+    for name in ("sites.py", *ENGINE_SOURCES):
         digest.update((root / name).read_bytes())
     return digest.hexdigest()
 
@@ -191,7 +191,7 @@ def applied() -> Tuning:
 
 
 def generated_block(default: int) -> int:
-    """Members per block of a kernel generated from the engine's templates: the tuning's, else `default`."""
+    """Members per block of a kernel of a member of D values: the tuning's, else `default`."""
     return applied().block or default
 
 

@@ -58,6 +58,24 @@ def test_a_steps_stages_are_taken_at_their_nodes(name):
         assert abs(stepped - exact) > 1e-6
 
 
+@njit
+def pushed(t, x, v):
+    """Slopes as a scene may write them: an integer, and a float64 literal times a float32 value (a float64)."""
+    return 1, 2.0 * v
+
+
+@pytest.mark.parametrize("name", ["rk4", "dopri5"])
+def test_a_scenes_slopes_take_the_states_type(name):
+    """A float32 member stays float32 whatever types its scene's slopes come in (a stage's slopes are converted
+    to the state's type), and an integer slope is a number: x' = 1, v' = 2 v from (0.5, 1) over h = 0.1 is
+    (0.6, exp(0.2)) to the method's error."""
+    stages, weights = tableau_of(METHODS[name])
+    y = (np.float32(0.5), np.float32(1.0))
+    x, v = runge_kutta.step(pushed, np.float32(0.0), np.float32(0.1), y, (), stages, weights, unrolled(len(weights)))
+    assert np.float32(x) == x and np.float32(v) == v  # float32 values (Numba returns them as Python floats)
+    assert x == pytest.approx(0.6, rel=1e-6) and v == pytest.approx(np.exp(0.2), rel=1e-5)  # rk4: (2h)^5 / 120
+
+
 def test_dopri5s_trial_step_and_error_norm_are_scipys():
     """The adaptive pair's trial step (ensemble.engine.adaptive) against scipy's RK45, an implementation of its
     own of the same Dormand-Prince pair: the new state, its last slopes (FSAL), and the error norm with scipy's

@@ -26,8 +26,8 @@ from ensemble.scenes import SCENES, resolve
 from ensemble.spec import load
 from ensemble.tuner import _seconds_in_turn
 
-CASES = [("top", "rk4"), ("top", "dopri5"), ("top", "split2"), ("body", "rk4"), ("body", "dopri5"),
-         ("body", "rotations2")]
+CASES = [("top", "rk4"), ("top", "dopri5"), ("top", "split2"), ("top", "split4"), ("body", "rk4"), ("body", "dopri5"),
+         ("body", "rotations2"), ("body", "rotations4")]
 RUNS = {"top": "runs/aerobie.toml", "body": "runs/tennis_racket.toml"}
 
 

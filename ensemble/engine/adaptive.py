@@ -13,14 +13,15 @@ from numba import njit
 from numba.cpython.unsafe.tuple import tuple_setitem
 
 from .blocks import ATOL, ERR, FAST, RTOL, STEP, TIME
-from .tuples import combined, loaded, repeated, stored
+from .tuples import combined, converted, loaded, repeated, stored
 
 
 @njit(inline="always", **FAST)
 def trial_step(rhs, time, step, y, p, first_slopes, stages, stage_loop):
     """A trial step of size `step` (s) from `time` (s) and state y, parameters p, its first stage's slopes given:
     (every stage's slopes, the new state: the last stage's). stage_loop: tuples.unrolled(S)."""
-    return stage_loop(_trial_stage, (repeated(first_slopes, stages), y), rhs, (time, step, y, p, stages))
+    return stage_loop(_trial_stage, (repeated(converted(first_slopes, y), stages), y), rhs,
+                      (time, step, y, p, stages))
 
 
 @njit(inline="always", **FAST)
@@ -30,7 +31,7 @@ def _trial_stage(s, carry, rhs, context):
     if s == 0:  # the first slopes are given
         return carry
     new = combined(y, step, stages[s], slopes, 1)
-    return tuple_setitem(slopes, s, rhs(time + stages[s][0] * step, *new, *p)), new
+    return tuple_setitem(slopes, s, converted(rhs(time + stages[s][0] * step, *new, *p), y)), new
 
 
 @njit(inline="always", **FAST)

@@ -15,8 +15,8 @@ was a separate cache line far from the next: loading and saving a block of
 variables' layout. Per-member arrays (limit, status, failure_time, control,
 counts) are (..., members).
 
-The kernels are built from the engine's templates (ensemble.engine.templates for a member of D values,
-ensemble.engine.sites for a field of sites), one per method family, and inline the helpers here. Numba keys
+The kernels are built from the engine's family code (ensemble.engine.frames and the families it calls, for a
+member of D values) and templates (ensemble.engine.sites, for a field of sites), and inline the helpers here. Numba keys
 a cached kernel on its own file alone, so a generated kernel's file holds HELPERS, a hash of the helpers'
 source.
 How the runner calls a kernel is in `ensemble.engine.launch`.
@@ -257,20 +257,6 @@ def sample_out(work, row, samples, save, block, first, count, B):
             samples[j0 + j, save, first + i] = work[(row + i) * B + j]
 
 
-def method_constants(method: Method):
-    """A method's data as plain tuples for a kernel closure (unused parts get placeholders).
-
-    Returns (runge_kutta, stages, a (stages x stages, flat), b, entries, pieces, fractions); pieces are
-    numbers, in the order of method.splitting.pieces.
-    """
-    if method.tableau is not None:
-        t = method.tableau
-        return True, t.stages, t.square_a(), tuple(float(x) for x in t.b), 1, (0,), (0.0,)
-    sequence = method.splitting.sequence
-    return (False, 1, (0.0,), (0.0,), len(sequence),
-            tuple(p for p, _ in sequence), tuple(float(f) for _, f in sequence))
-
-
 def adaptive_constants(method: Method):
     """An adaptive method's tableau and controller as plain constants for a kernel closure."""
     t, control = method.tableau, method.control
@@ -396,7 +382,7 @@ def trial_steps(work, c0, B, target):
     return left
 
 
-# A member's state: D rows from row 0, then its P parameter rows (the engine's templates, ensemble.engine.templates);
+# A member's state: D rows from row 0, then its P parameter rows (ensemble.engine.frames);
 # adaptive kernels keep stage slopes at rows K + D s + c and the trial step's new state at rows NEW + c.
 
 @njit(inline="always", **FAST)

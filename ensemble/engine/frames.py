@@ -23,18 +23,18 @@ from .blocks import (
     trial_steps,
 )
 from .control import control_step
-from .tuples import loaded, stored
+from .tuples import converted, loaded, stored
 
 
 @njit(inline="always", **FAST)
-def fixed_step(interval, physics, method, stage_loop, like_y, like_p, B, state0, rate, h, steps_per_save, limit,
-               samples, status, failure_time, progress, works, start, first_block, end_block):
+def fixed_step(interval, like_y, like_p, B, state0, rate, h, steps_per_save, limit, samples, status, failure_time,
+               progress, works, start, first_block, end_block):
     """Blocks first_block .. end_block - 1 from sample `start` on (0: from state0 and rate; later: from where the
     last call left works) through samples.shape[1] save intervals of steps_per_save steps of h (s) each.
 
-    interval(physics, method, stage_loop, like_y, like_p, work, B, i, h, steps_per_save) takes a block's work array
-    through save interval i; stage_loop is tuples.unrolled(S); like_y and like_p are tuples of D and P values (their
-    lengths matter)."""
+    interval(like_y, like_p, work, B, i, h, steps_per_save) takes a block's work array through save interval i (a
+    family's members_interval: ensemble.engine.runge_kutta, .splitting); like_y and like_p are tuples of D and P
+    values (their lengths matter)."""
     D, P = len(like_y), len(like_p)
     work = cache_line_array(works.shape[1])
     for block in range(first_block, end_block):
@@ -46,7 +46,7 @@ def fixed_step(interval, physics, method, stage_loop, like_y, like_p, B, state0,
         elif block_done(samples, status, progress, block, B):
             continue
         for i in range(max(start, 1), start + samples.shape[1]):
-            interval(physics, method, stage_loop, like_y, like_p, work, B, i, h, steps_per_save)
+            interval(like_y, like_p, work, B, i, h, steps_per_save)
             if state_saved(work, samples, i - start, block, limit, status, failure_time, progress,
                            i * steps_per_save * h, -1, D, B):
                 break
@@ -75,7 +75,8 @@ def adaptive(rhs, pair, stage_loop, controller, like_y, like_p, B, state0, rate,
         if start == 0:
             state_load(work, state0, rate, block, samples, D, P, B)
             for j in range(B):
-                stored(work, K, B, j, rhs(0.0, *loaded(work, 0, B, j, like_y), *loaded(work, D, B, j, like_p)))
+                y, p = loaded(work, 0, B, j, like_y), loaded(work, D, B, j, like_p)
+                stored(work, K, B, j, converted(rhs(0.0, *y, *p), y))
                 state_start(work, control, K, C0, B, j, j0, D, save_dt)
             check_members(work, 0, D, B, j0, limit, status, failure_time, 0.0, C0 + H)  # a non-finite start
         elif block_done(samples, status, progress, block, B):

@@ -1,12 +1,12 @@
 """The method families as CUDA kernels (numba-cuda): one GPU thread per member, its state in registers.
 
 A thread runs the CPU kernels' own code for its member: an explicit Runge-Kutta step (ensemble.engine.runge_kutta),
-an adaptive pair's trial step and error norm (.adaptive) and its step control (.control), compiled as CUDA device
-functions (`device_function`, with numba-cuda's equivalents of the CPU intrinsics and the GPU's own sin, cos, log2
-and exp2), as are the scene's functions. The kernels' frames (a member's start, save intervals, failures) and the
-splittings' sequence are templates here. What differs from the CPU is where a member lives: a thread (cuda.grid)
-instead of a block lane, and the arrays in (rows, members) order so that neighbouring threads touch neighbouring
-memory.
+an adaptive pair's trial step and error norm (.adaptive) and its step control (.control), a splitting's sequence
+of pieces (.splitting), compiled as CUDA device functions (`device_function`, with numba-cuda's equivalents of the
+CPU intrinsics and the GPU's own sin, cos, log2 and exp2), as are the scene's functions. The kernels' frames (a
+member's start, save intervals, failures) are templates here. What differs from the CPU is where a member
+lives: a thread (cuda.grid) instead of a block lane, and the arrays in (rows, members) order so that neighbouring
+threads touch neighbouring memory.
 
 A scene whose state is a field of sites (the chain) has templates of its own (ensemble.engine.gpu_sites), built on
 the pieces here; ensemble.engine.gpu_launch picks a scene's kernel and runs it.
@@ -27,9 +27,10 @@ import numpy as np
 from ..errors import DeviceUnavailable
 from ..methods import Method
 from ..results import Status
-from .blocks import FIRST_LOG2_ERR_PREVIOUS, adaptive_constants, first_step, method_constants
+from . import splitting
+from .blocks import FIRST_LOG2_ERR_PREVIOUS, adaptive_constants, first_step
 from .control import controlled
-from .kernels import factor_counts, load_source, loaded, pair_of, tableau_of
+from .kernels import load_source, loaded, pair_of, tableau_of
 from .sources import ENGINE_SOURCES
 
 THREADS = 128  # threads per CUDA block
@@ -134,11 +135,14 @@ def device_intrinsics() -> dict:
         return {tuple_setitem: lambda values, i, value: values[:i] + (value,) + values[i + 1:],
                 tuples.repeated: lambda value, like: (value,) * len(like),
                 tuples.added: lambda z, weight, slope: tuple(a + weight * b for a, b in zip(z, slope)),
+                tuples.converted: lambda values, like: tuple(map(type(like[0]), values if isinstance(values, tuple)
+                                                                 else (values,))),
                 select: _select}
     from numba.cuda.cpython.unsafe.tuple import tuple_setitem as device_tuple_setitem
     from numba.cuda.extending import intrinsic
     return {tuple_setitem: device_tuple_setitem, tuples.repeated: intrinsic(tuples.repeated_typing),
-            tuples.added: intrinsic(tuples.added_typing), select: cuda.jit(device=True)(_select)}
+            tuples.added: intrinsic(tuples.added_typing), tuples.converted: intrinsic(tuples.converted_typing),
+            select: cuda.jit(device=True)(_select)}
 
 
 @cache
@@ -163,7 +167,8 @@ import math
 from numba import cuda, float32, float64, int8
 
 from ensemble.engine import adaptive, runge_kutta
-from ensemble.engine.gpu import device_function, device_functions, device_helpers, device_unrolled
+from ensemble.engine.gpu import (device_function, device_functions, device_helpers, device_splitting,
+                                 device_unrolled)
 
 controlled, first_step = device_helpers()
 
@@ -277,15 +282,33 @@ ADAPTIVE = ADAPTIVE_HEAD + '''{load_p}
 '''
 
 
+def _device_inlined(function):
+    """A link of the engine's written-out loops (tuples.unrolled, the splitting's chains) as an inlined device
+    function (plain Python under the simulator)."""
+    from numba import cuda
+    return function if simulated() else cuda.jit(device=True, inline="always")(function)
+
+
 @cache
 def device_unrolled(count: int):
-    """tuples.unrolled(count) of device functions (plain Python under the simulator)."""
-    from numba import cuda
-
+    """tuples.unrolled(count) of device functions."""
     from .tuples import unrolled
-    if simulated():
-        return unrolled(count, lambda function: function)
-    return unrolled(count, lambda function: cuda.jit(device=True, inline="always")(function))
+    return unrolled(count, _device_inlined)
+
+
+@cache
+def device_splitting(where: str, pieces: tuple[str, ...], expected: str, sequence: tuple, precision: str) -> tuple:
+    """(step, factors): a splitting's sequence_step and sequence_factors (ensemble.engine.splitting, the CPU
+    kernels' own) of a scene's device functions, for a sequence of (piece number, fraction) entries, the fractions
+    in `precision`."""
+    module = loaded(where, expected)
+    done: dict = {}
+    named = [device_function(getattr(module, piece), done) for piece in pieces]
+    factors = [device_function(getattr(module, f"{piece}_factors"), done) if hasattr(module, f"{piece}_factors")
+               else None for piece in pieces]
+    real = PRECISIONS[precision]
+    return (splitting.sequence_step(tuple((named[n], real(f)) for n, f in sequence), _device_inlined),
+            splitting.sequence_factors(tuple((factors[n], real(f)) for n, f in sequence), _device_inlined))
 
 
 @cache
@@ -322,26 +345,24 @@ def runge_kutta(method: Method, D: int, P: int) -> dict:
                 head=RUNGE_KUTTA.format(stages=stages, weights=weights))
 
 
-def splitting(method: Method, D: int, P: int, pieces: tuple[str, ...], factors: dict[str, int],
-              coordinates: bool) -> dict:
-    _, _, _, _, E, sequence, fractions = method_constants(method)
+SPLITTING = '''
+split_step, split_factors = device_splitting({where!r}, {pieces!r}, {physics_hash!r}, {sequence!r}, {precision!r})
+'''
+
+
+def splitting_fields(method: Method, D: int, P: int, where: str, pieces: tuple[str, ...], sources: str,
+                     precision: str, coordinates: bool) -> dict:
+    """A member's step is the CPU kernels' (ensemble.engine.splitting): its pieces' factors computed once a call,
+    in registers."""
     y, p = _names("y", D), _names("p", P)
-    first_call = []
-    lines = []
-    for e, number in enumerate(sequence):
-        name = pieces[number]
-        extra = ""
-        if name in factors:
-            f = ", ".join(f"f{e}_{c}" for c in range(factors[name]))
-            first_call.append(f"{f}, = {name}_factors(h * REAL({fractions[e]!r}), {p})")
-            extra = ", " + f
-        lines.append(f"{y}, = {name}(h * REAL({fractions[e]!r}), {y}, {p}{extra})")
-    used = (*pieces, *(f"{piece}_factors" for piece in factors),
-            *(("to_pieces", "from_pieces") if coordinates else ()))
-    return dict(step=indented(lines, 16), first_call=indented(first_call, 4),
+    sequence = tuple((number, float(f)) for number, f in method.splitting.sequence)
+    return dict(step=indented([f"{y}, = split_step(h, ({y},), ({p},), factors)"], 16),
+                first_call=indented([f"factors = split_factors(h, ({p},))"], 4),
                 enter=indented([f"{y}, = to_pieces({y}, {p})"], 12) if coordinates else "",
                 leave=indented([f"{y}, = from_pieces({y}, {p})"], 12) if coordinates else "",
-                used=used)
+                used=("to_pieces", "from_pieces") if coordinates else (),
+                head=SPLITTING.format(where=where, pieces=pieces, physics_hash=sources, sequence=sequence,
+                                      precision=precision))
 
 
 ADAPTIVE_ROWS = ("time", "h", "log2_previous", "rejected_last", "accepted_count", "rejected_count", "evaluations")
@@ -429,9 +450,9 @@ def member_kernel(name: str, where: str, sources: str, pieces: tuple[str, ...], 
     else:
         family, template = "splitting", FIXED_STEP
         coordinates = hasattr(loaded(where, sources), "to_pieces")
-        fields = splitting(method, D, P, pieces, factor_counts(where, pieces, P), coordinates)
+        fields = splitting_fields(method, D, P, where, pieces, sources, precision, coordinates)
     used, head = fields.pop("used"), fields.pop("head", "")
-    physics_import = f"{', '.join(used)}, = device_functions({where!r}, {used!r}, {sources!r})"
+    physics_import = f"{', '.join(used)}, = device_functions({where!r}, {used!r}, {sources!r})" if used else ""
     return GpuKernel(compiled(family, name, method, precision, physics_import, sources, D, P,
                               head + template.format(**common, **fields, OK=OK, BLEW_UP=BLEW_UP,
                                                      UNDERFLOW=UNDERFLOW, member="cuda.grid(1)")),

@@ -8,7 +8,7 @@ from __future__ import annotations
 from functools import cache
 
 from ..methods import Method
-from .blocks import FIRST_LOG2_ERR_PREVIOUS, adaptive_constants, method_constants
+from .blocks import FIRST_LOG2_ERR_PREVIOUS, adaptive_constants
 from .gpu import ADAPTIVE_HEAD, BLEW_UP, CONTROL_STEP, FIXED_HEAD, OK, UNDERFLOW, GpuKernel, compiled, indented
 
 SITES_HEADER = '''
@@ -261,7 +261,8 @@ def sites_adaptive(method: Method, layout: dict) -> dict:
 def sites_splitting(method: Method, pieces: tuple[str, ...]) -> dict:
     """A kick/drift splitting's step over a field of sites. As on the CPU (blocks.splitting_schedule), a step that
     ends with the piece the next begins with (verlet's half kicks) merges the two."""
-    _, _, _, _, E, sequence, fractions = method_constants(method)
+    sequence, fractions = method.splitting.numbers, method.splitting.fractions
+    E = len(sequence)
     merge = E > 1 and sequence[0] == sequence[-1]
     lines = []
     for e, number in enumerate(sequence):
@@ -279,7 +280,7 @@ def sites_splitting(method: Method, pieces: tuple[str, ...]) -> dict:
 def sites_runge_kutta(method: Method, n: int, layout: dict) -> dict:
     """An explicit Runge-Kutta step over a field of sites: the stage state zx (shared by the chain's threads) and
     zv, and the stage slopes kx, kv (S J each) of this thread's sites."""
-    _, S, a, b, _, _, _ = method_constants(method)
+    S, a, b = method.tableau.stages, method.tableau.square_a(), tuple(float(x) for x in method.tableau.b)
     lines = _sites_stages(S, a, "h", 0, layout["sync"])  # the chain's forces do not depend on time: no stage times
     sums_x = " + ".join(f"REAL({b[s]!r}) * kx[{s} * J + j]" for s in range(S) if b[s])
     lines += _sites_loop([f"x[q + 1] += h * ({sums_x})", f"v[j] += h * ({sums_x.replace('kx[', 'kv[')})"])

@@ -13,14 +13,14 @@ from numba import njit
 from numba.cpython.unsafe.tuple import tuple_setitem
 
 from .blocks import FAST
-from .tuples import combined, loaded, repeated, stored
+from .tuples import combined, converted, loaded, repeated, stored
 
 
 @njit(inline="always", **FAST)
 def stage(rhs, t, h, y, p, row, slopes):
-    """A stage's slopes, row its Butcher row: rhs at t + c_s h and y + sum_r (h a_sr) slopes[r]."""
+    """A stage's slopes, row its Butcher row: rhs at t + c_s h and y + sum_r (h a_sr) slopes[r], in y's type."""
     z = combined(y, h, row, slopes, 1)
-    return rhs(t + row[0] * h, *z, *p)
+    return converted(rhs(t + row[0] * h, *z, *p), y)
 
 
 @njit(inline="always", **FAST)
@@ -37,14 +37,18 @@ def _stage_slopes(s, slopes, rhs, context):
     return tuple_setitem(slopes, s, stage(rhs, t, h, y, p, stages[s], slopes))
 
 
-@njit(inline="always", **FAST)
-def members_interval(rhs, tableau, stage_loop, like_y, like_p, work, B, i, h, steps_per_save):
-    """Save interval i (its steps_per_save steps of h, s) of a block of B members, each member's whole step at a
-    time: state in work rows 0 .. D - 1, parameters in D .. D + P - 1 (like_y, like_p: tuples of D and P)."""
+def members_interval(rhs, tableau, stage_loop):
+    """interval(like_y, like_p, work, B, i, h, steps_per_save) for frames.fixed_step: save interval i (its
+    steps_per_save steps of h, s) of a block of B members, each member's whole step at a time: state in work rows
+    0 .. D - 1, parameters in D .. D + P - 1 (like_y, like_p: tuples of D and P). stage_loop: tuples.unrolled(S)."""
     stages, b = tableau
-    D = len(like_y)
-    for n in range(steps_per_save):
-        t = ((i - 1) * steps_per_save + n) * h
-        for j in range(B):
-            y, p = loaded(work, 0, B, j, like_y), loaded(work, D, B, j, like_p)
-            stored(work, 0, B, j, step(rhs, t, h, y, p, stages, b, stage_loop))
+
+    @njit(inline="always", **FAST)
+    def interval(like_y, like_p, work, B, i, h, steps_per_save):
+        D = len(like_y)
+        for n in range(steps_per_save):
+            t = ((i - 1) * steps_per_save + n) * h
+            for j in range(B):
+                y, p = loaded(work, 0, B, j, like_y), loaded(work, D, B, j, like_p)
+                stored(work, 0, B, j, step(rhs, t, h, y, p, stages, b, stage_loop))
+    return interval

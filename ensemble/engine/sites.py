@@ -45,7 +45,6 @@ from .blocks import (
     block_done,
     block_stopped,
     check_members,
-    method_constants,
     rows_in,
     sample_out,
     select,
@@ -131,8 +130,8 @@ def ring_halo(method: Method) -> int:
     """Sites a long ring's rows hold beyond each end for a splitting `method`: the most kicks in one run of
     TILE_PIECES pieces (one site each: how far a row end's wrong value travels before the halos are copied
     again)."""
-    _, _, _, _, _, pieces, fractions = method_constants(method)
-    kinds = splitting_schedule.py_func(pieces, fractions, 1.0, 2 * TILE_PIECES + 1, TILE_PIECES)[0]  # no compile
+    kinds = splitting_schedule.py_func(method.splitting.numbers, method.splitting.fractions, 1.0,
+                                       2 * TILE_PIECES + 1, TILE_PIECES)[0]  # no compile
     return max(int(np.sum(kinds[c:c + TILE_PIECES] == KICK)) for c in range(0, len(kinds), TILE_PIECES))
 
 
@@ -531,16 +530,18 @@ def source(scene_name: str, where: str, physics_hash: str, method: Method, n: in
     """The kernel file's source for `method` over n sites (a ring if periodic) in blocks of B members, in tiles or
     not (see layout), and its work rows; `where` names the scene's physics module (its `acceleration`),
     physics_hash the identity of its sources (ensemble.scenes.contract.identity)."""
-    runge_kutta, S, a, b, _, sequence, fractions = method_constants(method)
+    S = method.tableau.stages if method.tableau is not None else 1
     halo = ring_halo(method) if tiled and periodic else 0
     rows = stage_rows(n + 2 * halo, S)
     if method.adaptive:
         S, a, e, *control = adaptive_constants(method)
         family, body, count = "adaptive", ADAPTIVE.format(a=a, e=e, control=tuple(control)), rows[-1] + CONTROL_ROWS
-    elif runge_kutta:
-        family, body, count = "runge_kutta", RUNGE_KUTTA.format(a=a, b=b), rows[-1]
+    elif method.tableau is not None:
+        b = tuple(float(x) for x in method.tableau.b)
+        family, body, count = "runge_kutta", RUNGE_KUTTA.format(a=method.tableau.square_a(), b=b), rows[-1]
     else:
-        body = SPLITTING.format(sequence=sequence, fractions=fractions, tiled=tiled)
+        body = SPLITTING.format(sequence=method.splitting.numbers, fractions=method.splitting.fractions,
+                                tiled=tiled)
         family, count = "splitting", rows[2]  # a splitting's rows end with CR
     head = HEADER.format(family=family, scene=scene_name, method=method.name, n=n,
                          ring=" (a ring)" if periodic else "", physics_hash=physics_hash, helpers_hash=SITES_HELPERS,

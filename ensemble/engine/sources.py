@@ -2,4 +2,4 @@
 hash of them (blocks.HELPERS), and so does this machine's tuning (tuning.engine_hash). No Numba here, so that
 reading a tuning imports none."""
 ENGINE_SOURCES = ("blocks.py", "tuples.py", "frames.py", "runge_kutta.py", "adaptive.py", "control.py",
-                  "../results.py")
+                  "splitting.py", "../results.py")

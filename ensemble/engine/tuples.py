@@ -30,8 +30,14 @@ def repeated_typing(typingctx, value, like):
 repeated = intrinsic(repeated_typing)
 
 
+def _flat(values_type) -> list:
+    """The value types of a tuple, a tuple of tuples flattened in order (a splitting's factors per sequence entry)."""
+    return [v for inner in values_type for v in (_flat(inner) if isinstance(inner, types.BaseTuple) else [inner])]
+
+
 def _member_rows(context, builder, signature, arguments):
-    """Pointers to member j's work rows first .. first + count - 1 (row r of member j at r B + j)."""
+    """Pointers to member j's work rows first .. first + count - 1 (row r of member j at r B + j; count: the values
+    of the last argument, a tuple or a tuple of tuples)."""
     work_type, first_type, B_type, j_type, values_type = signature.args
     work, first, B, j, _ = arguments
     intp = types.intp
@@ -39,41 +45,84 @@ def _member_rows(context, builder, signature, arguments):
                                                                                      (first_type, B_type, j_type)))
     data = context.make_array(work_type)(context, builder, value=work).data
     return [builder.gep(data, [builder.add(builder.mul(builder.add(first, context.get_constant(intp, c)), B), j)])
-            for c in range(values_type.count)]
+            for c in range(len(_flat(values_type)))]
+
+
+def _values(builder, value, value_type) -> list:
+    """The values of a tuple or a tuple of tuples, flattened in order."""
+    if not isinstance(value_type, types.BaseTuple):
+        return [value]
+    return [v for c, inner in enumerate(value_type) for v in _values(builder, builder.extract_value(value, c), inner)]
+
+
+def _nested(context, builder, like_type, dtype, values: list):
+    """values (flat, consumed from the front) as a tuple shaped like like_type (a tuple or a tuple of tuples)."""
+    if not isinstance(like_type, types.BaseTuple):
+        return values.pop(0)
+    inner = [_nested(context, builder, kind, dtype, values) for kind in like_type]
+    return context.make_tuple(builder, _shaped(like_type, dtype), inner)
+
+
+def _shaped(like_type, dtype):
+    """The type of a tuple of dtype values shaped like like_type."""
+    if not isinstance(like_type, types.BaseTuple):
+        return dtype
+    inner = [_shaped(kind, dtype) for kind in like_type]
+    return types.BaseTuple.from_types(inner) if inner else types.Tuple(())
 
 
 @intrinsic
 def loaded(typingctx, work, first, B, j, like):
-    """Member j's work rows first .. first + len(like) - 1 as a tuple (like: a tuple of that length): straight
-    loads (a loop through the work array, handed down in a tuple, kept Numba's reference counts in the members'
-    loop, which then did not vectorize)."""
-    tuple_type = types.UniTuple(work.dtype, like.count)
+    """Member j's work rows first .. first + len(like) - 1 as a tuple (like: a tuple of that length, or a tuple of
+    tuples, rows taken in order): straight loads (a loop through the work array, handed down in a tuple, kept
+    Numba's reference counts in the members' loop, which then did not vectorize)."""
+    tuple_type = _shaped(like, work.dtype)
 
     def codegen(context, builder, signature, arguments):
         pointers = _member_rows(context, builder, signature, arguments)
-        return context.make_tuple(builder, tuple_type, [builder.load(pointer) for pointer in pointers])
+        return _nested(context, builder, like, work.dtype, [builder.load(pointer) for pointer in pointers])
     return tuple_type(work, first, B, j, like), codegen
 
 
 @intrinsic
 def stored(typingctx, work, first, B, j, values):
-    """values into member j's work rows first .. first + len(values) - 1: straight stores, as `loaded`."""
+    """values (a tuple, or a tuple of tuples) into member j's work rows from first on: straight stores, as
+    `loaded`."""
     def codegen(context, builder, signature, arguments):
-        for c, pointer in enumerate(_member_rows(context, builder, signature, arguments)):
-            builder.store(builder.extract_value(arguments[4], c), pointer)
+        flat = _values(builder, arguments[4], values)
+        for value, pointer in zip(flat, _member_rows(context, builder, signature, arguments)):
+            builder.store(value, pointer)
         return context.get_dummy_value()
     return types.none(work, first, B, j, values), codegen
 
 
+def converted_typing(typingctx, values, like):
+    """values (a tuple, as a scene's function returns it: its values may be of other types, say a float64 slope
+    in a float32 kernel, or an integer) as a tuple of like's value type (like: a tuple of one type)."""
+    tuple_type = types.UniTuple(like.dtype, values.count if isinstance(values, types.BaseTuple) else 1)
+
+    def codegen(context, builder, signature, arguments):
+        value = arguments[0]
+        if not isinstance(values, types.BaseTuple):
+            return context.make_tuple(builder, tuple_type, [context.cast(builder, value, values, like.dtype)])
+        return context.make_tuple(builder, tuple_type, [
+            context.cast(builder, builder.extract_value(value, c), kind, like.dtype) for c, kind in enumerate(values)])
+    return tuple_type(values, like), codegen
+
+
+converted = intrinsic(converted_typing)
+
+
 def added_typing(typingctx, z, weight, slope):
-    """z + weight slope, value by value (tuples of one length), each value's multiply and add contracted as the
-    kernels' own arithmetic is (blocks.FAST): one fused multiply-add."""
+    """z + weight slope, value by value (tuples of one length), in z's precision, each value's multiply and add
+    contracted as the kernels' own arithmetic is (blocks.FAST): one fused multiply-add."""
     def codegen(context, builder, signature, arguments):
         z_value, weight_value, slope_value = arguments
         weight_value = context.cast(builder, weight_value, signature.args[1], z.dtype)
         values = []
         for c in range(z.count):
-            product = builder.fmul(weight_value, builder.extract_value(slope_value, c), flags=("contract",))
+            k = context.cast(builder, builder.extract_value(slope_value, c), slope[c], z.dtype)  # a scene's slope
+            product = builder.fmul(weight_value, k, flags=("contract",))  # may be wider than a float32 state
             values.append(builder.fadd(builder.extract_value(z_value, c), product, flags=("contract",)))
         return context.make_tuple(builder, z, values)
     return z(z, weight, slope), codegen
