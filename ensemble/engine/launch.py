@@ -44,8 +44,9 @@ from .inputs import adaptive_control, blowup_limits, fixed_counts
 
 
 def work_rows(scene, method: Method, constants: dict) -> int:
-    """Rows of a kernel's work array (each B floats a block); 0 for the closed form (no kernel)."""
-    return 0 if method.closed_form else kernels.kernel(scene, method, constants).rows
+    """Rows of a kernel's work array (each B floats a block), computed without making the kernel; 0 for the closed
+    form (no kernel)."""
+    return 0 if method.closed_form else kernels.work_rows(scene, method, constants)
 
 
 def block_size(scene, constants: dict, method: Method, block: int | None = None) -> int:

@@ -135,6 +135,17 @@ def ring_halo(method: Method) -> int:
     return max(int(np.sum(kinds[c:c + TILE_PIECES] == KICK)) for c in range(0, len(kinds), TILE_PIECES))
 
 
+def work_rows(method: Method, n: int, periodic: bool, tiled: bool) -> int:
+    """Rows of a kernel's work array (B floats each) for `method` over n sites (a ring if periodic), in tiles or
+    not: a Runge-Kutta kernel's rows end with its stages' slopes, an adaptive one's with its control rows, a
+    splitting's with the neighbours' rows CL and CR (its halos on a tiled ring)."""
+    halo = ring_halo(method) if tiled and periodic else 0
+    rows = stage_rows(n + 2 * halo, method.tableau.stages if method.tableau is not None else 1)
+    if method.tableau is None:
+        return rows[2]
+    return rows[-1] + (CONTROL_ROWS if method.adaptive else 0)
+
+
 def stage_rows(n: int, stages: int) -> tuple[int, ...]:
     """The first rows of X, V, ZX, ZV, KX and KV in a Runge-Kutta kernel of `stages` stages (CL and CR lie between
     V and ZX), and the row after KV: where an adaptive kernel's control rows begin."""
@@ -535,15 +546,14 @@ def source(scene_name: str, where: str, physics_hash: str, method: Method, n: in
     rows = stage_rows(n + 2 * halo, S)
     if method.adaptive:
         S, a, e, *control = adaptive_constants(method)
-        family, body, count = "adaptive", ADAPTIVE.format(a=a, e=e, control=tuple(control)), rows[-1] + CONTROL_ROWS
+        family, body = "adaptive", ADAPTIVE.format(a=a, e=e, control=tuple(control))
     elif method.tableau is not None:
         b = tuple(float(x) for x in method.tableau.b)
-        family, body, count = "runge_kutta", RUNGE_KUTTA.format(a=method.tableau.square_a(), b=b), rows[-1]
+        family, body = "runge_kutta", RUNGE_KUTTA.format(a=method.tableau.square_a(), b=b)
     else:
-        body = SPLITTING.format(sequence=method.splitting.numbers, fractions=method.splitting.fractions,
-                                tiled=tiled)
-        family, count = "splitting", rows[2]  # a splitting's rows end with CR
+        family, body = "splitting", SPLITTING.format(sequence=method.splitting.numbers,
+                                                     fractions=method.splitting.fractions, tiled=tiled)
     head = HEADER.format(family=family, scene=scene_name, method=method.name, n=n,
                          ring=" (a ring)" if periodic else "", physics_hash=physics_hash, helpers_hash=SITES_HELPERS,
                          where=where, halo=halo, B=B, periodic=periodic, S=S, rows=rows)
-    return head + "\n\n" + body, count
+    return head + "\n\n" + body, work_rows(method, n, periodic, tiled)
