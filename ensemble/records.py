@@ -133,8 +133,8 @@ def kernel_seconds_per_step(scene, method: Method, values: dict[str, np.ndarray]
     if taken == 0:
         return np.nan
     members = len(outcome.status)
-    chosen = np.resize(np.arange(members), TIMED_KERNEL_BLOCKS * launch.block_size(scene, constants, method,
-                                                                                    settings.get("block")))
+    block = launch.layout(scene, method, constants, settings.get("block")).block
+    chosen = np.resize(np.arange(members), TIMED_KERNEL_BLOCKS * block)
     subset = {name: np.asarray(v)[chosen] for name, v in values.items()}
     settings = {**settings, "rtol": subset["rtol"], "atol": subset["atol"]}
     if method.adaptive:

@@ -82,7 +82,7 @@ def _record_bytes(spec: Spec) -> tuple[int, int]:
     sizes = scene.sizes(spec.constants)
     state_rows, _ = scene.kernel_rows(spec.constants)
     saved = sum(math.prod(sizes[d] for d in scene.OBSERVABLES[v][0][2:]) for v in spec.save)
-    work = max((launch.work_rows(scene, METHODS[name], spec.constants) for name in spec.methods), default=0)
+    work = max((launch.layout(scene, METHODS[name], spec.constants).rows for name in spec.methods), default=0)
     return 8 * (state_rows + saved), 8 * work
 
 
@@ -91,7 +91,7 @@ def run_block(spec: Spec) -> int:
     few-members block where it has one (blocks are powers of 2, so a chunk of whole blocks of it is whole blocks
     of every method's)."""
     scene = spec.model
-    return max(launch.block_size(scene, spec.constants, METHODS[name], spec.kernel_block) for name in spec.methods)
+    return max(launch.layout(scene, METHODS[name], spec.constants, spec.kernel_block).block for name in spec.methods)
 
 
 def segment_samples(spec: Spec) -> int:
@@ -342,7 +342,7 @@ def few_members_block(spec: Spec) -> int | None:
     computes all its lanes however few are members, and a member's arithmetic does not depend on its block: the
     bits are the same."""
     scene = spec.model
-    if spec.device != "cpu" or getattr(scene, "SITES", False):
+    if spec.device != "cpu" or scene.SITES:
         return None
     block = run_block(replace(spec, kernel_block=None))
     if spec.n_members >= block or steps_per_member(spec) * block < CHUNK_MEMBER_STEPS:

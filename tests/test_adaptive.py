@@ -332,7 +332,7 @@ def test_timed_cost_grows_in_proportion_to_the_steps_whatever_the_members(monkey
     clock = [0.0]
     real_run = launch.Launch.run
     spec = parse(top_runfile(members=2))
-    block = launch.block_size(spec.model, spec.constants, METHODS["rk4"])
+    block = launch.layout(spec.model, METHODS["rk4"], spec.constants).block
 
     def costed(self, *args, **kwargs):
         real_run(self, *args, **kwargs)

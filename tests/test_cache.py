@@ -28,7 +28,7 @@ def test_every_kernel_is_keyed_on_the_helpers_and_its_scenes_physics():
                 continue
             function = kernels.kernel(scene, method, constants[name]).function.py_func
             text = Path(function.__code__.co_filename).read_text()
-            helpers = SITES_HELPERS if getattr(scene, "SITES", False) else HELPERS
+            helpers = SITES_HELPERS if scene.SITES else HELPERS
             file = importlib.import_module(scene.PHYSICS).__file__
             physics = hashlib.sha256(json.dumps({file: hashlib.sha256(Path(file).read_bytes()).hexdigest()})
                                      .encode()).hexdigest()
@@ -37,7 +37,7 @@ def test_every_kernel_is_keyed_on_the_helpers_and_its_scenes_physics():
 
 
 def test_a_kernels_work_rows_are_counted_without_making_it(tmp_path, monkeypatch):
-    """A run's memory check counts each kernel's work rows (launch.work_rows) before anything is compiled: the
+    """A run's memory check counts each kernel's work rows (launch.layout) before anything is compiled: the
     count is the made kernel's own, for every scene, method and chain layout (a ring's tiles hold halos), and
     counting writes no kernel file."""
     from ensemble.engine import kernels, launch
@@ -51,7 +51,7 @@ def test_a_kernels_work_rows_are_counted_without_making_it(tmp_path, monkeypatch
         for method in METHODS.values():
             if not applies(method, scene) or method.closed_form:
                 continue
-            counted = launch.work_rows(scene, method, constants)
+            counted = launch.layout(scene, method, constants).rows
             assert not any(tmp_path.rglob("*.py")), (scene.NAME, method.name)
             assert counted == kernels.kernel(scene, method, constants).rows, (scene.NAME, method.name, constants)
             for made in tmp_path.rglob("*.py"):

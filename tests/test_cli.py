@@ -261,7 +261,7 @@ def test_default_chunk_keeps_kernel_samples_and_saved_data_near_the_budget(text)
     saved = 4 if spec.scene == "top" else 1  # omega (3) + tilt, or energy
     segment = min(spec.n_save, runner.CHUNK_BYTES // (8 * (state_rows + saved) * block))
     assert runner.segment_samples(spec) == segment
-    work = launch.work_rows(SCENES[spec.scene], METHODS[spec.methods[0]], spec.constants)
+    work = launch.layout(SCENES[spec.scene], METHODS[spec.methods[0]], spec.constants).rows
     per_member = (segment * (state_rows + saved) + work + (2 * spec.n_save if spec.measure["growth"] else 0)) * 8
     assert chunk % block == 0
     if block * per_member > runner.CHUNK_BYTES:
@@ -395,7 +395,7 @@ def test_default_chunk_bounds_the_work_between_progress_updates():
     """A long record with few saves: the records are small, but a chunk holds at most CHUNK_MEMBER_STEPS of
     work, so the bar moves (and Ctrl-C lands between chunks) every few seconds; never less than one block."""
     spec = parse(top_runfile(members=100_000, t_end=1000.0, save_dt=100.0))  # 1e6 steps a member
-    block = launch.block_size(SCENES["top"], {}, METHODS["rk4"])
+    block = launch.layout(SCENES["top"], METHODS["rk4"], {}).block
     assert runner.steps_per_member(spec) == pytest.approx(1e6)
     assert runner.default_chunk(spec) == runner.CHUNK_MEMBER_STEPS // 1e6 // block * block
     one_block = parse(top_runfile(members=1000, t_end=1e5, save_dt=1e4))  # 1e8 steps: one block is the least

@@ -11,7 +11,7 @@ import sys
 import pytest
 
 from ensemble import cli, runner, tuner, tuning
-from ensemble.engine import kernels
+from ensemble.engine import kernels, launch
 from ensemble.methods import METHODS
 from ensemble.scenes import SCENES
 from ensemble.spec import load
@@ -180,7 +180,8 @@ def test_tune_chooses_a_field_of_sites_layout_only_when_it_is_clearly_faster(fre
     verlet = METHODS["verlet"]
     assert engine_sites.block_size({"n": 16}, verlet) == short[1]
     assert engine_sites.block_size({"n": 1024}, verlet) == long[1]
-    assert engine_sites.layout({"n": 1024, "boundary": "fixed"}, verlet) == (long[1], False)
+    chosen = launch.layout(SCENES["chain"], verlet, {"n": 1024, "boundary": "fixed"})
+    assert (chosen.block, chosen.tiled) == (long[1], False)
     assert engine_sites.block_size({"n": 16}, METHODS["rk4"]) == 64  # a tableau keeps its rule
 
 
@@ -200,7 +201,7 @@ def test_a_tuned_block_is_kept_only_when_clearly_faster_and_gives_the_same_bits(
     runner.run(spec, tmp_path / "default.nc", progress=False)
     tuning.apply(tuning.Tuning(block=256))
     try:
-        assert kernels.block_size(SCENES["top"], {}, METHODS["rk4"]) == 256
+        assert launch.layout(SCENES["top"], METHODS["rk4"], {}).block == 256
         runner.run(spec, tmp_path / "tuned.nc", progress=False)
     finally:
         tuning.apply(None)
@@ -222,17 +223,15 @@ def test_a_tuned_field_of_sites_layout_gives_the_same_bits(fresh, tmp_path, writ
     chains = chain_runfile({"n": 1024, **disorder}, members=9, t_end=0.4, save_dt=0.2, dt=0.01)
     rings = chain_runfile({"n": 16, "boundary": '"periodic"', **disorder}, members=9, t_end=0.4, save_dt=0.2,
                           dt=0.01, method='"yoshida4"')
-    from ensemble.engine import sites as engine_sites
-
     tuned = tuning.Tuning(sites_block=32, fused_sweeps=False)
     for name, text, n, boundary in (("chains", chains, 1024, "fixed"), ("rings", rings, 16, "periodic")):
         spec = load(write_runfile(text, name=f"{name}.toml"))
         method = METHODS[spec.method]
-        rule = engine_sites.layout({"n": n, "boundary": boundary}, method)
+        rule = launch.layout(SCENES["chain"], method, {"n": n, "boundary": boundary})
         runner.run(spec, tmp_path / f"{name}_rule.nc", progress=False)
         tuning.apply(tuned)
         try:
-            assert engine_sites.layout({"n": n, "boundary": boundary}, method) != rule
+            assert launch.layout(SCENES["chain"], method, {"n": n, "boundary": boundary}) != rule
             runner.run(spec, tmp_path / f"{name}_tuned.nc", progress=False)
         finally:
             tuning.apply(None)

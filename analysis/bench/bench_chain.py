@@ -70,7 +70,7 @@ def contenders(n, masses, rng, h, steps, numpy_steps, method="verlet", boundary=
               "k": rng.uniform(0.5, 2, (members, chain.spring_count(n, boundary))),
               "x0": rng.normal(0, 0.1, (members, n)), "v0": np.zeros((members, n))}
     constants = {"n": n, "boundary": boundary}
-    block = launch.block_size(chain, constants, METHODS[method])
+    block = launch.layout(chain, METHODS[method], constants).block
     members = max(members - members % block, block)
     values = {name: v[:members] for name, v in values.items()}
     state, rate = chain.inputs(values, constants)

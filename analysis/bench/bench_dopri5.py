@@ -181,7 +181,7 @@ def main():
         chain_spec = parse(CHAIN.format(members=members, n=n))
         seconds = per_step(chain, members_table(chain_spec), chain_spec.constants, 1e-2, 1.0, 11, args.repeats)
         rk4, dopri5 = seconds["rk4"], seconds["dopri5"]
-        block = launch.block_size(chain, chain_spec.constants, METHODS["dopri5"])
+        block = launch.layout(chain, METHODS["dopri5"], chain_spec.constants).block
         print(f"chain n = {n}, {members} members: rk4 {rk4:.3g} s, dopri5 {dopri5:.3g} s (blocks of {block}) per "
               f"member-step, ratio {dopri5 / rk4:.2f}")
     (rk4_evals, dt), (dopri5_evals, rtol) = evaluations_for(1e-10)

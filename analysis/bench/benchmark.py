@@ -319,7 +319,7 @@ def chain_case(method: str, n: int, masses: int, steps: int, repeats: int, peers
     """Rates (mass-steps/s) of chains of n masses with `method`, h = 0.01, and (fixed ends) its peers' (verlet's
     job); ensemble's from `timed` calls (default `repeats`), each followed by c() when given (as top_case's)."""
     h, constants, rng = 0.01, {"n": n, "boundary": boundary}, np.random.default_rng(1)
-    block = launch.block_size(chain, constants, METHODS[method])
+    block = launch.layout(chain, METHODS[method], constants).block
     members = max(masses // n // block, 1) * block
     values = chain_values(n, members, rng, chain.spring_count(n, boundary))
     launch.prepare(chain, METHODS[method], constants)

@@ -179,6 +179,15 @@ def cache_line_array(size):
 
 
 @njit(inline="always", **FAST)
+def copy_into(target, source):
+    """target[r] = source[r] for every r of two 1-d arrays of one length: a block's work array in and out. Numba's
+    slice assignment (`target[:] = source`) compiles the formatting of its shape-mismatch error into every process
+    that compiles a kernel: about 3 s of a kernel's first compile."""
+    for r in range(target.shape[0]):
+        target[r] = source[r]
+
+
+@njit(inline="always", **FAST)
 def finite(x):
     """Whether the float64 x is finite, tested on its bits: fastmath assumes no float is NaN or inf, not an int."""
     return (_int_bits(x) & _EXPONENT) != _EXPONENT

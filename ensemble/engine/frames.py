@@ -15,6 +15,7 @@ from .blocks import (
     block_done,
     cache_line_array,
     check_members,
+    copy_into,
     counts_out,
     state_accept,
     state_load,
@@ -39,7 +40,7 @@ def fixed_step(interval, like_y, like_p, B, state0, rate, h, steps_per_save, lim
     work = cache_line_array(works.shape[1])
     for block in range(first_block, end_block):
         j0 = block * B
-        work[:] = works[block]
+        copy_into(work, works[block])
         if start == 0:
             state_load(work, state0, rate, block, samples, D, P, B)
             check_members(work, 0, D, B, j0, limit, status, failure_time, 0.0)  # a non-finite start
@@ -50,7 +51,7 @@ def fixed_step(interval, like_y, like_p, B, state0, rate, h, steps_per_save, lim
             if state_saved(work, samples, i - start, block, limit, status, failure_time, progress,
                            i * steps_per_save * h, -1, D, B):
                 break
-        works[block] = work
+        copy_into(works[block], work)
 
 
 @njit(inline="always", **FAST)
@@ -71,7 +72,7 @@ def adaptive(rhs, pair, stage_loop, controller, like_y, like_p, B, state0, rate,
     work = cache_line_array(works.shape[1])
     for block in range(first_block, end_block):
         j0 = block * B
-        work[:] = works[block]
+        copy_into(work, works[block])
         if start == 0:
             state_load(work, state0, rate, block, samples, D, P, B)
             for j in range(B):
@@ -92,4 +93,4 @@ def adaptive(rhs, pair, stage_loop, controller, like_y, like_p, B, state0, rate,
                            D, B):
                 break
         counts_out(work, C0, B, counts, j0)
-        works[block] = work
+        copy_into(works[block], work)

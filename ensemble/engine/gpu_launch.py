@@ -16,7 +16,7 @@ def kernel(scene, method: Method, constants: dict, precision: str = "float64") -
     """The CUDA kernel of a stepping method for a scene (compiled when first launched)."""
     D, P = scene.kernel_rows(constants)
     sources = scene_identity(scene)  # a cache key: an edited scene is another kernel
-    if getattr(scene, "SITES", False):
+    if scene.SITES:
         return sites_kernel(scene.NAME, scene.PHYSICS, sources, tuple(scene.PIECES), method, constants["n"],
                             constants["boundary"] == "periodic", precision, site_threads(constants["n"], method))
     return member_kernel(scene.NAME, scene.PHYSICS, sources, tuple(scene.PIECES), method, D, P, precision)

@@ -21,6 +21,7 @@ import tempfile
 from functools import cache
 from pathlib import Path
 from types import ModuleType
+from typing import NamedTuple
 
 from numba import njit
 from numba.core.registry import CPUDispatcher
@@ -98,43 +99,57 @@ def factor_counts(where: str, pieces: tuple[str, ...], parameters: int) -> dict[
 
 
 def block_size(scene, constants: dict, method: Method, block: int | None = None) -> int:
-    """Members per kernel block: a field of sites' rule (ensemble.engine.sites.block_size), else the scene's BLOCK
-    if it names one, else `block` (a run of few members: runner.few_members_block), else this machine's tuning
-    (ensemble.tuning.generated_block), else BLOCK."""
-    if getattr(scene, "SITES", False):
+    """Members per kernel block: a field of sites' rule (ensemble.engine.sites.block_size), else `block` (a run of
+    few members: runner.few_members_block), else this machine's tuning (ensemble.tuning.generated_block), else
+    BLOCK."""
+    if scene.SITES:
         return sites.block_size(constants, method)
-    return getattr(scene, "BLOCK", None) or block or generated_block(BLOCK)
+    return block or generated_block(BLOCK)
 
 
-def kernel(scene, method: Method, constants: dict, block: int | None = None) -> Kernel:
-    """Kernel(function, work rows) of a stepping method for a scene: compiled, or loaded from Numba's cache. A
-    scene whose member is a field of sites (SITES) gets ensemble.engine.sites's templates, for its constants' n
-    sites and boundary; every other scene its family's code, for block_size's block."""
-    sources = scene_identity(scene)  # a cache key: an edited scene is another kernel
-    if getattr(scene, "SITES", False):
-        return _sites_generated(scene.NAME, scene.PHYSICS, sources, method, constants["n"],
-                                constants["boundary"] == "periodic", *sites.layout(constants, method))
+class Layout(NamedTuple):
+    """Where a CPU kernel keeps its members: computed once (`layout`) from the scene, the method, a run's
+    constants and this machine's tuning, and handed to the kernel's maker and its launch."""
+    block: int  # members per block: a block's work array is rows x block floats, row r of member j at r block + j
+    rows: int  # work rows: a member's state, parameters, and what its method keeps between calls
+    tiled: bool = False  # a field of sites' splitting sweeps its sites in tiles (sites.tiles)
+    halo: int = 0  # sites a long ring's rows hold beyond each end (sites.ring_halo)
+
+
+def layout(scene, method: Method, constants: dict, block: int | None = None) -> Layout:
+    """The Layout of a scene's kernel for `method`, computed without making the kernel. block: members per block
+    for a run of few members (runner.few_members_block); None for block_size's rule. The rows: a field of sites'
+    (sites.work_rows), or a member's state and parameters, then an adaptive pair's slopes, trial state and
+    control block, or a splitting's factors (the `<piece>_factors` called in Python)."""
+    B = block_size(scene, constants, method, block)
+    if scene.SITES:
+        n, periodic = constants["n"], constants["boundary"] == "periodic"
+        tiled = method.splitting is not None and sites.tiles(n, B)
+        return Layout(B, sites.work_rows(method, n, periodic, tiled), tiled,
+                      sites.ring_halo(method) if tiled and periodic else 0)
     D, P = scene.kernel_rows(constants)
-    return _generated(scene.NAME, scene.PHYSICS, sources, tuple(scene.PIECES), method, D, P,
-                      block_size(scene, constants, method, block))
+    return Layout(B, _member_rows(scene.PHYSICS, tuple(scene.PIECES), method, D, P))
+
+
+def kernel(scene, method: Method, constants: dict, chosen: Layout | None = None) -> Kernel:
+    """Kernel(function, work rows) of a stepping method for a scene in `chosen` layout (default: `layout`'s):
+    compiled, or loaded from Numba's cache. A scene whose member is a field of sites (SITES) gets
+    ensemble.engine.sites's templates, for its constants' n sites and boundary; every other scene its family's
+    code."""
+    chosen = chosen or layout(scene, method, constants)
+    sources = scene_identity(scene)  # a cache key: an edited scene is another kernel
+    if scene.SITES:
+        return _sites_generated(scene.NAME, scene.PHYSICS, sources, method, constants["n"],
+                                constants["boundary"] == "periodic", chosen)
+    D, P = scene.kernel_rows(constants)
+    return _generated(scene.NAME, scene.PHYSICS, sources, tuple(scene.PIECES), method, D, P, chosen.block)
 
 
 @cache
-def _sites_generated(name: str, where: str, sources: str, method: Method, n: int, periodic: bool, B: int,
-                     tiled: bool) -> Kernel:
-    body, rows = sites.source(name, where, sources, method, n, periodic, B, tiled)
+def _sites_generated(name: str, where: str, sources: str, method: Method, n: int, periodic: bool,
+                     chosen: Layout) -> Kernel:
+    body, rows = sites.source(name, where, sources, method, n, periodic, chosen.block, chosen.tiled, chosen.halo)
     return Kernel(load_source(body, f"{name}_{method.name}_{n}").kernel, rows)
-
-
-def work_rows(scene, method: Method, constants: dict) -> int:
-    """Rows of the work array (each B floats a block) of a scene's kernel for `method`, computed without making
-    the kernel: a field of sites' (sites.work_rows), or a member's state and parameters, then an adaptive pair's
-    slopes, trial state and control block, or a splitting's factors (the `<piece>_factors` called in Python)."""
-    if getattr(scene, "SITES", False):
-        B, tiled = sites.layout(constants, method)
-        return sites.work_rows(method, constants["n"], constants["boundary"] == "periodic", tiled)
-    D, P = scene.kernel_rows(constants)
-    return _member_rows(scene.PHYSICS, tuple(scene.PIECES), method, D, P)
 
 
 def _member_rows(where: str, pieces: tuple[str, ...], method: Method, D: int, P: int) -> int:

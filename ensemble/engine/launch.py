@@ -43,15 +43,12 @@ from .blocks import flush_subnormals, restore_float_mode
 from .inputs import adaptive_control, blowup_limits, fixed_counts
 
 
-def work_rows(scene, method: Method, constants: dict) -> int:
-    """Rows of a kernel's work array (each B floats a block), computed without making the kernel; 0 for the closed
-    form (no kernel)."""
-    return 0 if method.closed_form else kernels.work_rows(scene, method, constants)
-
-
-def block_size(scene, constants: dict, method: Method, block: int | None = None) -> int:
-    """Members per kernel block of the scene's kernel of `method` for a run's constants."""
-    return kernels.block_size(scene, constants, method, block)
+def layout(scene, method: Method, constants: dict, block: int | None = None) -> kernels.Layout:
+    """The layout of a scene's CPU kernel for `method` (kernels.layout), computed without making the kernel; the
+    closed form has no kernel: no rows, and members in blocks of kernels.BLOCK."""
+    if method.closed_form:
+        return kernels.Layout(block or kernels.BLOCK, 0)
+    return kernels.layout(scene, method, constants, block)
 
 
 def integrate(scene, method: Method, values: dict[str, np.ndarray], constants: dict, *, n_save: int,
@@ -107,8 +104,9 @@ class Launch:
             self.exact = lambda first, count: scene.exact(values, constants, np.arange(first, first + count) * spacing)
             return
         state0, rate = scene.inputs(values, constants)
-        block = kernels.block_size(scene, constants, method, block)
-        self.kernel = kernels.kernel(scene, method, constants, block)
+        self.layout = layout(scene, method, constants, block)
+        self.kernel = kernels.kernel(scene, method, constants, self.layout)
+        block = self.layout.block
         limit = blowup_limits(state0, blowup_factor)
         if method.adaptive:
             control = adaptive_control(dt, rtol, atol, self.members)
@@ -294,16 +292,16 @@ def _call_fresh(scene, method: Method, constants: dict, block: int | None = None
     try:
         _call_once(scene, method, constants, block)
     except Exception as error:  # noqa: BLE001 (unpickling and LLVM's parser raise many kinds)
-        files = cache_files(kernels.kernel(scene, method, constants, block).function)
+        made = kernels.kernel(scene, method, constants, layout(scene, method, constants, block)).function
+        files = cache_files(made)
         cannot_write = isinstance(error, OSError) and error.errno in CANNOT_WRITE
         if not files and not cannot_write:  # nothing was cached: the kernel does not compile
             raise
         for file in files:
             file.unlink(missing_ok=True)
         if cannot_write:
-            print(f"ensemble: cannot write Numba's cache of the {method.name} kernel in "
-                  f"{cache_folder(kernels.kernel(scene, method, constants, block).function)} ({error.strerror}); every "
-                  f"run compiles it again until it can", file=sys.stderr, flush=True)
+            print(f"ensemble: cannot write Numba's cache of the {method.name} kernel in {cache_folder(made)} "
+                  f"({error.strerror}); every run compiles it again until it can", file=sys.stderr, flush=True)
         else:
             print(f"ensemble: Numba's cache of the {method.name} kernel in {files[0].parent} could not be loaded "
                   f"({type(error).__name__}); compiling it again", file=sys.stderr, flush=True)
@@ -330,8 +328,8 @@ def cache_files(dispatcher) -> list[Path]:
 
 def _call_once(scene, method: Method, constants: dict, block: int | None = None) -> None:
     state_rows, rate_rows = scene.kernel_rows(constants)
-    block = kernels.block_size(scene, constants, method, block)
-    kernel = kernels.kernel(scene, method, constants, block)
+    chosen = layout(scene, method, constants, block)
+    kernel, block = kernels.kernel(scene, method, constants, chosen), chosen.block
     works = np.zeros((1, kernel.rows * block))
     state0, rate = np.zeros((1, state_rows, block)), np.zeros((1, rate_rows, block))
     samples = np.empty((block, 1, state_rows))

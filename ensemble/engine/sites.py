@@ -45,6 +45,7 @@ from .blocks import (
     block_done,
     block_stopped,
     check_members,
+    copy_into,
     rows_in,
     sample_out,
     select,
@@ -118,12 +119,6 @@ def tiles(n: int, B: int) -> bool:
     1.22, 1.21 and 1.33 in tiles (analysis/bench/README.md)."""
     return (n > 2 * TILE_ROWS and (4 * n + 2) * B * 8 > TILE_FROM_L1 * l1_data_bytes()
             and applied().fused_sweeps is not False)
-
-
-def layout(constants: dict, method: Method) -> tuple[int, bool]:
-    """(members per block, whether a splitting runs in tiles) of `method` over the constants' n sites."""
-    B = block_size(constants, method)
-    return B, method.splitting is not None and tiles(constants["n"], B)
 
 
 def ring_halo(method: Method) -> int:
@@ -249,7 +244,7 @@ def fixed_start(work, works, state0, rate, block, samples, limit, status, failur
                 B, periodic):
     """Copy a block's work array into the call's `work` (cache_line_array), and whether the block runs: a call
     at start 0 loads it from state0, a later one continues it unless every member has failed."""
-    work[:] = works[block]
+    copy_into(work, works[block])
     if start == 0:
         load_block(work, state0, rate, block, samples, n, halo, B, periodic)
         m = n + 2 * halo
@@ -331,7 +326,7 @@ import numpy as np
 from numba import njit
 
 from ensemble.engine.blocks import (ATOL, ERR, FAST, RTOL, STEP, H, block_done, cache_line_array, check_members,
-                                    counts_out, first_step, start_control, trial_steps)
+                                    copy_into, counts_out, first_step, start_control, trial_steps)
 from ensemble.engine.control import control_step
 from ensemble.engine.kernels import physics_functions
 from ensemble.engine.sites import (KICK, TILE_PIECES, TILE_ROWS, accept, drift, fixed_start, load_block,
@@ -445,7 +440,7 @@ TILED = {tiled}
             if saved(work, samples, save - start, block, limit, status, failure_time, progress,
                      save * steps_per_save * h, -1, N, HALO, B):
                 break
-        works[block] = work
+        copy_into(works[block], work)
 '''
 
 RUNGE_KUTTA = '''A, WEIGHTS = {a}, {b}  # the tableau: a (S x S, flat), b
@@ -466,7 +461,7 @@ RUNGE_KUTTA = '''A, WEIGHTS = {a}, {b}  # the tableau: a (S x S, flat), b
             if saved(work, samples, save - start, block, limit, status, failure_time, progress,
                      save * steps_per_save * h, -1, N, 0, B):
                 break
-        works[block] = work
+        copy_into(works[block], work)
 '''
 
 # As for a member of D values (ensemble.engine.templates.ADAPTIVE), every member of a block takes its own trial
@@ -485,7 +480,7 @@ def kernel(state0, rate, control, save_dt, limit, samples, counts, status, failu
     work = cache_line_array(works.shape[1])
     for block in range(first_block, end_block):
         j0 = block * B
-        work[:] = works[block]
+        copy_into(work, works[block])
         if start == 0:
             load_block(work, state0, rate, block, samples, N, 0, B, PERIODIC)
             slopes(work, X, V, KX, KV, N, B)
@@ -532,17 +527,17 @@ def kernel(state0, rate, control, save_dt, limit, samples, counts, status, failu
                      B):
                 break
         counts_out(work, C0, B, counts, j0)
-        works[block] = work
+        copy_into(works[block], work)
 '''
 
 
 def source(scene_name: str, where: str, physics_hash: str, method: Method, n: int, periodic: bool, B: int,
-           tiled: bool) -> tuple[str, int]:
+           tiled: bool, halo: int) -> tuple[str, int]:
     """The kernel file's source for `method` over n sites (a ring if periodic) in blocks of B members, in tiles or
-    not (see layout), and its work rows; `where` names the scene's physics module (its `acceleration`),
-    physics_hash the identity of its sources (ensemble.scenes.contract.identity)."""
+    not (`tiles`), a ring's rows holding `halo` sites beyond each end (`ring_halo`), and its work rows; `where`
+    names the scene's physics module (its `acceleration`), physics_hash the identity of its sources
+    (ensemble.scenes.contract.identity)."""
     S = method.tableau.stages if method.tableau is not None else 1
-    halo = ring_halo(method) if tiled and periodic else 0
     rows = stage_rows(n + 2 * halo, S)
     if method.adaptive:
         S, a, e, *control = adaptive_constants(method)

@@ -31,6 +31,7 @@ class Scene(Protocol):
 
     NAME: str
     PHYSICS: str  # its physics module, by dotted name or file path
+    SITES: bool  # a member is a field of sites (the chain: n and boundary among its constants), else D values
     PARAMETERS: dict[str, Parameter]  # run-file parameters
     OBSERVABLES: dict[str, tuple[tuple[str, ...], str, str]]  # saved variables: name -> (dims, units, long_name)
     PIECES: tuple[str, ...]  # the exactly solved pieces its splitting methods take (see methods.Splitting)

@@ -208,7 +208,7 @@ class UserScene:
     STABILITY_AXES: tuple[str, ...] = ()
 
     def __init__(self, module: ModuleType, where: str):
-        self.module, self.PHYSICS = module, where
+        self.module, self.PHYSICS, self.SITES = module, where, False
         self.NAME = getattr(module, "NAME", Path(where).stem if where.endswith(".py") else where.rsplit(".", 1)[-1])
         for required in ("STATE", "PARAMETERS", "rhs"):
             if not hasattr(module, required):

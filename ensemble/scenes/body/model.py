@@ -24,6 +24,7 @@ from ...parameter import Parameter, ParameterError
 
 NAME = "body"
 PHYSICS = "ensemble.scenes.body.physics"  # rhs and pieces, from which ensemble.engine builds the kernels
+SITES = False  # a member is D values, not a field of sites
 PIECES = AXIS_ROTATIONS  # splitting methods: L turned about each body axis in turn, and drag, each exact
 EVALUATING_PIECES = ()
 AXES = (1, 2, 3)

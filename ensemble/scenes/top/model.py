@@ -21,6 +21,7 @@ from ...parameter import Parameter, ParameterError
 
 NAME = "top"
 PHYSICS = "ensemble.scenes.top.physics"  # rhs and pieces, from which ensemble.engine builds the kernels
+SITES = False  # a member is D values (the body rates), not a field of sites
 PIECES = DRAG_ROTATION  # splitting methods: drag decay and free rotation, each solved exactly
 EVALUATING_PIECES = ()  # neither piece evaluates the right-hand side
 
