@@ -33,7 +33,8 @@ from ensemble.engine import (
     gpu_sites,  # noqa: E402
     launch,  # noqa: E402
 )
-from ensemble.engine.gpu import require_gpu, simulated  # noqa: E402
+from ensemble.engine.gpu import require_gpu  # noqa: E402
+from ensemble.engine.gpu_device import simulated  # noqa: E402
 from ensemble.methods import METHODS  # noqa: E402
 from ensemble.runner import members_table  # noqa: E402
 from ensemble.scenes import resolve  # noqa: E402

@@ -2,11 +2,11 @@
 
 A thread runs the CPU kernels' own code for its member: an explicit Runge-Kutta step (ensemble.engine.runge_kutta),
 an adaptive pair's trial step and error norm (.adaptive) and its step control (.control), a splitting's sequence
-of pieces (.splitting), compiled as CUDA device functions (`device_function`, with numba-cuda's equivalents of the
-CPU intrinsics and the GPU's own sin, cos, log2 and exp2), as are the scene's functions. The kernels' frames (a
-member's start, save intervals, failures) are templates here. What differs from the CPU is where a member
-lives: a thread (cuda.grid) instead of a block lane, and the arrays in (rows, members) order so that neighbouring
-threads touch neighbouring memory.
+of pieces (.splitting), compiled as CUDA device functions (ensemble.engine.gpu_device, with numba-cuda's
+equivalents of the CPU intrinsics and the GPU's own sin, cos, log2 and exp2), as are the scene's functions. The
+kernels' frames (a member's start, save intervals, failures) are templates here. What differs from the CPU is
+where a member lives: a thread (cuda.grid) instead of a block lane, and the arrays in (rows, members) order so
+that neighbouring threads touch neighbouring memory.
 
 A scene whose state is a field of sites (the chain) has templates of its own (ensemble.engine.gpu_sites), built on
 the pieces here; ensemble.engine.gpu_launch picks a scene's kernel and runs it.
@@ -16,8 +16,6 @@ Without a GPU the kernels run under numba-cuda's simulator (NUMBA_ENABLE_CUDASIM
 from __future__ import annotations
 
 import hashlib
-import math
-import types
 from functools import cache
 from pathlib import Path
 from typing import NamedTuple
@@ -27,20 +25,18 @@ import numpy as np
 from ..errors import DeviceUnavailable
 from ..methods import Method
 from ..results import Status
-from . import splitting
-from .blocks import FIRST_LOG2_ERR_PREVIOUS, adaptive_constants, first_step
-from .control import controlled
+from .blocks import FIRST_LOG2_ERR_PREVIOUS, adaptive_constants
+from .gpu_device import simulated
 from .kernels import load_source, loaded, pair_of, tableau_of
 from .sources import ENGINE_SOURCES
 
 THREADS = 128  # threads per CUDA block
-PRECISIONS = {"float64": np.float64, "float32": np.float32}
 OK, BLEW_UP, UNDERFLOW = int(Status.OK), int(Status.BLEW_UP), int(Status.STEP_SIZE_UNDERFLOW)
-#: A hash of this file, gpu_sites.py and the CPU kernels' code (sources.ENGINE_SOURCES), which every CUDA kernel's
-#: file holds: numba-cuda's disk cache (`cache=True`) keys a kernel on its own file, and would otherwise load one
+#: A hash of the GPU's files and the CPU kernels' code (sources.ENGINE_SOURCES), which every CUDA kernel's file
+#: holds: numba-cuda's disk cache (`cache=True`) keys a kernel on its own file, and would otherwise load one
 #: compiled before a device helper changed.
-GPU_HELPERS = hashlib.sha256(b"".join((Path(__file__).parent / name).read_bytes()
-                                      for name in ("gpu.py", "gpu_sites.py", *ENGINE_SOURCES))).hexdigest()
+GPU_SOURCES = ("gpu.py", "gpu_device.py", "gpu_sites.py", *ENGINE_SOURCES)
+GPU_HELPERS = hashlib.sha256(b"".join((Path(__file__).parent / name).read_bytes() for name in GPU_SOURCES)).hexdigest()
 
 
 def require_gpu() -> str:
@@ -62,98 +58,6 @@ def require_gpu() -> str:
     return name.decode() if isinstance(name, bytes) else str(name)
 
 
-def simulated() -> bool:
-    from numba import config
-    return bool(config.ENABLE_CUDASIM)
-
-
-# ---------------------------------------------------------------- the scene's functions as device functions
-
-def _sin_cos(x):
-    return math.sin(x), math.cos(x)
-
-
-def _finite(x):
-    return not (math.isnan(x) or math.isinf(x))
-
-
-def _log2(x):
-    return math.log2(x)
-
-
-def _exp2(y):
-    return 2.0 ** y
-
-
-def _select(condition, if_true, if_false):
-    return if_true if condition else if_false
-
-
-# CPU helpers the engine's code or a scene's physics may call, and what a device function calls instead: they are
-# written in bit operations and LLVM intrinsics for the CPU's vector units; a GPU has its own sin, cos, log2 and
-# exp2, and its own test for a finite value.
-DEVICE_EQUIVALENTS = {"ensemble.engine.blocks.sin_cos": _sin_cos, "ensemble.engine.blocks.finite": _finite,
-                      "ensemble.engine.blocks.log2_positive": _log2, "ensemble.engine.blocks.exp2_of": _exp2}
-
-
-def device_function(function, done: dict | None = None):
-    """`function` (plain Python or @njit) compiled as a CUDA device function, the compiled helpers it calls
-    replaced by device functions too (DEVICE_EQUIVALENTS where the CPU's are written for vector units), and the
-    CPU intrinsics it calls by numba-cuda's (device_intrinsics)."""
-    from numba import cuda
-    from numba.core.registry import CPUDispatcher
-
-    done = {} if done is None else done
-    python = function.py_func if isinstance(function, CPUDispatcher) else function
-    if python in done:
-        return done[python]
-    names = dict(python.__globals__)
-    intrinsics = device_intrinsics()
-    for name in python.__code__.co_names:
-        value = names.get(name)
-        if isinstance(value, CPUDispatcher):
-            key = f"{value.py_func.__module__}.{value.py_func.__name__}"
-            equivalent = DEVICE_EQUIVALENTS.get(key)
-            names[name] = device_function(equivalent or value, done)
-        elif any(value is cpu for cpu in intrinsics):
-            names[name] = next(device for cpu, device in intrinsics.items() if value is cpu)
-    rebuilt = types.FunctionType(python.__code__, names, python.__name__, python.__defaults__, python.__closure__)
-    done[python] = cuda.jit(device=True)(rebuilt)
-    return done[python]
-
-
-@cache
-def device_intrinsics() -> dict:
-    """The CPU intrinsics the families call (ensemble.engine.tuples) and numba-cuda's equivalents: numba-cuda
-    types calls in its own registry, where Numba's CPU intrinsics are unknown."""
-    from numba import cuda
-    from numba.cpython.unsafe.tuple import tuple_setitem
-
-    from . import tuples
-    from .blocks import select
-    if simulated():  # the simulator runs device functions as Python
-        return {tuple_setitem: lambda values, i, value: values[:i] + (value,) + values[i + 1:],
-                tuples.repeated: lambda value, like: (value,) * len(like),
-                tuples.added: lambda z, weight, slope: tuple(a + weight * b for a, b in zip(z, slope)),
-                tuples.converted: lambda values, like: tuple(map(type(like[0]), values if isinstance(values, tuple)
-                                                                 else (values,))),
-                select: _select}
-    from numba.cuda.cpython.unsafe.tuple import tuple_setitem as device_tuple_setitem
-    from numba.cuda.extending import intrinsic
-    return {tuple_setitem: device_tuple_setitem, tuples.repeated: intrinsic(tuples.repeated_typing),
-            tuples.added: intrinsic(tuples.added_typing), tuples.converted: intrinsic(tuples.converted_typing),
-            select: cuda.jit(device=True)(_select)}
-
-
-@cache
-def device_functions(where: str, names: tuple[str, ...], expected: str) -> tuple:
-    """A scene's functions `names` (its physics module `where`, whose sources must still be of identity
-    `expected`: kernels.loaded) as device functions."""
-    module = loaded(where, expected)
-    done: dict = {}
-    return tuple(device_function(getattr(module, name), done) for name in names)
-
-
 # ---------------------------------------------------------------- templates
 
 HEADER = '''"""Generated by ensemble.engine.gpu: the {family} CUDA kernel of {scene}, method {method}, {precision}.
@@ -167,8 +71,8 @@ import math
 from numba import cuda, float32, float64, int8
 
 from ensemble.engine import adaptive, runge_kutta
-from ensemble.engine.gpu import (device_function, device_functions, device_helpers, device_splitting,
-                                 device_unrolled)
+from ensemble.engine.gpu_device import (device_function, device_functions, device_helpers,
+                                        device_splitting, device_unrolled)
 
 controlled, first_step = device_helpers()
 
@@ -280,42 +184,6 @@ ADAPTIVE = ADAPTIVE_HEAD + '''{load_p}
 {store_works}
     counts[0, m], counts[1, m], counts[2, m] = accepted_count, rejected_count, evaluations
 '''
-
-
-def _device_inlined(function):
-    """A link of the engine's written-out loops (tuples.unrolled, the splitting's chains) as an inlined device
-    function (plain Python under the simulator)."""
-    from numba import cuda
-    return function if simulated() else cuda.jit(device=True, inline="always")(function)
-
-
-@cache
-def device_unrolled(count: int):
-    """tuples.unrolled(count) of device functions."""
-    from .tuples import unrolled
-    return unrolled(count, _device_inlined)
-
-
-@cache
-def device_splitting(where: str, pieces: tuple[str, ...], expected: str, sequence: tuple, precision: str) -> tuple:
-    """(step, factors): a splitting's sequence_step and sequence_factors (ensemble.engine.splitting, the CPU
-    kernels' own) of a scene's device functions, for a sequence of (piece number, fraction) entries, the fractions
-    in `precision`."""
-    module = loaded(where, expected)
-    done: dict = {}
-    named = [device_function(getattr(module, piece), done) for piece in pieces]
-    factors = [device_function(getattr(module, f"{piece}_factors"), done) if hasattr(module, f"{piece}_factors")
-               else None for piece in pieces]
-    real = PRECISIONS[precision]
-    return (splitting.sequence_step(tuple((named[n], real(f)) for n, f in sequence), _device_inlined),
-            splitting.sequence_factors(tuple((factors[n], real(f)) for n, f in sequence), _device_inlined))
-
-
-@cache
-def device_helpers() -> tuple:
-    """(controlled, first_step) as device functions (the generated kernels import them): the CPU kernels' own step
-    control (control.controlled) and first trial step's guess (blocks.first_step), written once for both."""
-    return device_function(controlled), device_function(first_step)
 
 
 def _names(prefix: str, count: int) -> str:

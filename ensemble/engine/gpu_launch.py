@@ -6,7 +6,8 @@ import numpy as np
 
 from ..methods import Method
 from ..results import DEFAULT_BLOWUP_FACTOR, Outcome
-from .gpu import PRECISIONS, THREADS, GpuKernel, member_kernel, require_gpu
+from .gpu import THREADS, GpuKernel, member_kernel, require_gpu
+from .gpu_device import PRECISIONS
 from .gpu_sites import site_threads, sites_kernel
 from .inputs import adaptive_control, blowup_limits, fixed_counts
 from .kernels import scene_identity

@@ -5,8 +5,8 @@ A member's D state values and P parameters are tuples of floats (Numba's UniTupl
 functions take them as `rhs(t, *y, *p)`. Loading, storing and adding tuples are intrinsics that write each value
 out (a loop of tuple_setitem goes through memory until LLVM unrolls it, which it did not for a free body's 12
 parameters: its kernel ran 17 times slower, scalar), and the families' loops over a method's stages are written
-out by `unrolled`. ensemble.engine.gpu compiles these functions as CUDA device functions, with numba-cuda's
-tuple_setitem and its own registration of the intrinsics here (gpu.device_intrinsics).
+out by `unrolled`. ensemble.engine.gpu_device compiles these functions as CUDA device functions, with numba-cuda's
+tuple_setitem and its own registration of the intrinsics here (gpu_device.device_intrinsics).
 """
 from __future__ import annotations
 
