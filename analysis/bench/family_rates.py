@@ -2,6 +2,7 @@
 top and the free body: a before-and-after check for a change to the engine's family code.
 
     python analysis/bench/family_rates.py [--repeats 7] [--members 32768] [--steps 400] [--lorenz96 40]
+                                          [--cases top:split2 top:rk4]
 
 Each rate is the median of --repeats kernel runs (launch.Launch.run, all threads), the cases run in turn so that a
 slow spell of the machine hits them all. To compare two versions, run it with each on PYTHONPATH, in alternation,
@@ -37,6 +38,7 @@ def main() -> None:
     parser.add_argument("--members", type=int, default=32768)
     parser.add_argument("--steps", type=int, default=400)
     parser.add_argument("--lorenz96", type=int, default=0, help="add Lorenz-96 over this many sites")
+    parser.add_argument("--cases", nargs="+", metavar="SCENE:METHOD", help="only these cases (default: all)")
     args = parser.parse_args()
     print(host(), flush=True)
     calls, work = {}, {}
@@ -51,7 +53,8 @@ def main() -> None:
                 scene, method, values, {}, n_save=2, save_dt=args.steps * 1e-3, dt=None if method.adaptive else 1e-3,
                 rtol=1e-6, atol=1e-6)
             work[f"lorenz96 {name}"] = args.members * args.steps
-    for scene_name, method_name in CASES:
+    chosen = [tuple(case.split(":")) for case in args.cases] if args.cases else CASES
+    for scene_name, method_name in chosen:
         table = members_table(load(RUNS[scene_name]))
         values = {name: np.resize(table[name], args.members) for name in SCENES[scene_name].PARAMETERS
                   if name in table}
