@@ -292,18 +292,12 @@ def test_methods_lists_what_applies_to_a_scene_of_ones_own(capsys):
 
 
 def lorenz96_scene(folder, n: int) -> list[str]:
-    """Lorenz-96 over n sites, x_i' = (x_{i+1} - x_{i-2}) x_{i-1} - x_i + F, a state variable per site, written
-    as a user would generate it into `folder`/lorenz96.py: one rhs of n + 2 arguments. Its state names."""
-    names = [f"x_{i}_" for i in range(n)]
-    (folder / "lorenz96.py").write_text("\n".join([
-        "from ensemble import Parameter",
-        "STATE = {" + ", ".join(f"'{v}': ('1', 'site {i}')" for i, v in enumerate(names)) + "}",
-        "PARAMETERS = {'F': Parameter('1', 'forcing'), "
-        + ", ".join(f"'{v}0': Parameter('1', 'site at t = 0', default=0.0)" for v in names) + "}",
-        f"def rhs(t, {', '.join(names)}, F):",
-        "    return (" + ", ".join(f"({names[(i + 1) % n]} - {names[i - 2]}) * {names[i - 1]} - {names[i]} + F"
-                               for i in range(n)) + ",)", ""]))
-    return names
+    """examples/lorenz96.py's scene of n sites, written into `folder`/lorenz96.py; its state names."""
+    import runpy
+
+    example = runpy.run_path(str(Path(__file__).parents[1] / "examples" / "lorenz96.py"))
+    (folder / "lorenz96.py").write_text(example["scene_text"](n))
+    return example["state_names"](n)
 
 
 def test_a_scene_of_forty_state_variables_is_numpys_rk4(tmp_path):
@@ -316,7 +310,7 @@ def test_a_scene_of_forty_state_variables_is_numpys_rk4(tmp_path):
     names = lorenz96_scene(tmp_path, n)
     (tmp_path / "run.toml").write_text(f'scene = "lorenz96.py"\nmethod = "rk4"\ndt = {dt}\nt_end = 1.0\n'
                                        'save_dt = 0.5\nmembers = 2\nseed = 1\n[parameters]\nF = 8.0\n'
-                                       'x_0_0 = 8.01\n')
+                                       'x0_0 = 8.01\n')
     ds = ensemble.run(tmp_path / "run.toml", progress=False)
     got = np.stack([ds[name].isel(t=-1).values for name in names], axis=1)
 

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import runpy
 import tempfile
 from pathlib import Path
 
@@ -30,6 +31,7 @@ from ensemble.tuner import _seconds_in_turn
 CASES = [("top", "rk4"), ("top", "dopri5"), ("top", "split2"), ("top", "split4"), ("body", "rk4"), ("body", "dopri5"),
          ("body", "rotations2"), ("body", "rotations4")]
 RUNS = {"top": "runs/aerobie.toml", "body": "runs/tennis_racket.toml"}
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def main() -> None:
@@ -38,7 +40,8 @@ def main() -> None:
     parser.add_argument("--members", type=int, default=32768)
     parser.add_argument("--steps", type=int, default=400)
     parser.add_argument("--lorenz96", type=int, default=0, help="add Lorenz-96 over this many sites")
-    parser.add_argument("--cases", nargs="+", metavar="SCENE:METHOD", help="only these cases (default: all)")
+    parser.add_argument("--cases", nargs="+", metavar="SCENE:METHOD", choices=[f"{s}:{m}" for s, m in CASES],
+                        help="only these cases (default: all)")
     args = parser.parse_args()
     print(host(), flush=True)
     calls, work = {}, {}
@@ -73,16 +76,8 @@ def main() -> None:
 
 
 def lorenz96(n: int, folder: Path):
-    """Lorenz-96 over n sites as a user's scene file in `folder`, resolved."""
-    names = [f"x{i}_" for i in range(n)]  # x1_0, the start of x1_, is no state variable
-    (folder / "lorenz96.py").write_text("\n".join([
-        "from ensemble import Parameter",
-        "STATE = {" + ", ".join(f"'{v}': ('1', 'site {i}')" for i, v in enumerate(names)) + "}",
-        "PARAMETERS = {'F': Parameter('1', 'forcing'), "
-        + ", ".join(f"'{v}0': Parameter('1', 'site at t = 0')" for v in names) + "}",
-        f"def rhs(t, {', '.join(names)}, F):",
-        "    return (" + ", ".join(f"({names[(i + 1) % n]} - {names[i - 2]}) * {names[i - 1]} - {names[i]} + F"
-                               for i in range(n)) + ",)", ""]))
+    """examples/lorenz96.py's scene of n sites, written into `folder`, resolved."""
+    (folder / "lorenz96.py").write_text(runpy.run_path(str(ROOT / "examples" / "lorenz96.py"))["scene_text"](n))
     return resolve(str(folder / "lorenz96.py"))
 
 

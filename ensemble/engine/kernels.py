@@ -36,25 +36,13 @@ BLOCK = 128  # members per block of a scene whose kernel_rows are its whole stat
 
 
 def physics_functions(where: str, names: tuple[str, ...], expected: str) -> tuple:
-    """The compiled functions `names` of a scene's physics: its own @njit functions as they are, plain Python
-    functions compiled to be inlined into the kernels (with the kernels' fast-math flags). SceneError when the
-    scene's sources are no longer those of identity `expected`, which the kernel's file was generated for."""
+    """The compiled functions `names` of a scene's physics for the field-of-sites templates (ensemble.engine.sites),
+    which call them by name: its own @njit functions as they are, plain Python functions compiled to be inlined
+    (with the kernels' fast-math flags). SceneError when the scene's sources are no longer those of identity
+    `expected`, which the kernel's file was generated for."""
     module = loaded(where, expected)
     found = [getattr(module, name) for name in names]
-    return tuple(f if isinstance(f, CPUDispatcher) else _inlined(f) for f in found)
-
-
-INLINED_ARGUMENTS = 30  # Numba inlines a function into the kernel's IR only up to this many arguments
-
-
-@cache
-def _inlined(function):
-    """A scene's plain function compiled for the kernels: inlined into them by Numba where it can be; a larger
-    state (Lorenz-96 over 40 sites, say) is left to LLVM to inline, as Numba's own inlining refuses a call of more
-    than INLINED_ARGUMENTS arguments ("Calling a closure with *args is unsupported")."""
-    if function.__code__.co_argcount > INLINED_ARGUMENTS:
-        return njit(**FAST)(function)
-    return njit(inline="always", **FAST)(function)
+    return tuple(f if isinstance(f, CPUDispatcher) else njit(inline="always", **FAST)(f) for f in found)
 
 
 def loaded(where: str, expected: str) -> ModuleType:

@@ -45,9 +45,9 @@ from .inputs import adaptive_control, blowup_limits, fixed_counts
 
 def layout(scene, method: Method, constants: dict, block: int | None = None) -> kernels.Layout:
     """The layout of a scene's CPU kernel for `method` (kernels.layout), computed without making the kernel; the
-    closed form has no kernel: no rows, and members in blocks of kernels.BLOCK."""
+    closed form has no kernel: no rows (its block is the one a kernel would have: records times it so)."""
     if method.closed_form:
-        return kernels.Layout(block or kernels.BLOCK, 0)
+        return kernels.Layout(kernels.block_size(scene, constants, method, block), 0)
     return kernels.layout(scene, method, constants, block)
 
 
