@@ -137,10 +137,10 @@ def cpu() -> tuple[str, set[str]]:
 
 
 def engine_hash() -> str:
-    """SHA-256 of the engine's kernel sources: its family code, its helpers and the sites' templates."""
+    """SHA-256 of the engine's kernel sources: its family code, its helpers and the sites' kernels."""
     root = Path(__file__).parent / "engine"
     digest = hashlib.sha256()
-    for name in ("sites.py", *ENGINE_SOURCES):
+    for name in ("sites.py", "sites_kernels.py", *ENGINE_SOURCES):
         digest.update((root / name).read_bytes())
     return digest.hexdigest()
 

@@ -316,3 +316,53 @@ def test_work_precision_refuses_results_of_two_scenes_and_float32_on_the_cpu(tmp
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "precision: float32 runs on a GPU only" in err
     assert not list(tmp_path.glob("f32.nc*"))
+
+
+def _example_error(module: str, family: str, step: float | None) -> float:
+    """A GPU kernels module (ensemble.engine.gpu_kernels or .gpu_sites_kernels) called directly, as its example
+    binds it, through 1 s from sample 0 in one call and the save interval in a second (a resume): its largest error
+    against the exact flow (a harmonic oscillator's cos and sin; a chain's matrix exponential)."""
+    import importlib
+
+    from scipy.linalg import expm
+
+    example = importlib.import_module(f"ensemble.engine.{module}")
+    members, t_end = 2, 1.0
+    if module == "gpu_kernels":
+        state0, rate = np.array([[1.0, 0.5], [0.0, -0.3]]), np.array([[1.0, 2.0]])  # x, v rows; omega
+        w, x0, v0 = rate[0], state0[0], state0[1]
+        exact = np.stack([x0 * np.cos(w * t_end) + v0 / w * np.sin(w * t_end),
+                          -x0 * w * np.sin(w * t_end) + v0 * np.cos(w * t_end)])
+        rows = 2 * example.D + 7
+    else:
+        n = example.N
+        state0, rate = np.random.default_rng(3).normal(size=(2 * n, members)), np.ones((2 * n, members))
+        K = 2 * np.eye(n) - np.eye(n, k=1) - np.eye(n, k=-1)
+        exact = expm(t_end * np.block([[np.zeros((n, n)), np.eye(n)], [-K, np.zeros((n, n))]])) @ state0
+        rows = 4 * n + 7
+    status, failure_time, limit = np.zeros(members, np.int8), np.zeros(members), np.full(members, 1e6)
+    works = np.zeros((rows, members))
+    for start in (0, 1):
+        samples = np.full((1, len(state0), members), np.nan)
+        if family == "adaptive":
+            control = np.array([[0.0] * members, [1e-10] * members, [1e-12] * members])
+            example.adaptive_kernel[1, members](state0, rate, control, t_end, limit, samples, np.zeros((3, members)),
+                                               status, failure_time, works, start, members)
+        else:
+            getattr(example, f"{family}_kernel")[1, members](state0, rate, step, round(t_end / step), limit, samples,
+                                                            status, failure_time, works, start, members)
+    assert np.all(status == 0)
+    return np.max(np.abs(samples[0] - exact))
+
+
+@pytest.mark.parametrize("module", ["gpu_kernels", "gpu_sites_kernels"])
+@pytest.mark.parametrize("family, order, bound", [("runge_kutta", 3, 2e-5), ("splitting", 2, 2e-3)])
+def test_the_gpu_kernels_modules_run_their_examples_at_their_order(module, family, order, bound):
+    coarse, fine = _example_error(module, family, 0.05), _example_error(module, family, 0.025)
+    assert fine < bound
+    assert order - 0.15 < np.log2(coarse / fine) < order + 0.15
+
+
+@pytest.mark.parametrize("module", ["gpu_kernels", "gpu_sites_kernels"])
+def test_the_gpu_kernels_modules_run_their_examples_to_tolerance(module):
+    assert _example_error(module, "adaptive", None) < 1e-8

@@ -1,7 +1,8 @@
 """The code's house rules: ruff's checks pass, no function in the package runs over 60 lines nor any module over
-600, and no module imports itself through others (imports inside functions count)."""
+600, no code hides in a string, and no module imports itself through others (imports inside functions count)."""
 import ast
 import graphlib
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -35,6 +36,23 @@ def test_no_module_is_longer_than_600_lines():
     long = [f"{path.relative_to(ROOT)} ({lines} lines)" for path in sorted((ROOT / "ensemble").rglob("*.py"))
             if (lines := len(path.read_text().splitlines())) > LONGEST_MODULE]
     assert not long, long
+
+
+def test_no_string_literal_holds_a_loop():
+    """Kernel code is Python that ruff reads (a kernel's file copies it: ensemble.engine.sources.copied_code), not
+    text in a string: no string but a docstring holds a line that opens a for or while loop."""
+    loop = re.compile(r"^\s*(for|while)\s.*:\s*(#.*)?$", re.M)
+    found = []
+    for path in sorted((ROOT / "ensemble").rglob("*.py")):
+        tree = ast.parse(path.read_text())
+        docstrings = {id(node.body[0].value) for node in ast.walk(tree)
+                      if isinstance(node, (ast.Module, ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef))
+                      and node.body and isinstance(node.body[0], ast.Expr)
+                      and isinstance(node.body[0].value, ast.Constant)}
+        found += [f"{path.relative_to(ROOT)}:{node.lineno}" for node in ast.walk(tree)
+                  if isinstance(node, ast.Constant) and isinstance(node.value, str) and id(node) not in docstrings
+                  and loop.search(node.value)]
+    assert not found, found
 
 
 def module_name(path: Path) -> str:

@@ -16,7 +16,7 @@ variables' layout. Per-member arrays (limit, status, failure_time, control,
 counts) are (..., members).
 
 The kernels are built from the engine's family code (ensemble.engine.frames and the families it calls, for a
-member of D values) and templates (ensemble.engine.sites, for a field of sites), and inline the helpers here. Numba keys
+member of D values; ensemble.engine.sites_kernels for a field of sites), and inline the helpers here. Numba keys
 a cached kernel on its own file alone, so a generated kernel's file holds HELPERS, a hash of the helpers'
 source.
 How the runner calls a kernel is in `ensemble.engine.launch`.

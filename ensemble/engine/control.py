@@ -55,6 +55,20 @@ def controlled(err, step, h, log2_previous, rejected_last, time, target, alpha, 
 
 
 @njit(inline="always", **FAST)
+def counted(err, step, h, log2_previous, rejected_last, time, target, counts, evaluations, controller):
+    """`controlled` for one member (the CUDA kernels'), controller its (alpha, beta, safety, min_factor,
+    max_factor), and its counts (accepted steps, rejected steps, right-hand-side evaluations) after a trial step
+    of `evaluations` evaluations: (accepted, underflowed, next h, log2 of the error to remember, time after,
+    counts)."""
+    alpha, beta, safety, min_factor, max_factor = controller
+    accepted, underflowed, next_h, log2_err, time = controlled(err, step, h, log2_previous, rejected_last, time,
+                                                               target, alpha, beta, safety, min_factor, max_factor)
+    accepted_count, rejected_count, evaluated = counts
+    return (accepted, underflowed, next_h, log2_err, time,
+            (accepted_count + accepted, rejected_count + (not accepted), evaluated + evaluations))
+
+
+@njit(inline="always", **FAST)
 def control_step(work, c0, B, target, j0, status, failure_time, new_stages, alpha, beta, safety, min_factor,
                  max_factor):
     """After a trial step of every member in a block (control rows from c0: blocks.H ..): `controlled` for each

@@ -14,7 +14,7 @@ import numpy as np
 
 from . import splitting
 from .blocks import first_step
-from .control import controlled
+from .control import counted
 from .kernels import loaded
 
 PRECISIONS = {"float64": np.float64, "float32": np.float32}
@@ -91,16 +91,39 @@ def device_intrinsics() -> dict:
     from .blocks import select
     if simulated():  # the simulator runs device functions as Python
         return {tuple_setitem: lambda values, i, value: values[:i] + (value,) + values[i + 1:],
+                tuples.loaded: _simulated_loaded, tuples.stored: _simulated_stored,
                 tuples.repeated: lambda value, like: (value,) * len(like),
                 tuples.added: lambda z, weight, slope: tuple(a + weight * b for a, b in zip(z, slope)),
                 tuples.converted: lambda values, like: tuple(map(type(like[0]), values if isinstance(values, tuple)
-                                                                 else (values,))),
+                                                                 else (values,))) if like else (),
                 select: _select}
     from numba.cuda.cpython.unsafe.tuple import tuple_setitem as device_tuple_setitem
     from numba.cuda.extending import intrinsic
     return {tuple_setitem: device_tuple_setitem, tuples.repeated: intrinsic(tuples.repeated_typing),
+            tuples.loaded: intrinsic(tuples.loaded_typing), tuples.stored: intrinsic(tuples.stored_typing),
             tuples.added: intrinsic(tuples.added_typing), tuples.converted: intrinsic(tuples.converted_typing),
             select: cuda.jit(device=True)(_select)}
+
+
+def _simulated_loaded(array, first, B, j, like):
+    """tuples.loaded in Python: the values at flat indices (first + c) B + j of a C-contiguous array."""
+    return tuple(array[np.unravel_index((first + c) * B + j, array.shape)] for c in range(len(like)))
+
+
+def _simulated_stored(array, first, B, j, values):
+    for c, value in enumerate(values):
+        array[np.unravel_index((first + c) * B + j, array.shape)] = value
+
+
+def device_tuples() -> tuple:
+    """(loaded, stored, converted, repeated, tuple_setitem): the engine's tuple intrinsics (ensemble.engine.tuples)
+    for code the GPU compiles (Python under the simulator)."""
+    from numba.cpython.unsafe.tuple import tuple_setitem
+
+    from . import tuples
+    found = device_intrinsics()
+    return tuple(found[cpu] for cpu in (tuples.loaded, tuples.stored, tuples.converted, tuples.repeated,
+                                        tuple_setitem))
 
 
 @cache
@@ -112,7 +135,7 @@ def device_functions(where: str, names: tuple[str, ...], expected: str) -> tuple
     return tuple(device_function(getattr(module, name), done) for name in names)
 
 
-def _device_inlined(function):
+def device_inlined(function):
     """A link of the engine's written-out loops (tuples.unrolled, the splitting's chains) as an inlined device
     function (plain Python under the simulator)."""
     from numba import cuda
@@ -123,7 +146,7 @@ def _device_inlined(function):
 def device_unrolled(count: int):
     """tuples.unrolled(count) of device functions."""
     from .tuples import unrolled
-    return unrolled(count, _device_inlined)
+    return unrolled(count, device_inlined)
 
 
 @cache
@@ -137,12 +160,13 @@ def device_splitting(where: str, pieces: tuple[str, ...], expected: str, sequenc
     factors = [device_function(getattr(module, f"{piece}_factors"), done) if hasattr(module, f"{piece}_factors")
                else None for piece in pieces]
     real = PRECISIONS[precision]
-    return (splitting.sequence_step(tuple((named[n], real(f)) for n, f in sequence), _device_inlined),
-            splitting.sequence_factors(tuple((factors[n], real(f)) for n, f in sequence), _device_inlined))
+    return (splitting.sequence_step(tuple((named[n], real(f)) for n, f in sequence), device_inlined),
+            splitting.sequence_factors(tuple((factors[n], real(f)) for n, f in sequence), device_inlined))
 
 
 @cache
 def device_helpers() -> tuple:
-    """(controlled, first_step) as device functions (the generated kernels import them): the CPU kernels' own step
-    control (control.controlled) and first trial step's guess (blocks.first_step), written once for both."""
-    return device_function(controlled), device_function(first_step)
+    """(counted, first_step) as device functions (the generated kernels import them): the CPU kernels' own step
+    control (control.controlled, through control.counted) and first trial step's guess (blocks.first_step),
+    written once for both."""
+    return device_function(counted), device_function(first_step)

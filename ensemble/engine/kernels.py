@@ -1,7 +1,8 @@
 """A scene's kernel for a method, written as a Python file that Numba keys its disk cache on, then imported: for an
 member family (an explicit Runge-Kutta method, an adaptive pair, a splitting), a short file that binds the
 scene's functions, the sizes and the method's coefficients to the family's code (ensemble.engine.frames,
-.runge_kutta, .adaptive, .splitting); for a field of sites, ensemble.engine.sites's templates.
+.runge_kutta, .adaptive, .splitting); for a field of sites, ensemble.engine.sites_kernels's code after bindings of
+its own (ensemble.engine.sites.source).
 
 A kernel's identity is everything that decides its arithmetic. The file's name holds a hash of its text, and its
 text holds the method's coefficients and the layout, the identity of the scene's sources (its file and the user's
@@ -36,8 +37,9 @@ BLOCK = 128  # members per block of a scene whose kernel_rows are its whole stat
 
 
 def physics_functions(where: str, names: tuple[str, ...], expected: str) -> tuple:
-    """The compiled functions `names` of a scene's physics for the field-of-sites templates (ensemble.engine.sites),
-    which call them by name: its own @njit functions as they are, plain Python functions compiled to be inlined
+    """The compiled functions `names` of a scene's physics for the field-of-sites kernels
+    (ensemble.engine.sites_kernels), which call them by name: its own @njit functions as they are, plain Python
+    functions compiled to be inlined
     (with the kernels' fast-math flags). SceneError when the scene's sources are no longer those of identity
     `expected`, which the kernel's file was generated for."""
     module = loaded(where, expected)
@@ -122,7 +124,7 @@ def layout(scene, method: Method, constants: dict, block: int | None = None) -> 
 def kernel(scene, method: Method, constants: dict, chosen: Layout | None = None) -> Kernel:
     """Kernel(function, work rows) of a stepping method for a scene in `chosen` layout (default: `layout`'s):
     compiled, or loaded from Numba's cache. A scene whose member is a field of sites (SITES) gets
-    ensemble.engine.sites's templates, for its constants' n sites and boundary; every other scene its family's
+    ensemble.engine.sites_kernels's, for its constants' n sites and boundary; every other scene its family's
     code."""
     chosen = chosen or layout(scene, method, constants)
     sources = scene_identity(scene)  # a cache key: an edited scene is another kernel

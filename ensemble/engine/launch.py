@@ -1,7 +1,7 @@
 """The one way into the kernels: integrate(scene, method, values, constants, ...) -> Outcome.
 
 The runner, `prepare`, the tests and every benchmark call this. A scene's kernels come from
-ensemble.engine.kernels (its family's template filled in with the scene's physics); they follow one of two call
+ensemble.engine.kernels (its family's code bound to the scene's physics); they follow one of two call
 conventions, over arrays laid out by block (see engine.blocks):
 
 - fixed step: kernel(state0, rate, h, steps_per_save, limit, samples, status, failure_time, progress, works, start,

@@ -71,11 +71,21 @@ def _shaped(like_type, dtype):
     return types.BaseTuple.from_types(inner) if inner else types.Tuple(())
 
 
-@intrinsic
-def loaded(typingctx, work, first, B, j, like):
+def _contiguous(typingctx, work):
+    """Member rows are found by their flat index: the array must be C-contiguous (a work array, or a GPU's
+    (rows, members) and (count, rows, members) arrays)."""
+    from numba.core.errors import TypingError
+    if not isinstance(work, types.Array) or work.layout != "C":
+        raise TypingError(f"member rows of a {work}: a C-contiguous array is needed")
+
+
+def loaded_typing(typingctx, work, first, B, j, like):
     """Member j's work rows first .. first + len(like) - 1 as a tuple (like: a tuple of that length, or a tuple of
     tuples, rows taken in order): straight loads (a loop through the work array, handed down in a tuple, kept
-    Numba's reference counts in the members' loop, which then did not vectorize)."""
+    Numba's reference counts in the members' loop, which then did not vectorize). Row r of member j is at flat
+    index r B + j: in a GPU's (rows, members) array, B is its members (and in (count, rows, members), sample i's
+    rows start at row i rows)."""
+    _contiguous(typingctx, work)
     tuple_type = _shaped(like, work.dtype)
 
     def codegen(context, builder, signature, arguments):
@@ -84,10 +94,14 @@ def loaded(typingctx, work, first, B, j, like):
     return tuple_type(work, first, B, j, like), codegen
 
 
-@intrinsic
-def stored(typingctx, work, first, B, j, values):
-    """values (a tuple, or a tuple of tuples) into member j's work rows from first on: straight stores, as
-    `loaded`."""
+loaded = intrinsic(loaded_typing)
+
+
+def stored_typing(typingctx, work, first, B, j, values):
+    """values (a tuple, or a tuple of tuples, of the array's type) into member j's work rows from first on:
+    straight stores, as `loaded`."""
+    _contiguous(typingctx, work)
+
     def codegen(context, builder, signature, arguments):
         flat = _values(builder, arguments[4], values)
         for value, pointer in zip(flat, _member_rows(context, builder, signature, arguments)):
@@ -96,9 +110,15 @@ def stored(typingctx, work, first, B, j, values):
     return types.none(work, first, B, j, values), codegen
 
 
+stored = intrinsic(stored_typing)
+
+
 def converted_typing(typingctx, values, like):
     """values (a tuple, as a scene's function returns it: its values may be of other types, say a float64 slope
     in a float32 kernel, or an integer) as a tuple of like's value type (like: a tuple of one type)."""
+    if len(like) == 0:  # no values (a scene without parameters)
+        return types.Tuple(())(values, like), lambda context, builder, signature, arguments: context.make_tuple(
+            builder, types.Tuple(()), [])
     tuple_type = types.UniTuple(like.dtype, values.count if isinstance(values, types.BaseTuple) else 1)
 
     def codegen(context, builder, signature, arguments):
