@@ -190,11 +190,6 @@ def applied() -> Tuning:
     return _applied or Tuning()
 
 
-def generated_block(default: int) -> int:
-    """Members per block of a kernel of a member of D values: the tuning's, else `default`."""
-    return applied().block or default
-
-
 def apply(tuning: Tuning | None) -> str | None:
     """Run this process's kernels with `tuning` (None: the engine's rules). The vector width takes effect only
     before Numba's code generator starts (its first compile or cache load), and not where NUMBA_CPU_FEATURES or

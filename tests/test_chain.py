@@ -16,9 +16,11 @@ from ensemble.engine.sites import TILE_ROWS, block_size, tiles
 from ensemble.methods import METHODS
 from ensemble.scenes import applies, chain
 from ensemble.spec import SpecError, load, parse
+from ensemble.tuning import Tuning
 
 CHAIN_METHODS = [name for name, m in METHODS.items() if applies(m, chain) and not (m.closed_form or m.adaptive)]
 LONG = 16 * TILE_ROWS + 5  # masses of a chain whose splitting runs in tiles (test_long_chains_are_tiled)
+RULES = Tuning()  # untuned: the engine's layout rules
 
 
 def chain_runfile(parameters=None, **top_level) -> str:
@@ -211,10 +213,10 @@ def test_a_long_rings_masses_take_the_same_bits_wherever_its_ends_are():
 
 def test_long_chains_are_tiled(monkeypatch):
     """The tiling tests' chains run in tiles on this host; short ones do not, even where the L1 cache is small."""
-    assert tiles(LONG, block_size({"n": LONG}, METHODS["verlet"]))
-    assert not tiles(2 * TILE_ROWS, block_size({"n": 2 * TILE_ROWS}, METHODS["verlet"]))
+    assert tiles(LONG, block_size({"n": LONG}, METHODS["verlet"], RULES), RULES)
+    assert not tiles(2 * TILE_ROWS, block_size({"n": 2 * TILE_ROWS}, METHODS["verlet"], RULES), RULES)
     monkeypatch.setattr(sites, "l1_data_bytes", lambda: 1024)
-    assert tiles(2 * TILE_ROWS + 1, 8) and not tiles(2 * TILE_ROWS, 8)
+    assert tiles(2 * TILE_ROWS + 1, 8, RULES) and not tiles(2 * TILE_ROWS, 8, RULES)
 
 
 def test_a_members_bits_do_not_depend_on_its_block(monkeypatch):
@@ -223,7 +225,7 @@ def test_a_members_bits_do_not_depend_on_its_block(monkeypatch):
     values = disordered(16, "fixed", members=20)
     samples = []
     for block in (4, 16):
-        monkeypatch.setattr(sites, "block_size", lambda constants, method, block=block: block)
+        monkeypatch.setattr(sites, "block_size", lambda constants, method, tuning, block=block: block)
         samples.append(run("verlet", values, constants, 0.05, 7, 3))
     np.testing.assert_array_equal(samples[0], samples[1])
 
@@ -239,7 +241,7 @@ def test_a_chain_dopri5_member_does_not_depend_on_its_block_and_an_underflow_sto
     atol = np.where(np.arange(20) == 5, 1e-300, 1e-12)
     outcomes = []
     for block in (8, 16):
-        monkeypatch.setattr(sites, "block_size", lambda constants, method, block=block: block)
+        monkeypatch.setattr(sites, "block_size", lambda constants, method, tuning, block=block: block)
         outcomes.append(launch.integrate(chain, METHODS["dopri5"], values, constants, n_save=4, save_dt=0.5,
                                          rtol=rtol, atol=atol))
     np.testing.assert_allclose(outcomes[0].samples, outcomes[1].samples, rtol=0, atol=1e-14)
@@ -267,8 +269,8 @@ def test_splitting_blocks_are_two_vectors_of_the_host_unless_they_outgrow_its_l1
                                   (4, 32 * 1024, {16: 8, 127: 8, 128: 4})):
         monkeypatch.setattr(sites, "vector_doubles", lambda doubles=doubles: doubles)
         monkeypatch.setattr(sites, "l1_data_bytes", lambda l1=l1: l1)
-        assert {n: sites.block_size({"n": n}, verlet) for n in expected} == expected
-    assert sites.block_size({"n": 2}, verlet) == 64
+        assert {n: sites.block_size({"n": n}, verlet, RULES) for n in expected} == expected
+    assert sites.block_size({"n": 2}, verlet, RULES) == 64
     # an adaptive pair's 20n + 15 rows: 64 members fit 48 KiB up to n = 4 and 32 KiB up to n = 2, then 16
     # members below 16 masses; 16 members fit 48 KiB at n = 16, not at n = 24; never fewer than 8
     dopri5 = METHODS["dopri5"]
@@ -276,7 +278,7 @@ def test_splitting_blocks_are_two_vectors_of_the_host_unless_they_outgrow_its_l1
                                   (4, 32 * 1024, {2: 64, 3: 16, 15: 16, 16: 8, 128: 8})):
         monkeypatch.setattr(sites, "vector_doubles", lambda doubles=doubles: doubles)
         monkeypatch.setattr(sites, "l1_data_bytes", lambda l1=l1: l1)
-        assert {n: sites.block_size({"n": n}, dopri5) for n in expected} == expected
+        assert {n: sites.block_size({"n": n}, dopri5, RULES) for n in expected} == expected
 
 
 def test_course_chain_in_mode_two_oscillates_at_sqrt_3k_over_m(write_runfile):

@@ -44,7 +44,7 @@ def _stderr_of_two_runs(spec, folder, capsys) -> list[str]:
 def test_an_untuned_machine_is_told_once(fresh, tmp_path, write_runfile, capsys):
     spec = load(write_runfile(TOPS))
     assert _stderr_of_two_runs(spec, tmp_path, capsys) == [tuning.HINT]
-    assert "ensemble tune" in tuning.HINT and kernels.block_size(SCENES["top"], {}, METHODS["rk4"]) == kernels.BLOCK
+    assert "ensemble tune" in tuning.HINT and launch.layout(SCENES["top"], METHODS["rk4"], {}).block == kernels.BLOCK
 
 
 @pytest.mark.parametrize("text, why", [
@@ -63,7 +63,7 @@ def test_a_corrupt_or_foreign_tuning_file_is_ignored_in_one_line(fresh, tmp_path
     spec = load(write_runfile(TOPS))
     lines = _stderr_of_two_runs(spec, tmp_path, capsys)
     assert len(lines) == 1 and lines[0].startswith(f"ensemble: ignoring {fresh}: {why}"), lines
-    assert kernels.block_size(SCENES["top"], {}, METHODS["rk4"]) == kernels.BLOCK  # the engine's rule
+    assert launch.layout(SCENES["top"], METHODS["rk4"], {}).block == kernels.BLOCK  # the engine's rule
 
 
 def test_a_tuned_block_is_used_and_gives_the_same_bits(fresh, tmp_path, write_runfile, capsys):
@@ -74,7 +74,7 @@ def test_a_tuned_block_is_used_and_gives_the_same_bits(fresh, tmp_path, write_ru
     tuning._prepared = False
     runner.run(spec, tmp_path / "tuned.nc", progress=True)
     assert not [line for line in capsys.readouterr().err.splitlines() if line.startswith("ensemble:")]
-    assert kernels.block_size(SCENES["top"], {}, METHODS["rk4"]) == 64
+    assert launch.layout(SCENES["top"], METHODS["rk4"], {}).block == 64
     same_bits(tmp_path / "tuned.nc", tmp_path / "untuned.nc")
 
 
@@ -178,11 +178,11 @@ def test_tune_chooses_a_field_of_sites_layout_only_when_it_is_clearly_faster(fre
     from ensemble.engine import sites as engine_sites
 
     verlet = METHODS["verlet"]
-    assert engine_sites.block_size({"n": 16}, verlet) == short[1]
-    assert engine_sites.block_size({"n": 1024}, verlet) == long[1]
+    assert engine_sites.block_size({"n": 16}, verlet, tuning.applied()) == short[1]
+    assert engine_sites.block_size({"n": 1024}, verlet, tuning.applied()) == long[1]
     chosen = launch.layout(SCENES["chain"], verlet, {"n": 1024, "boundary": "fixed"})
     assert (chosen.block, chosen.tiled) == (long[1], False)
-    assert engine_sites.block_size({"n": 16}, METHODS["rk4"]) == 64  # a tableau keeps its rule
+    assert engine_sites.block_size({"n": 16}, METHODS["rk4"], tuning.applied()) == 64  # a tableau keeps its rule
 
 
 def test_a_tuned_block_is_kept_only_when_clearly_faster_and_gives_the_same_bits(fresh, monkeypatch, tmp_path,

@@ -104,5 +104,5 @@ def force_chain_block(block: int, adaptive_only: bool = False) -> None:
     from ensemble.engine import sites
 
     choose = sites.block_size
-    sites.block_size = lambda constants, method: (block if method.adaptive or not adaptive_only
-                                                    else choose(constants, method))
+    sites.block_size = lambda constants, method, tuning: (block if method.adaptive or not adaptive_only
+                                                            else choose(constants, method, tuning))

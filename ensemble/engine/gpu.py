@@ -28,7 +28,7 @@ from ..methods import Method
 from ..results import Status
 from .blocks import adaptive_constants
 from .gpu_device import simulated
-from .kernels import load_source, loaded, pair_of, tableau_of
+from .kernels import Layout, load_source, loaded, pair_of, tableau_of
 from .sources import ENGINE_SOURCES, copied_code
 
 THREADS = 128  # threads per CUDA block
@@ -119,16 +119,29 @@ def member_bindings(method: Method, where: str, pieces: tuple[str, ...], sources
 
 
 class GpuKernel(NamedTuple):
-    """A scene's CUDA kernel for one method, the rows of its works array (rows x members) and its threads per
-    member (1: a thread per member, THREADS to a block; more: a block per member)."""
+    """A scene's CUDA kernel for one method, and its Layout (gpu_launch.layout): members per block of threads, the
+    rows of its works array (rows x members), threads per member (1: a thread per member, THREADS to a block;
+    more: a block per member)."""
     function: object
-    rows: int
-    threads: int = 1
+    layout: Layout
+
+    @property
+    def rows(self) -> int:
+        return self.layout.rows
+
+    @property
+    def threads(self) -> int:
+        return self.layout.threads
+
+
+def work_rows(method: Method, D: int) -> int:
+    """Rows of a member kernel's works: its state, and an adaptive member's first slopes and ADAPTIVE_ROWS."""
+    return 2 * D + len(ADAPTIVE_ROWS) if method.adaptive else D
 
 
 @cache
 def member_kernel(name: str, where: str, sources: str, pieces: tuple[str, ...], method: Method, D: int, P: int,
-                  precision: str) -> GpuKernel:
+                  precision: str, chosen: Layout) -> GpuKernel:
     """A scene's kernel for `method`, a member of D state values and P parameters to a thread, in `precision`."""
     family, used, bindings = member_bindings(method, where, pieces, sources, precision)
     footer = f"kernel = {family}_kernel" + ("\nentered, left = into_pieces, out_of_pieces" if used and
@@ -136,7 +149,7 @@ def member_kernel(name: str, where: str, sources: str, pieces: tuple[str, ...], 
     physics_import = f"{', '.join(used)}, = device_functions({where!r}, {used!r}, {sources!r})" if used else ""
     function = compiled(family, name, method, precision, physics_import, sources, D, P, KERNELS_FILE, bindings,
                         footer)
-    return GpuKernel(function, 2 * D + len(ADAPTIVE_ROWS) if method.adaptive else D)
+    return GpuKernel(function, chosen)
 
 
 ADAPTIVE_ROWS = ("time", "h", "log2_previous", "rejected_last", "accepted_count", "rejected_count", "evaluations")

@@ -7,20 +7,35 @@ import numpy as np
 from ..methods import Method
 from ..results import DEFAULT_BLOWUP_FACTOR, Outcome
 from .gpu import THREADS, GpuKernel, member_kernel, require_gpu
+from .gpu import work_rows as member_work_rows
 from .gpu_device import PRECISIONS
 from .gpu_sites import site_threads, sites_kernel
+from .gpu_sites import work_rows as sites_work_rows
 from .inputs import adaptive_control, blowup_limits, fixed_counts
-from .kernels import scene_identity
+from .kernels import Layout, scene_identity
 
 
-def kernel(scene, method: Method, constants: dict, precision: str = "float64") -> GpuKernel:
-    """The CUDA kernel of a stepping method for a scene (compiled when first launched)."""
+def layout(scene, method: Method, constants: dict) -> Layout:
+    """The Layout of a scene's CUDA kernel for `method`: a thread per member, THREADS members to a block of
+    threads, or a field of sites' threads per member (gpu_sites.site_threads), then a member to a block."""
+    if scene.SITES:
+        n = constants["n"]
+        threads = site_threads(n, method)
+        return Layout(1 if threads > 1 else THREADS, sites_work_rows(method, n), threads=threads)
+    return Layout(THREADS, member_work_rows(method, scene.kernel_rows(constants)[0]))
+
+
+def kernel(scene, method: Method, constants: dict, precision: str = "float64", chosen: Layout | None = None
+           ) -> GpuKernel:
+    """The CUDA kernel of a stepping method for a scene in the `chosen` layout (default: `layout`'s), compiled
+    when first launched."""
+    chosen = chosen or layout(scene, method, constants)
     D, P = scene.kernel_rows(constants)
     sources = scene_identity(scene)  # a cache key: an edited scene is another kernel
     if scene.SITES:
         return sites_kernel(scene.NAME, scene.PHYSICS, sources, tuple(scene.PIECES), method, constants["n"],
-                            constants["boundary"] == "periodic", precision, site_threads(constants["n"], method))
-    return member_kernel(scene.NAME, scene.PHYSICS, sources, tuple(scene.PIECES), method, D, P, precision)
+                            constants["boundary"] == "periodic", precision, chosen)
+    return member_kernel(scene.NAME, scene.PHYSICS, sources, tuple(scene.PIECES), method, D, P, precision, chosen)
 
 
 class GpuLaunch:
@@ -66,8 +81,8 @@ class GpuLaunch:
         for name, value in start.items():
             setattr(self, name, cuda.to_device(value))
         tail = ((self.counts,) if self.method.adaptive else ()) + (self.status, self.failure_time, self.works)
-        per_block = THREADS if self.kernel.threads == 1 else 1  # members per block of threads
-        grid, block = max(1, -(-n // per_block)), THREADS if per_block > 1 else self.kernel.threads
+        chosen = self.kernel.layout
+        grid, block = max(1, -(-n // chosen.block)), chosen.block * chosen.threads  # blocks, threads per block
         copied, waiting = {}, None
         for k, first in enumerate(range(resume[0] if resume else 0, self.n_save, self.segment)):
             count = min(self.segment, self.n_save - first)

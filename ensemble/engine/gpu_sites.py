@@ -12,6 +12,7 @@ from functools import cache
 from ..methods import Method
 from .blocks import adaptive_constants
 from .gpu import GpuKernel, compiled
+from .kernels import Layout
 
 KERNELS_FILE = "gpu_sites_kernels.py"  # the kernels' code, which a kernel's file copies
 
@@ -58,15 +59,22 @@ def site_threads(n: int, method: Method) -> int:
     return min(MOST_SITE_THREADS, WARP * -(-n // WARP))
 
 
+def work_rows(method: Method, n: int) -> int:
+    """Rows of a field of n sites' works: its positions and velocities, and an adaptive member's first slopes, its
+    controller's state and its counts."""
+    return 4 * n + 7 if method.adaptive else 2 * n
+
+
 @cache
 def sites_kernel(name: str, where: str, sources: str, pieces: tuple[str, ...], method: Method, n: int,
-                 periodic: bool, precision: str, threads: int) -> GpuKernel:
-    """A scene's field-of-sites kernel for `method` over n sites (a ring if periodic) in `precision`, `threads` to a
-    member (site_threads): the GPU header, the bindings, gpu_sites_kernels's code, unchanged."""
+                 periodic: bool, precision: str, chosen: Layout) -> GpuKernel:
+    """A scene's field-of-sites kernel for `method` over n sites (a ring if periodic) in `precision`, in the
+    `chosen` layout's threads per member (site_threads): the GPU header, the bindings, gpu_sites_kernels's code,
+    unchanged."""
+    threads = chosen.threads
     J = -(-n // threads)
     family, bindings = method_bindings(method, J)
     bindings = BINDINGS.format(N=n, N2=n + 2, periodic=periodic, T=threads, J=J, method=bindings)
     physics_import = f"acceleration, = device_functions({where!r}, ('acceleration',), {sources!r})"
-    rows = 4 * n + 7 if method.adaptive else 2 * n
     return GpuKernel(compiled(f"sites {family}", name, method, precision, physics_import, sources, 2 * n, 2 * n,
-                              KERNELS_FILE, bindings, f"kernel = {family}_kernel", threads), rows, threads)
+                              KERNELS_FILE, bindings, f"kernel = {family}_kernel", threads), chosen)

@@ -29,7 +29,7 @@ from numba.core.registry import CPUDispatcher
 
 from ..methods import Method
 from ..scenes.contract import SceneError, identity, load, python_function
-from ..tuning import KernelFolderError, generated_block, private_kernel_folder
+from ..tuning import KernelFolderError, Tuning, applied, private_kernel_folder
 from . import sites
 from .blocks import CONTROL_ROWS, FAST, HELPERS, Kernel, adaptive_constants
 
@@ -88,33 +88,37 @@ def factor_counts(where: str, pieces: tuple[str, ...], parameters: int) -> dict[
     return counts
 
 
-def block_size(scene, constants: dict, method: Method, block: int | None = None) -> int:
+def block_size(scene, constants: dict, method: Method, block: int | None, tuning: Tuning) -> int:
     """Members per kernel block: a field of sites' rule (ensemble.engine.sites.block_size), else `block` (a run of
-    few members: runner.few_members_block), else this machine's tuning (ensemble.tuning.generated_block), else
-    BLOCK."""
+    few members: runner.few_members_block), else the tuning's, else BLOCK."""
     if scene.SITES:
-        return sites.block_size(constants, method)
-    return block or generated_block(BLOCK)
+        return sites.block_size(constants, method, tuning)
+    return block or tuning.block or BLOCK
 
 
 class Layout(NamedTuple):
-    """Where a CPU kernel keeps its members: computed once (`layout`) from the scene, the method, a run's
-    constants and this machine's tuning, and handed to the kernel's maker and its launch."""
+    """Where a kernel keeps its members: computed once (`layout`; on a GPU, gpu_launch.layout) from the scene, the
+    method, a run's constants, the device and this machine's tuning, and handed to the kernel's maker and its
+    launch."""
     block: int  # members per block: a block's work array is rows x block floats, row r of member j at r block + j
+    # (a GPU's works are rows x members; a block of threads holds `block` members)
     rows: int  # work rows: a member's state, parameters, and what its method keeps between calls
     tiled: bool = False  # a field of sites' splitting sweeps its sites in tiles (sites.tiles)
     halo: int = 0  # sites a long ring's rows hold beyond each end (sites.ring_halo)
+    threads: int = 1  # threads per member (a GPU's field of sites: gpu_sites.site_threads)
 
 
-def layout(scene, method: Method, constants: dict, block: int | None = None) -> Layout:
-    """The Layout of a scene's kernel for `method`, computed without making the kernel. block: members per block
-    for a run of few members (runner.few_members_block); None for block_size's rule. The rows: a field of sites'
-    (sites.work_rows), or a member's state and parameters, then an adaptive pair's slopes, trial state and
-    control block, or a splitting's factors (the `<piece>_factors` called in Python)."""
-    B = block_size(scene, constants, method, block)
+def layout(scene, method: Method, constants: dict, block: int | None = None, tuning: Tuning | None = None) -> Layout:
+    """The Layout of a scene's CPU kernel for `method`, computed without making the kernel. block: members per
+    block for a run of few members (runner.few_members_block); None for block_size's rule. tuning: this
+    process's (ensemble.tuning.applied) unless given. The rows: a field of sites' (sites.work_rows), or a member's
+    state and parameters, then an adaptive pair's slopes, trial state and control block, or a splitting's factors
+    (the `<piece>_factors` called in Python)."""
+    tuning = tuning or applied()
+    B = block_size(scene, constants, method, block, tuning)
     if scene.SITES:
         n, periodic = constants["n"], constants["boundary"] == "periodic"
-        tiled = method.splitting is not None and sites.tiles(n, B)
+        tiled = method.splitting is not None and sites.tiles(n, B, tuning)
         return Layout(B, sites.work_rows(method, n, periodic, tiled), tiled,
                       sites.ring_halo(method) if tiled and periodic else 0)
     D, P = scene.kernel_rows(constants)

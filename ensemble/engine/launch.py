@@ -38,6 +38,7 @@ from ..errors import EXIT_FAILED, EnsembleError
 from ..methods import Method
 from ..results import DEFAULT_BLOWUP_FACTOR, Outcome
 from ..scenes.contract import SceneError
+from ..tuning import applied
 from . import kernels
 from .blocks import flush_subnormals, restore_float_mode
 from .inputs import adaptive_control, blowup_limits, fixed_counts
@@ -47,7 +48,7 @@ def layout(scene, method: Method, constants: dict, block: int | None = None) -> 
     """The layout of a scene's CPU kernel for `method` (kernels.layout), computed without making the kernel; the
     closed form has no kernel: no rows (its block is the one a kernel would have: records times it so)."""
     if method.closed_form:
-        return kernels.Layout(kernels.block_size(scene, constants, method, block), 0)
+        return kernels.Layout(kernels.block_size(scene, constants, method, block, applied()), 0)
     return kernels.layout(scene, method, constants, block)
 
 

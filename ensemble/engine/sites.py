@@ -35,7 +35,7 @@ from numba import njit
 
 from ..methods import Method
 from ..results import UNDERFLOWED
-from ..tuning import applied
+from ..tuning import Tuning
 from .blocks import (
     CONTROL_ROWS,
     ERR,
@@ -67,7 +67,7 @@ KICK = PIECES.index("kick")
 
 # ---------------------------------------------------------------- layout rules
 
-def block_size(constants: dict, method: Method) -> int:
+def block_size(constants: dict, method: Method, tuning: Tuning) -> int:
     """Members per kernel block for `method` on a field of n sites: 64 below 16 sites, except for an adaptive
     pair whose 64 members' work rows (20n + 15 for dopri5, control rows included) would outgrow the host's L1
     data cache (l1_data_bytes): then two SIMD vectors of this host, but never fewer than 16. From 16 sites on,
@@ -75,7 +75,7 @@ def block_size(constants: dict, method: Method) -> int:
     members with AVX2, 16 with AVX-512), or one where a block's work rows (4n + 2 for a splitting) would
     outgrow the L1 data cache, but never fewer than 8 for a pair. A member's arithmetic does not depend on its
     block: the bits are the same in every block, on every host. `ensemble tune` may replace a splitting's block
-    from 16 sites on by a measured one (ensemble.tuning.Tuning.sites_block). The measurements behind the rule:
+    from 16 sites on by a measured one (`tuning`'s sites_block). The measurements behind the rule:
     analysis/bench/README.md, "How the kernels are laid out"."""
     n = constants["n"]
     pair = 2 * vector_doubles()
@@ -87,7 +87,7 @@ def block_size(constants: dict, method: Method) -> int:
     if method.tableau is not None:
         return 64
     if (4 * n + 2) * pair * 8 <= l1_data_bytes():
-        return applied().sites_block or pair
+        return tuning.sites_block or pair
     return pair // 2
 
 
@@ -115,14 +115,14 @@ def l1_data_bytes(cpu: Path = Path("/sys/devices/system/cpu/cpu0/cache")) -> int
     return 32 * 1024
 
 
-def tiles(n: int, B: int) -> bool:
+def tiles(n: int, B: int, tuning: Tuning) -> bool:
     """Whether a splitting kernel runs a field of n sites in blocks of B members in tiles (see
     sites_kernels.splitting_kernel): when a block's 4n + 2 rows outgrow TILE_FROM_L1 times the L1 data cache, and
     the field is longer than two tiles (so a ring is longer than its halos), unless `ensemble tune` found one piece
-    at a time faster here (ensemble.tuning.Tuning.fused_sweeps). The measurements behind the rule are in
+    at a time faster here (`tuning`'s fused_sweeps). The measurements behind the rule are in
     analysis/bench/JOURNAL.md."""
     return (n > 2 * TILE_ROWS and (4 * n + 2) * B * 8 > TILE_FROM_L1 * l1_data_bytes()
-            and applied().fused_sweeps is not False)
+            and tuning.fused_sweeps is not False)
 
 
 def ring_halo(method: Method) -> int:
