@@ -38,6 +38,7 @@ CHAIN = dict(scene="chain", dt=0.02, t_end=0.2, save_dt=0.1, members=3, seed=3,
              parameters="n = 3\nboundary = \"fixed\"\nm = 1.0\nk = { uniform = [0.5, 1.5] }\n"
                         "x0 = { normal = [0.0, 0.1] }")
 RING = {**CHAIN, "parameters": CHAIN["parameters"].replace('"fixed"', '"periodic"')}
+FPUT = {**CHAIN, "scene": str(Path(__file__).parents[1] / "examples" / "fput.py")}  # a user's field of sites
 USER = dict(scene=str(EXAMPLE), dt=0.02, t_end=0.4, save_dt=0.1, members=3, seed=3,
             parameters="omega0 = 1.0\ngamma = 0.1\nF = 0.5\nOmega = { uniform = [0.5, 1.5] }\nx0 = 0.2")
 
@@ -52,7 +53,8 @@ def loads(text: str):
 
 
 CASES = [(TOP, ("rk4", "split4", "dopri5")), (BODY, ("rk4", "rotations4", "dopri5")),
-         (CHAIN, ("verlet", "yoshida4", "rk4", "dopri5")), (RING, ("verlet", "dopri5")), (USER, ("rk4", "dopri5"))]
+         (CHAIN, ("verlet", "yoshida4", "rk4", "dopri5")), (RING, ("verlet", "dopri5")), (USER, ("rk4", "dopri5")),
+         (FPUT, ("yoshida4", "rk4", "dopri5"))]
 
 
 def spec_text(case: dict, method: str, **extra) -> str:

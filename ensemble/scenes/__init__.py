@@ -16,7 +16,7 @@ import numpy as np
 from ..methods import METHODS, Method
 from ..parameter import Parameter
 from . import body, chain, top
-from .contract import SceneError, UserScene, load
+from .contract import SceneError, UserScene, UserSitesScene, load
 
 
 class Scene(Protocol):
@@ -26,7 +26,7 @@ class Scene(Protocol):
     PHYSICS names the module (or file) whose functions the engine's kernels call: rhs(t, *state, *parameters)
     and each piece's flow (ensemble.engine.kernels); or, for a scene with SITES = True, whose member is n sites
     each moved by its two neighbours (the chain), acceleration(x_left, x, x_right, c_left, c_right)
-    (ensemble.engine.sites, with n and boundary among its constants).
+    (ensemble.engine.sites_kernels, with n and boundary among its constants).
     """
 
     NAME: str
@@ -82,14 +82,15 @@ def of_result(attrs: dict) -> Scene | None:
         return None
 
 
-def _user_scene(where: str) -> UserScene:
+def _user_scene(where: str) -> UserScene | UserSitesScene:
     return _scene_of(load(where), where)
 
 
 @cache
-def _scene_of(module, where: str) -> UserScene:
-    """A user's scene for its module as imported (load imports an edited file anew: a new module, a new scene)."""
-    return UserScene(module, where)
+def _scene_of(module, where: str) -> UserScene | UserSitesScene:
+    """A user's scene for its module as imported (load imports an edited file anew: a new module, a new scene): a
+    field of sites where it sets SITES = True."""
+    return UserSitesScene(module, where) if getattr(module, "SITES", False) is True else UserScene(module, where)
 
 
 def absolute(name: str, folder: Path) -> str:

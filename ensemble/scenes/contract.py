@@ -42,6 +42,7 @@ import numpy as np
 
 from ..errors import EXIT_FAILED, EnsembleError
 from ..parameter import Parameter
+from . import chain
 
 #: Names a result already uses: a scene's state and parameters must not take them.
 RESERVED = ("t", "member", "method", "dt", "rtol", "atol", "steps_accepted", "steps_rejected", "rhs_evals",
@@ -286,6 +287,47 @@ class UserScene:
         """No conserved energy is declared: NaN (member, t)."""
         return np.full((ds.sizes["member"], ds.sizes["t"]), np.nan)
 
+
+class UserSitesScene:
+    """A user's field of sites: a file or module that sets SITES = True and gives one compiled-to-be function,
+    acceleration(x_left, x, x_right, c_left, c_right) (m s-2) of a site at x between its neighbours, c_left and
+    c_right its couplings to each (a spring's k over the site's m, 1/s^2): the built-in chain's masses, springs,
+    boundaries, parameters, starts and saved x and v, with the user's forces (a Fermi-Pasta-Ulam chain's
+    nonlinear springs, say). Every sites family runs it (ensemble.engine.sites_kernels, gpu_sites_kernels). The
+    chain's harmonic energy, closed form, stability theory and mode fits hold for its linear springs alone, and
+    are left out."""
+
+    SITES = True
+    STABILITY_AXES: tuple[str, ...] = ()
+    PIECES, EVALUATING_PIECES = chain.PIECES, chain.EVALUATING_PIECES
+    PARAMETERS = chain.PARAMETERS
+    OBSERVABLES = {name: about for name, about in chain.OBSERVABLES.items() if name != "energy"}
+
+    def __init__(self, module: ModuleType, where: str):
+        self.module, self.PHYSICS = module, where
+        self.NAME = getattr(module, "NAME", Path(where).stem if where.endswith(".py") else where.rsplit(".", 1)[-1])
+        if not (isinstance(self.NAME, str) and re.fullmatch(r"[A-Za-z0-9_][A-Za-z0-9_.-]*", self.NAME)):
+            raise SceneError(f"{where}: NAME must be letters, digits, _, . and - (it names files), not {self.NAME!r}")
+        if not hasattr(module, "acceleration"):
+            raise SceneError(f"{where} sets SITES = True but has no acceleration(x_left, x, x_right, c_left, "
+                             f"c_right), the acceleration of a site between its neighbours")
+        _signature(where, module.acceleration, "acceleration", list(SITE_ARGUMENTS))
+        _compiled_helpers(where, module, "acceleration")
+        if len(_returns(where, module.acceleration, "acceleration", [0.1, 0.2, 0.4, 1.0, 1.0])) != 1:
+            raise SceneError(f"{where}: acceleration must return one number, the site's acceleration")
+        for name in ("sizes", "coordinates", "check_constants", "check", "derive", "inputs", "kernel_rows",
+                     "amplitudes", "mode_start"):  # mode_start: a start in a normal mode of the linear chain
+            setattr(self, name, getattr(chain, name))
+
+    def observe(self, samples: np.ndarray, names, values: dict, constants: dict) -> dict[str, np.ndarray]:
+        return chain.observe(samples, names, values, constants)
+
+    def conserved_energy(self, ds) -> np.ndarray:
+        """No conserved energy is declared: NaN (member, t)."""
+        return np.full((ds.sizes["member"], ds.sizes["t"]), np.nan)
+
+
+SITE_ARGUMENTS = ("x_left", "x", "x_right", "c_left", "c_right")
 
 #: What a scene declares for `ensemble stability` (all or none): the names of its dimensionless steps, each
 #: member's axis and place on it, the growth per step linear theory predicts for a member, and along an axis.
