@@ -107,12 +107,11 @@ def device_intrinsics() -> dict:
 
 def _simulated_loaded(array, first, B, j, like):
     """tuples.loaded in Python: the values at flat indices (first + c) B + j of a C-contiguous array."""
-    return tuple(array[np.unravel_index((first + c) * B + j, array.shape)] for c in range(len(like)))
+    return tuple(np.asarray(array).reshape(-1)[first * B + j::B][:len(like)])
 
 
 def _simulated_stored(array, first, B, j, values):
-    for c, value in enumerate(values):
-        array[np.unravel_index((first + c) * B + j, array.shape)] = value
+    np.asarray(array).reshape(-1)[first * B + j:(first + len(values)) * B:B] = values
 
 
 def device_tuples() -> tuple:
