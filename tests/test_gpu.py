@@ -38,7 +38,8 @@ CHAIN = dict(scene="chain", dt=0.02, t_end=0.2, save_dt=0.1, members=3, seed=3,
              parameters="n = 3\nboundary = \"fixed\"\nm = 1.0\nk = { uniform = [0.5, 1.5] }\n"
                         "x0 = { normal = [0.0, 0.1] }")
 RING = {**CHAIN, "parameters": CHAIN["parameters"].replace('"fixed"', '"periodic"')}
-FPUT = {**CHAIN, "scene": str(Path(__file__).parents[1] / "examples" / "fput.py")}  # a user's field of sites
+FPUT = {**CHAIN, "scene": str(Path(__file__).parents[1] / "examples" / "fput.py"),  # a user's field of sites, of
+        "parameters": CHAIN["parameters"].replace("n = 3", "n = 8")}  # test_user_sites's length: its kernels
 USER = dict(scene=str(EXAMPLE), dt=0.02, t_end=0.4, save_dt=0.1, members=3, seed=3,
             parameters="omega0 = 1.0\ngamma = 0.1\nF = 0.5\nOmega = { uniform = [0.5, 1.5] }\nx0 = 0.2")
 
