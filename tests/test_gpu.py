@@ -348,7 +348,7 @@ def _example_error(module: str, family: str, step: float | None) -> float:
     for start in (0, 1):
         samples = np.full((1, len(state0), members), np.nan)
         if family == "adaptive":
-            control = np.array([[0.0] * members, [1e-10] * members, [1e-12] * members])
+            control = np.array([[0.0] * members, [1e-8] * members, [1e-10] * members])
             example.adaptive_kernel[1, members](state0, rate, control, t_end, limit, samples, np.zeros((3, members)),
                                                status, failure_time, works, start, members)
         else:
@@ -368,4 +368,4 @@ def test_the_gpu_kernels_modules_run_their_examples_at_their_order(module, famil
 
 @pytest.mark.parametrize("module", ["gpu_kernels", "gpu_sites_kernels"])
 def test_the_gpu_kernels_modules_run_their_examples_to_tolerance(module):
-    assert _example_error(module, "adaptive", None) < 1e-8
+    assert _example_error(module, "adaptive", None) < 1e-6
