@@ -94,6 +94,7 @@ TINY, ZERO = REAL({tiny!r}), REAL(0.0)  # REAL's smallest normal value, and its 
 '''
 
 KERNELS_FILE = "gpu_kernels.py"  # the member kernels' code, which a kernel's file copies
+ADAPTIVE_ROWS = ("time", "h", "log2_previous", "rejected_last", "accepted_count", "rejected_count", "evaluations")
 
 TABLEAU = '''STAGES = tuple(tuple(REAL(x) for x in row) for row in {stages!r})  # Butcher rows (kernels.tableau_of)
 S = len(STAGES)
@@ -151,8 +152,6 @@ def member_kernel(name: str, where: str, sources: str, pieces: tuple[str, ...], 
                         footer)
     return GpuKernel(function, chosen)
 
-
-ADAPTIVE_ROWS = ("time", "h", "log2_previous", "rejected_last", "accepted_count", "rejected_count", "evaluations")
 
 
 def compiled(family, name, method, precision, physics_import, physics, D, P, module, bindings, footer,

@@ -2,6 +2,7 @@
 hash of them (blocks.HELPERS), and so does this machine's tuning (tuning.engine_hash); and the code a kernel's file
 copies from a module of the engine (`copied_code`). No Numba here, so that reading a tuning imports none."""
 import ast
+from functools import cache
 from pathlib import Path
 
 ENGINE_SOURCES = ("blocks.py", "tuples.py", "frames.py", "runge_kutta.py", "adaptive.py", "control.py",
@@ -9,6 +10,7 @@ ENGINE_SOURCES = ("blocks.py", "tuples.py", "frames.py", "runge_kutta.py", "adap
 CODE_LINE = "# ---------------------------------------------------------------- CODE"
 
 
+@cache
 def copied_code(name: str) -> tuple[str, str]:
     """(imports, code) of the engine's file `name` (ensemble.engine.sites_kernels, say) for a kernel's file: its
     import statements, and its text from its CODE_LINE on, both unchanged."""

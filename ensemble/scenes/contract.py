@@ -210,7 +210,7 @@ class UserScene:
 
     def __init__(self, module: ModuleType, where: str):
         self.module, self.PHYSICS, self.SITES = module, where, False
-        self.NAME = getattr(module, "NAME", Path(where).stem if where.endswith(".py") else where.rsplit(".", 1)[-1])
+        self.NAME = scene_name(module, where)
         for required in ("STATE", "PARAMETERS", "rhs"):
             if not hasattr(module, required):
                 raise SceneError(f"{where} has no {required} ({_REQUIRED[required]})")
@@ -305,9 +305,7 @@ class UserSitesScene:
 
     def __init__(self, module: ModuleType, where: str):
         self.module, self.PHYSICS = module, where
-        self.NAME = getattr(module, "NAME", Path(where).stem if where.endswith(".py") else where.rsplit(".", 1)[-1])
-        if not (isinstance(self.NAME, str) and re.fullmatch(r"[A-Za-z0-9_][A-Za-z0-9_.-]*", self.NAME)):
-            raise SceneError(f"{where}: NAME must be letters, digits, _, . and - (it names files), not {self.NAME!r}")
+        self.NAME = scene_name(module, where)
         if not hasattr(module, "acceleration"):
             raise SceneError(f"{where} sets SITES = True but has no acceleration(x_left, x, x_right, c_left, "
                              f"c_right), the acceleration of a site between its neighbours")
@@ -316,15 +314,10 @@ class UserSitesScene:
         if len(_returns(where, module.acceleration, "acceleration", [0.1, 0.2, 0.4, 1.0, 1.0])) != 1:
             raise SceneError(f"{where}: acceleration must return one number, the site's acceleration")
         for name in ("sizes", "coordinates", "check_constants", "check", "derive", "inputs", "kernel_rows",
-                     "amplitudes", "mode_start"):  # mode_start: a start in a normal mode of the linear chain
+                     "observe", "amplitudes", "mode_start"):  # mode_start: a start in a normal mode of the linear chain
             setattr(self, name, getattr(chain, name))
 
-    def observe(self, samples: np.ndarray, names, values: dict, constants: dict) -> dict[str, np.ndarray]:
-        return chain.observe(samples, names, values, constants)
-
-    def conserved_energy(self, ds) -> np.ndarray:
-        """No conserved energy is declared: NaN (member, t)."""
-        return np.full((ds.sizes["member"], ds.sizes["t"]), np.nan)
+    conserved_energy = UserScene.conserved_energy  # none declared: NaN
 
 
 SITE_ARGUMENTS = ("x_left", "x", "x_right", "c_left", "c_right")
@@ -338,13 +331,19 @@ _REQUIRED = {"STATE": "name -> (units, long_name) of each state variable",
              "rhs": "its right-hand side, rhs(t, *state, *parameters)"}
 
 
+def scene_name(module: ModuleType, where: str) -> str:
+    """A user's scene's NAME (default: its file's or module's name), which names files: SceneError otherwise."""
+    name = getattr(module, "NAME", Path(where).stem if where.endswith(".py") else where.rsplit(".", 1)[-1])
+    if not (isinstance(name, str) and re.fullmatch(r"[A-Za-z0-9_][A-Za-z0-9_.-]*", name)):
+        raise SceneError(f"{where}: NAME must be letters, digits, _, . and - (it names files), not {name!r}")
+    return name
+
+
 def _check_names(scene: UserScene) -> None:
     """The scene's name, its state variables' and its parameters': names of files and of variables in results."""
     where = scene.PHYSICS
     if not scene.STATE:
         raise SceneError(f"{where}: STATE is empty")
-    if not (isinstance(scene.NAME, str) and re.fullmatch(r"[A-Za-z0-9_][A-Za-z0-9_.-]*", scene.NAME)):
-        raise SceneError(f"{where}: NAME must be letters, digits, _, . and - (it names files), not {scene.NAME!r}")
     for name in (*scene.STATE, *scene.PARAMETERS):
         if not (isinstance(name, str) and name.isidentifier() and name.isascii()):
             raise SceneError(f"{where}: {name!r} is not a name for a state variable or a parameter (letters, digits "
