@@ -55,8 +55,9 @@ import numba
 import numpy as np
 
 from .errors import EnsembleError
+from .events import dimensions as event_dimensions
 from .spec import Spec, members_table
-from .store import RUN_RECORDS, fsync_path, kernels_identity, put_records, record_names, temporary_path
+from .store import fsync_path, kernels_identity, put_records, record_names, record_variables, temporary_path
 from .version import __version__
 
 MANIFEST = "manifest.json"
@@ -401,10 +402,13 @@ class PartWriter:
         if self._nc is None:
             self._nc = nc = netCDF4.Dataset(self.temporary, "w", format="NETCDF4")
             nc.set_fill_off()  # as the result's (ensemble.store.Writer)
+            spec = self.parts.spec
             nc.createDimension("member", self.stop - self.start)
-            for name in record_names(self.parts.spec):
-                kind = RUN_RECORDS[name][0]
-                nc.createVariable(name, kind, ("member",), fill_value=np.nan if kind == "f8" else None)
+            if spec.events:  # (spec.model checks a user's scene is unedited: a run without events need not)
+                for dim, size in {**spec.model.sizes(spec.constants), **event_dimensions(spec.events)}.items():
+                    nc.createDimension(dim, size)
+            for name, (kind, dims, *_) in record_variables(spec).items():
+                nc.createVariable(name, kind, dims, fill_value=np.nan if kind == "f8" else None)
         return self._nc
 
     def write_samples(self, start: int, first: int, data: dict[str, np.ndarray]) -> None:
@@ -458,7 +462,7 @@ class SegmentLog:
     part being written: each segment's end is saved as a segment file, and a resumed run continues from the last
     one kept (Parts.segments) instead of from sample 0."""
 
-    STATE = ("works", "status", "failure_time", "counts")  # launch.Launch.state(), in the file as they are
+    STATE = ("works", "status", "failure_time", "counts", "event_times", "event_counts", "stopped")  # Launch.state()
 
     def __init__(self, writer: PartWriter, start: int, stop: int):
         self.writer, self.start, self.stop = writer, start, stop

@@ -167,9 +167,9 @@ def space_problem(out: Path, spec, resume: bool = False) -> str | None:
     records) until they are deleted (a full disk midway costs the run). A resumed run counts only what is still
     to come: OUT.tmp took its whole space when it was made, and the parts kept hold their records."""
     from .parts import folder_of
-    from .store import output_bytes, record_names, temporary_path
+    from .store import output_bytes, record_values, temporary_path
 
-    need = output_bytes(spec) + 8 * len(record_names(spec)) * spec.n_members
+    need = output_bytes(spec) + 8 * record_values(spec) * spec.n_members
     if resume:
         made = [temporary_path(out), *(folder_of(out).iterdir() if folder_of(out).is_dir() else ())]
         need = max(0, need - sum(path.stat().st_size for path in made if path.is_file()))

@@ -13,6 +13,7 @@ import numpy as np
 from numba import njit
 
 from .engine import launch
+from .events import records as event_records
 from .methods import Method
 from .results import COUNTS, Outcome
 from .spec import Spec
@@ -219,7 +220,7 @@ class Record:
         self.amplitudes, self.errors = list(amplitudes), list(errors)
 
     def records(self, outcome: Outcome, seconds_per_step=None) -> dict[str, np.ndarray]:
-        """The per-member records (member,) once every sample is added; seconds_per_step() times the kernel when
+        """The per-member records (member, ...) once every sample is added; seconds_per_step() times the kernel when
         the run measures timing."""
         spec, method, members = self.spec, self.method, len(outcome.status)
         records = dict(zip(COUNTS, outcome.counts), status=outcome.status, failure_time=outcome.failure_time)
@@ -230,6 +231,8 @@ class Record:
             records["error_max"], records["error_final"] = error_records(_joined(self.errors, axis=0))
         if spec.measure["timing"]:
             records["seconds_per_step"] = np.full(members, np.nan if method.closed_form else seconds_per_step())
+        if spec.events:
+            records.update(event_records(spec.events, outcome, self.scene, spec.save, self.values, spec.constants))
         return records
 
 

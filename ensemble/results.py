@@ -2,7 +2,7 @@
 
 One definition each of: a member's status and what it means, the rows of the
 step counts, the sentinels the adaptive step control leaves, the default
-blow-up factor, and the Outcome a launch returns.
+blow-up factor, the events a run asks for, and the Outcome a launch returns.
 """
 from __future__ import annotations
 
@@ -18,6 +18,7 @@ class Status(IntEnum):
     OK = 0  # ran to t_end
     BLEW_UP = 1  # its state was not finite, or outgrew blowup_factor times its start
     STEP_SIZE_UNDERFLOW = 2  # an adaptive method's step shrank below 1e-14 of the time it was heading for
+    STOPPED_BY_EVENT = 3  # an event that stops its member occurred (not a failure: its state there is kept)
 
     @classmethod
     def flag_values(cls) -> np.ndarray:
@@ -41,6 +42,25 @@ UNDERFLOWED = -2.0  # the member's step size underflowed: it stops
 DEFAULT_BLOWUP_FACTOR = 1e6
 
 
+class Event(NamedTuple):
+    """An event a run asks for (its run file's [events.<name>]): when `of` (a state variable, observable or the
+    scene's event function, its value `index` of a vector) crosses `level`."""
+
+    name: str
+    of: str
+    index: int  # -1: a scalar
+    source: tuple  # the kernel's value of it: ("state", row) or ("function", scene function, index)
+    level: float = 0.0
+    direction: str = "both"  # "up", "down" or "both"
+    count: int = 1  # occurrences kept per member
+    stop: bool = False  # the member stops at its first occurrence
+
+    @property
+    def sign(self) -> float:
+        """The kernels' direction: +1 up, -1 down, 0 both."""
+        return {"up": 1.0, "down": -1.0, "both": 0.0}[self.direction]
+
+
 class Outcome(NamedTuple):
     """What a launch did, per member (the last axis)."""
 
@@ -48,3 +68,6 @@ class Outcome(NamedTuple):
     counts: np.ndarray  # (3, members) int64, rows COUNTS: steps accepted, steps rejected, rhs evaluations
     status: np.ndarray  # (members,) int8: Status values
     failure_time: np.ndarray  # (members,) s: saved time at which a failure was seen (step time for an underflow)
+    event_times: np.ndarray | None = None  # (events, count, members) s: kept occurrences, NaN where fewer
+    event_counts: np.ndarray | None = None  # (events, members) int64: every occurrence
+    stopped: np.ndarray | None = None  # (state, members): a member's state at the event that stopped it, else NaN

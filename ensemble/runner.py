@@ -168,7 +168,7 @@ def _settings(spec: Spec, method: Method, values: dict[str, np.ndarray]) -> dict
     dt = values["dt"] if method.adaptive else float(values["dt"][0])
     return dict(n_save=spec.n_save, save_dt=spec.save_dt, dt=dt, rtol=values["rtol"], atol=values["atol"],
                 blowup_factor=spec.blowup_factor, device=spec.device, precision=spec.precision,
-                block=spec.kernel_block)
+                block=spec.kernel_block, events=spec.events)
 
 
 def integrate(spec: Spec, method: Method, values: dict[str, np.ndarray], repeats: int = 0,
@@ -546,7 +546,7 @@ def prepare_kernels(spec: Spec, announce: bool = True) -> float:
     def compile_all():
         for name in spec.methods:
             launch.prepare(scene, METHODS[name], spec.constants, device=spec.device, precision=spec.precision,
-                           values=members_table(spec, 0, 1), block=spec.kernel_block)
+                           values=members_table(spec, 0, 1), block=spec.kernel_block, events=spec.events)
         one = np.zeros((1, 1, scene.kernel_rows(spec.constants)[0])).transpose(1, 2, 0)  # as a kernel's samples
         scene.observe(one, tuple(scene.OBSERVABLES), members_table(spec, 0, 1), spec.constants)  # what observing
         if spec.measure["growth"]:  # and the growth fit compile, too

@@ -28,6 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .events import parse as parse_events
 from .inertia import SHAPES
 from .members import (  # noqa: F401 (given_values, members_table, with_values: spec's API, built in members)
     MAX_TABLE_BYTES,
@@ -54,12 +55,12 @@ from .runfile import (
     vertices_text,
 )
 from .scenes import SceneError, absolute, applies, methods_for, resolve
-from .scenes.contract import SceneChanged, identity
+from .scenes.contract import RESERVED, SceneChanged, identity
 
 TOP_LEVEL = {
     "scene": str, "method": str, "dt": float, "rtol": float, "atol": float, "t_end": float, "save_dt": float,
     "members": int, "seed": int, "save": list, "parameters": dict, "sweep": (dict, list), "observe": dict,
-    "measure": dict, "blowup_factor": float, "device": str, "precision": str, "draws": str,
+    "measure": dict, "blowup_factor": float, "device": str, "precision": str, "draws": str, "events": dict,
 }
 DRAWS = ("each member", "same at every point")  # whose stream a member's drawn parameters come from
 DEVICES = ("cpu", "cuda")  # where the kernels run: this machine's cores, or an NVIDIA GPU (ensemble.engine.gpu)
@@ -105,6 +106,7 @@ class Spec:
     device: str = "cpu"  # one of DEVICES
     precision: str = "float64"  # one of PRECISIONS
     draws: str = "each member"  # one of DRAWS: "same at every point" gives replica r the same draws at every point
+    events: tuple = ()  # results.Event of the [events] tables (ensemble.events)
     table: dict[str, np.ndarray] | None = field(default=None, repr=False, compare=False)  # see members_table
     # a user's scene: the identity of its sources when the run file was read (model refuses any other)
     sources: str | None = field(default=None, compare=False)
@@ -236,7 +238,7 @@ def parse(text: str, path: str = "<string>") -> Spec:
     _check_bounds(values["seed"], t_end, [axes.get("dt", (settings["dt"],) if "dt" in settings else ())
                                           for axes in setting_axes])
 
-    save = _save(tuple(values.get("save", module.OBSERVABLES)), module)
+    save = _save(tuple(values.get("save", module.OBSERVABLES)), module, bool(values.get("events")))
 
     blowup_factor = values.get("blowup_factor", DEFAULT_BLOWUP_FACTOR)
     if not blowup_factor > 1:
@@ -252,12 +254,13 @@ def parse(text: str, path: str = "<string>") -> Spec:
         [{k: v for k, v in grid.items() if k not in SETTINGS} for grid in grids], labels, module)
     for grid, axes in zip(grids, setting_axes):
         grid.update(axes)
+    events = _events(values.get("events", {}), module, constants, declared, setting_axes, settings, device)
 
     spec = Spec(path=str(path), text=text, scene=scene, method=settings.get("method"), dt=settings.get("dt"),
                 t_end=t_end, save_dt=save_dt, members=values["members"], seed=values["seed"], save=save,
                 parameters=parameters, grids=tuple(grids), constants=constants, noise=noise,
                 declared=declared, rtol=settings.get("rtol"), atol=settings.get("atol"), measure=measure,
-                blowup_factor=blowup_factor, device=device, precision=precision, draws=draws,
+                blowup_factor=blowup_factor, device=device, precision=precision, draws=draws, events=events,
                 sources=identity(module.module) if hasattr(module, "module") else None)
     sizes = module.sizes(constants)
     need = 8 * spec.n_members * (sum(sizes[p.per] if p.per else 1 for p in declared.values()) + len(SETTINGS) + 1)
@@ -269,17 +272,33 @@ def parse(text: str, path: str = "<string>") -> Spec:
     return replace(spec, table=build_table(spec))
 
 
-def _save(save: tuple, module) -> tuple[str, ...]:
-    """The variables a run saves, checked: at least one, each the scene's, none twice."""
+def _save(save: tuple, module, events: bool) -> tuple[str, ...]:
+    """The variables a run saves, checked: each the scene's, none twice, at least one unless the run has
+    events (which it then keeps alone)."""
     for i, name in enumerate(save):
         if name not in module.OBSERVABLES:
             raise SpecError(f"save[{i}]", f"unknown variable {name!r}; {module.NAME} saves: "
                                           f"{', '.join(module.OBSERVABLES)}")
         if name in save[:i]:
             raise SpecError(f"save[{i}]", f"names {name!r} a second time")
-    if not save:
-        raise SpecError("save", "must name at least one variable")
+    if not save and not events:
+        raise SpecError("save", "must name at least one variable (or the run must have [events])")
     return save
+
+
+def _events(table: dict, module, constants: dict, declared: dict, setting_axes: list[dict], settings: dict,
+            device: str) -> tuple:
+    """The [events] tables (ensemble.events.parse), for the methods that have them: every stepping method on the
+    CPU, for now."""
+    if not table:
+        return ()
+    methods = {m for axes in setting_axes for m in axes.get("method", ())} | {settings.get("method")} - {None}
+    if "exact" in methods:
+        raise SpecError("events", "the closed form (method exact) has no events yet; use a stepping method")
+    if device != "cpu":
+        raise SpecError("events", "events run on the CPU for now (device = \"cpu\")")
+    taken = set(RESERVED) | set(declared) | set(module.OBSERVABLES) | set(module.sizes(constants))
+    return parse_events(table, module, constants, taken)
 
 
 def _one_of(key: str, value: str, allowed: tuple[str, ...]) -> str:

@@ -20,6 +20,8 @@ import netCDF4
 import numpy as np
 
 from .errors import EnsembleError
+from .events import dimensions as event_dimensions
+from .events import variables as event_variables
 from .results import Status
 from .spec import Spec, given_values
 from .version import __version__
@@ -58,7 +60,14 @@ def output_bytes(spec: Spec) -> int:
     scene = spec.model
     sizes = {"member": spec.n_members, "t": spec.n_save, **scene.sizes(spec.constants)}
     saved = sum(math.prod(sizes[d] for d in scene.OBSERVABLES[name][0]) for name in spec.save)
-    return 8 * (saved + spec.n_members * (len(RUN_RECORDS) + len(spec.declared)))
+    records = len(RUN_RECORDS) + record_values(spec) - len(record_names(spec)) + len(spec.events)  # all, at most
+    return 8 * (saved + spec.n_members * (records + len(spec.declared)))
+
+
+def record_values(spec: Spec) -> int:
+    """Values per member in the records a run of `spec` stores."""
+    sizes = {**spec.model.sizes(spec.constants), **event_dimensions(spec.events)} if spec.events else {}
+    return sum(math.prod(sizes[d] for d in dims[1:]) for _, dims, *_ in record_variables(spec).values())
 
 
 # Per-member records of how each member ran: name -> (type, units, long_name, comment). A long_name is short
@@ -155,18 +164,27 @@ def put_samples(variables, offset: int, first: int, data: dict[str, np.ndarray])
 
 
 def put_records(variables, offset: int, data: dict[str, np.ndarray]) -> None:
-    """Per-member records (member,) of `data` into `variables` at members offset, offset + 1, ..."""
+    """Per-member records (member, ...) of `data` into `variables` at members offset, offset + 1, ..."""
     for name, values in data.items():
         variables[name][offset:offset + len(values)] = values
 
 
 def record_names(spec: Spec) -> list[str]:
-    """The per-member records (RUN_RECORDS) a run of `spec` stores: how each member ran, and what [measure]
-    asks for."""
+    """The per-member records (RUN_RECORDS) a run of `spec` stores: how each member ran, what [measure]
+    asks for, and its events' (ensemble.events.variables)."""
+    return list(record_variables(spec))
+
+
+def record_variables(spec: Spec) -> dict[str, tuple]:
+    """The per-member records a run of `spec` stores: name -> (type, dims, units, long_name, comment), dims
+    member first."""
     records = ["steps_accepted", "steps_rejected", "rhs_evals", "status", "failure_time"]
     records += ["growth_per_step"] if spec.measure["growth"] else []
     records += ["error_max", "error_final"] if spec.measure["error"] else []
-    return records + (["seconds_per_step"] if spec.measure["timing"] else [])
+    records += ["seconds_per_step"] if spec.measure["timing"] else []
+    out = {name: (kind, ("member",), units, long_name, comment)
+           for name, (kind, units, long_name, comment) in ((name, RUN_RECORDS[name]) for name in records)}
+    return {**out, **event_variables(spec.events, spec.model, spec.save)} if spec.events else out
 
 
 class Writer:
@@ -231,7 +249,7 @@ class Writer:
         spec, n = self.spec, self.spec.n_members
         used = {d for name in spec.save for d in self.scene.OBSERVABLES[name][0]}
         used |= {p.per for p in spec.declared.values() if p.per}
-        sizes = {"member": n, "t": spec.n_save, **self.scene.sizes(spec.constants)}
+        sizes = {"member": n, "t": spec.n_save, **self.scene.sizes(spec.constants), **event_dimensions(spec.events)}
         for dim, size in sizes.items():
             self.nc.createDimension(dim, size)
         self._coordinate("member", np.arange(n, dtype=np.int32), "ensemble member index")
@@ -241,6 +259,8 @@ class Writer:
         for dim, (values, long_name) in self.scene.coordinates(spec.constants).items():
             if dim in used:
                 self._coordinate(dim, values, long_name)
+        for name, count in event_dimensions(spec.events).items():
+            self._coordinate(name, np.arange(count, dtype=np.int32), f"occurrence of event {name}, in order")
         self._coordinate("sweep_point", table["sweep_point"].astype(np.int32),
                          "index of the member's point on the sweep grid", dims=("member",))
 
@@ -277,10 +297,8 @@ class Writer:
 
     def _records(self) -> None:
         """How each member ran: step counts, status, failure time, growth, and what [measure] asks for."""
-        for name in record_names(self.spec):
-            kind, units, long_name, comment = RUN_RECORDS[name]
-            var = self.nc.createVariable(name, kind, ("member",), contiguous=True,
-                                         fill_value=np.nan if kind == "f8" else None)
+        for name, (kind, dims, units, long_name, comment) in record_variables(self.spec).items():
+            var = self.nc.createVariable(name, kind, dims, contiguous=True, fill_value=np.nan if kind == "f8" else None)
             if name == "status":
                 var.setncatts({"long_name": long_name, "flag_values": Status.flag_values(),
                                "flag_meanings": Status.flag_meanings()})

@@ -197,7 +197,7 @@ def test_ten_percent_past_the_limit_are_flagged_and_the_rest_unaffected(tmp_path
     assert "10 of 100 members failed (10 blew up, 0 step size underflow)" in capsys.readouterr().out
     with netCDF4.Dataset(out) as nc:
         assert np.isnan(nc["energy"].getncattr("_FillValue")) and np.isnan(nc["failure_time"].getncattr("_FillValue"))
-        assert list(nc["status"].flag_values) == [0, 1, 2]
+        assert list(nc["status"].flag_values) == [0, 1, 2, 3]
     ds = runner.simulate(load(path))
     past = ds["omega_max"].values > 2
     assert past.sum() == 10

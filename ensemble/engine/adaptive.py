@@ -69,3 +69,14 @@ def trial_sweep(rhs, pair, stage_loop, like_y, like_p, work, B, K, NEW, C0):
         stored(work, NEW, B, j, new)
         work[(C0 + ERR) * B + j] = error_norm(step, y, new, slopes, error, work[(C0 + RTOL) * B + j],
                                               work[(C0 + ATOL) * B + j])
+
+
+def advance_of(rhs, pair, stage_loop):
+    """advance(t0, h, y0, p): one member's trial step of h (s) from (t0, y0), its new state: the pair's own path
+    through a step (ensemble.engine.events locates crossings on it)."""
+    stages = pair[0]
+
+    @njit(inline="always", **FAST)
+    def advance(t0, h, y0, p):
+        return trial_step(rhs, t0, h, y0, p, converted(rhs(t0, *y0, *p), y0), stages, stage_loop)[1]
+    return advance

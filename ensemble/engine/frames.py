@@ -29,25 +29,29 @@ from .tuples import converted, loaded, stored
 
 @njit(inline="always", **FAST)
 def fixed_step(interval, like_y, like_p, B, state0, rate, h, steps_per_save, limit, samples, status, failure_time,
-               progress, works, start, first_block, end_block):
+               progress, works, start, first_block, end_block, begin, remember, watch, events):
     """Blocks first_block .. end_block - 1 from sample `start` on (0: from state0 and rate; later: from where the
     last call left works) through samples.shape[1] save intervals of steps_per_save steps of h (s) each.
 
-    interval(like_y, like_p, work, B, i, h, steps_per_save) takes a block's work array through save interval i (a
-    family's members_interval: ensemble.engine.runge_kutta, .splitting); like_y and like_p are tuples of D and P
-    values (their lengths matter)."""
+    interval(like_y, like_p, work, B, i, h, steps_per_save, remember, watch, context) takes a block's work array
+    through save interval i (a family's members_interval: ensemble.engine.runge_kutta, .splitting), its events
+    watched by remember and watch; like_y and like_p are tuples of D and P values (their lengths matter). begin,
+    remember, watch: ensemble.engine.events's (NO_BEGIN, NO_REMEMBER, NO_WATCH for a kernel without events),
+    events its arrays (or ()), context (events, status, failure_time, j0)."""
     D, P = len(like_y), len(like_p)
     work = cache_line_array(works.shape[1])
     for block in range(first_block, end_block):
         j0 = block * B
+        context = (events, status, failure_time, j0)
         copy_into(work, works[block])
         if start == 0:
             state_load(work, state0, rate, block, samples, D, P, B)
             check_members(work, 0, D, B, j0, limit, status, failure_time, 0.0)  # a non-finite start
+            begin(like_y, like_p, work, B, context)
         elif block_done(samples, status, progress, block, B):
             continue
         for i in range(max(start, 1), start + samples.shape[1]):
-            interval(like_y, like_p, work, B, i, h, steps_per_save)
+            interval(like_y, like_p, work, B, i, h, steps_per_save, remember, watch, context)
             if state_saved(work, samples, i - start, block, limit, status, failure_time, progress,
                            i * steps_per_save * h, -1, D, B):
                 break
@@ -56,11 +60,12 @@ def fixed_step(interval, like_y, like_p, B, state0, rate, h, steps_per_save, lim
 
 @njit(inline="always", **FAST)
 def adaptive(rhs, pair, stage_loop, controller, like_y, like_p, B, state0, rate, control, save_dt, limit, samples,
-             counts, status, failure_time, progress, works, start, first_block, end_block):
+             counts, status, failure_time, progress, works, start, first_block, end_block, begin, watch, events):
     """fixed_step for an embedded pair (ensemble.engine.adaptive): each member steps to each saved time i save_dt
     (s) in steps of its own, accepted or rejected by control.control_step (controller: alpha, beta, safety,
     min_factor, max_factor); control (3, members): first step (0: Hairer's guess), rtol, atol; counts (3,
-    members): the accepted and rejected steps and the rhs evaluations so far.
+    members): the accepted and rejected steps and the rhs evaluations so far. begin, watch, events: as
+    fixed_step's, watch(like_y, like_p, work, B, K, NEW, C0, S, context) after each step's control.
 
     Work rows: state (D), parameters (P), the stages' slopes from K (D each), the trial state from NEW, the
     control block from C0 (blocks.CONTROL_ROWS)."""
@@ -72,9 +77,11 @@ def adaptive(rhs, pair, stage_loop, controller, like_y, like_p, B, state0, rate,
     work = cache_line_array(works.shape[1])
     for block in range(first_block, end_block):
         j0 = block * B
+        context = (events, status, failure_time, j0)
         copy_into(work, works[block])
         if start == 0:
             state_load(work, state0, rate, block, samples, D, P, B)
+            begin(like_y, like_p, work, B, context)
             for j in range(B):
                 y, p = loaded(work, 0, B, j, like_y), loaded(work, D, B, j, like_p)
                 stored(work, K, B, j, converted(rhs(0.0, *y, *p), y))
@@ -88,6 +95,7 @@ def adaptive(rhs, pair, stage_loop, controller, like_y, like_p, B, state0, rate,
                 trial_sweep(rhs, pair, stage_loop, like_y, like_p, work, B, K, NEW, C0)
                 control_step(work, C0, B, target, j0, status, failure_time, S - 1, alpha, beta, safety, min_factor,
                              max_factor)
+                watch(like_y, like_p, work, B, K, NEW, C0, S, context)
                 state_accept(work, K, NEW, C0, S, D, B)
             if state_saved(work, samples, i - start, block, limit, status, failure_time, progress, target, C0 + H,
                            D, B):

@@ -10,9 +10,10 @@ import numpy as np
 from ..methods import Method
 
 
-def fixed_counts(method: Method, scene, failure_time: np.ndarray, dt: float, steps: int) -> np.ndarray:
-    """Step counts (3, members) of a fixed-step run: every step up to t_end, or up to a member's failure."""
-    taken = np.where(np.isnan(failure_time), steps, np.rint(failure_time / dt))
+def fixed_counts(method: Method, scene, ended: np.ndarray, dt: float, steps: int) -> np.ndarray:
+    """Step counts (3, members) of a fixed-step run: every step up to t_end, or up to the time a member ended
+    (failed, at a saved time; or stopped at an event, within a step; NaN: it ran to the end)."""
+    taken = np.where(np.isnan(ended), steps, np.ceil(np.round(ended / dt, 9)))
     return np.stack([taken, np.zeros(taken.shape),
                      taken * method.evaluations_per_step(scene.EVALUATING_PIECES)]).astype(np.int64)
 

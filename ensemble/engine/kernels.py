@@ -106,14 +106,16 @@ class Layout(NamedTuple):
     tiled: bool = False  # a field of sites' splitting sweeps its sites in tiles (sites.tiles)
     halo: int = 0  # sites a long ring's rows hold beyond each end (sites.ring_halo)
     threads: int = 1  # threads per member (a GPU's field of sites: gpu_sites.site_threads)
+    events: tuple = ()  # each event's value (results.Event.source): rows of its own (ensemble.engine.events)
 
 
-def layout(scene, method: Method, constants: dict, block: int | None = None, tuning: Tuning | None = None) -> Layout:
+def layout(scene, method: Method, constants: dict, block: int | None = None, tuning: Tuning | None = None,
+           events: tuple = ()) -> Layout:
     """The Layout of a scene's CPU kernel for `method`, computed without making the kernel. block: members per
     block for a run of few members (runner.few_members_block); None for block_size's rule. tuning: this
     process's (ensemble.tuning.applied) unless given. The rows: a field of sites' (sites.work_rows), or a member's
     state and parameters, then an adaptive pair's slopes, trial state and control block, or a splitting's factors
-    (the `<piece>_factors` called in Python)."""
+    (the `<piece>_factors` called in Python), then its events' (events: each one's results.Event.source)."""
     tuning = tuning or applied()
     B = block_size(scene, constants, method, block, tuning)
     if scene.SITES:
@@ -122,7 +124,8 @@ def layout(scene, method: Method, constants: dict, block: int | None = None, tun
         return Layout(B, sites.work_rows(method, n, periodic, tiled), tiled,
                       sites.ring_halo(method) if tiled and periodic else 0)
     D, P = scene.kernel_rows(constants)
-    return Layout(B, _member_rows(scene.PHYSICS, tuple(scene.PIECES), method, D, P))
+    rows = _member_rows(scene.PHYSICS, tuple(scene.PIECES), method, D, P)
+    return Layout(B, rows + event_rows(D, len(events), method.adaptive), events=tuple(events))
 
 
 def kernel(scene, method: Method, constants: dict, chosen: Layout | None = None) -> Kernel:
@@ -136,7 +139,8 @@ def kernel(scene, method: Method, constants: dict, chosen: Layout | None = None)
         return _sites_generated(scene.NAME, scene.PHYSICS, sources, method, constants["n"],
                                 constants["boundary"] == "periodic", chosen)
     D, P = scene.kernel_rows(constants)
-    return _generated(scene.NAME, scene.PHYSICS, sources, tuple(scene.PIECES), method, D, P, chosen.block)
+    return _generated(scene.NAME, scene.PHYSICS, sources, tuple(scene.PIECES), method, D, P, chosen.block,
+                      chosen.events)
 
 
 @cache
@@ -162,21 +166,48 @@ def _like_factors(where: str, pieces: tuple[str, ...], method: Method, P: int) -
 
 @cache
 def _generated(name: str, where: str, sources: str, pieces: tuple[str, ...], method: Method, D: int, P: int,
-               B: int) -> Kernel:
-    """A member family's kernel (ensemble.engine.runge_kutta, .adaptive, .splitting) of a scene."""
+               B: int, events: tuple = ()) -> Kernel:
+    """A member family's kernel (ensemble.engine.runge_kutta, .adaptive, .splitting) of a scene; with events
+    (each one's results.Event.source), their rows after the family's and a kernel that takes their arrays."""
+    rows = _member_rows(where, pieces, method, D, P)
     fields = dict(scene=name, method=method.name, physics_hash=sources, helpers_hash=HELPERS, where=where, D=D, P=P,
-                  B=B)
+                  B=B, event_sources=events, first_event_row=rows, E=len(events))
     if method.tableau is None:
         sequence = tuple(zip(method.splitting.numbers, method.splitting.fractions))
-        source = (HEADER + SPLITTING).format(family="splitting", **fields, pieces=pieces, sequence=sequence,
-                                             like_factors=_like_factors(where, pieces, method, P))
+        source = (HEADER + SPLITTING + (SPLITTING_EVENTS if events else NO_EVENTS)).format(
+            family="splitting", **fields, pieces=pieces, sequence=sequence,
+            like_factors=_like_factors(where, pieces, method, P))
+        source += FIXED_STEP_EVENTS if events else FIXED_STEP
     elif not method.adaptive:
-        source = (HEADER + RUNGE_KUTTA).format(family="runge_kutta", **fields, tableau=tableau_of(method),
-                                               S=method.tableau.stages)
+        source = (HEADER + RUNGE_KUTTA + (RUNGE_KUTTA_EVENTS if events else NO_EVENTS)).format(
+            family="runge_kutta", **fields, tableau=tableau_of(method), S=method.tableau.stages)
+        source += FIXED_STEP_EVENTS if events else FIXED_STEP
     else:
-        source = (HEADER + ADAPTIVE).format(family="adaptive", **fields, tableau=pair_of(method),
-                                            S=method.tableau.stages, controller=adaptive_constants(method)[3:])
-    return Kernel(load_source(source, f"{name}_{method.name}").kernel, _member_rows(where, pieces, method, D, P))
+        source = (HEADER + ADAPTIVE + (ADAPTIVE_EVENTS if events else NO_ADAPTIVE_EVENTS)).format(
+            family="adaptive", **fields, tableau=pair_of(method), S=method.tableau.stages,
+            controller=adaptive_constants(method)[3:])
+        source += ADAPTIVE_KERNEL_EVENTS if events else ADAPTIVE_KERNEL
+    label = f"{name}_{method.name}" + ("_events" if events else "")
+    return Kernel(load_source(source, label).kernel, rows + event_rows(D, len(events), method.adaptive))
+
+
+def event_rows(D: int, E: int, adaptive: bool) -> int:
+    """Work rows of a member kernel's E events: adaptive, their values at a step's start and end; fixed steps,
+    their levels, directions and values at both ends, the state at a step's start and a flag
+    (ensemble.engine.events)."""
+    return (2 * E if adaptive else 4 * E + D + 1) if E else 0
+
+
+def event_values(where: str, sources: tuple, expected: str):
+    """values(t, y, p) -> each event's value (ensemble.engine.events.values_chain), from each event's source
+    (results.Event.source): ("state", k), the state's value k; ("function", name, index), the scene's function
+    name(t, *y, *p), its value `index` if index >= 0."""
+    from . import events
+
+    module = loaded(where, expected)
+    functions = tuple(events.component(source[1]) if source[0] == "state" else
+                      events.function_value(_called(getattr(module, source[1])), source[2]) for source in sources)
+    return events.values_chain(functions)
 
 
 HEADER = '''"""Generated by ensemble.engine.kernels: the {family} kernel of {scene}, method {method}.
@@ -187,14 +218,21 @@ Do not edit: ensemble writes a new file whenever the scene's physics or the engi
 # helpers: {helpers_hash}
 from numba import njit
 
-from ensemble.engine import runge_kutta, splitting
+from ensemble.engine import events, runge_kutta, splitting
 from ensemble.engine.blocks import FAST
+from ensemble.engine.adaptive import advance_of as adaptive_advance
 from ensemble.engine.frames import adaptive, fixed_step
-from ensemble.engine.kernels import called_functions, splitting_functions
+from ensemble.engine.kernels import called_functions, event_values, splitting_functions
 from ensemble.engine.tuples import unrolled
 
 LIKE_Y, LIKE_P = (0.0,) * {D}, (0.0,) * {P}  # a member's state and parameters: their lengths matter
 B = {B}  # members per block
+'''
+NO_EVENTS = '''BEGIN, REMEMBER, WATCH = events.NO_BEGIN, events.NO_REMEMBER, events.NO_WATCH
+'''
+NO_ADAPTIVE_EVENTS = '''BEGIN, WATCH = events.NO_BEGIN, events.NO_ADAPTIVE_WATCH
+'''
+EVENT_VALUES = '''VALUES = event_values({where!r}, {event_sources!r}, {physics_hash!r})  # each event's value
 '''
 FIXED_STEP = '''
 
@@ -202,28 +240,56 @@ FIXED_STEP = '''
 def kernel(state0, rate, h, steps_per_save, limit, samples, status, failure_time, progress, works, start,
            first_block, end_block):
     fixed_step(INTERVAL, LIKE_Y, LIKE_P, B, state0, rate, h, steps_per_save, limit, samples, status, failure_time,
-               progress, works, start, first_block, end_block)
+               progress, works, start, first_block, end_block, BEGIN, REMEMBER, WATCH, ())
+'''
+FIXED_STEP_EVENTS = '''
+
+@njit(nogil=True, cache=True, **FAST)
+def kernel(state0, rate, h, steps_per_save, limit, samples, status, failure_time, progress, works, event_arrays,
+           start, first_block, end_block):
+    fixed_step(INTERVAL, LIKE_Y, LIKE_P, B, state0, rate, h, steps_per_save, limit, samples, status, failure_time,
+               progress, works, start, first_block, end_block, BEGIN, REMEMBER, WATCH, event_arrays)
 '''
 RUNGE_KUTTA = '''rhs, = called_functions({where!r}, ("rhs",), {physics_hash!r})
 TABLEAU = {tableau!r}  # the stages' Butcher rows (c_s, a_s0, .., a_s,S-1), and b
 INTERVAL = runge_kutta.members_interval(rhs, TABLEAU, unrolled({S}))  # the stages written out
-''' + FIXED_STEP
+'''
+RUNGE_KUTTA_EVENTS = EVENT_VALUES + '''ADVANCE = runge_kutta.advance_of(rhs, TABLEAU, unrolled({S}))
+BEGIN, REMEMBER, WATCH = events.fixed_watcher(VALUES, ADVANCE, None, {first_event_row}, {E})
+'''
 SPLITTING = '''PIECES, FACTORS, TO_PIECES, FROM_PIECES = splitting_functions({where!r}, {pieces!r}, {physics_hash!r})
 SEQUENCE = {sequence!r}  # the method's entries: piece number, fraction of the step
 LIKE_FACTORS = {like_factors!r}  # each entry's factors (their count matters)
 INTERVAL = splitting.interval_of(PIECES, FACTORS, TO_PIECES, FROM_PIECES, SEQUENCE, LIKE_FACTORS)
-''' + FIXED_STEP
+'''
+SPLITTING_EVENTS = EVENT_VALUES + '''ADVANCE = splitting.advance_of(PIECES, FACTORS, TO_PIECES, FROM_PIECES, SEQUENCE)
+BEGIN, REMEMBER, WATCH = events.fixed_watcher(VALUES, ADVANCE, FROM_PIECES, {first_event_row}, {E})
+'''
 ADAPTIVE = '''rhs, = called_functions({where!r}, ("rhs",), {physics_hash!r})
 TABLEAU = {tableau!r}  # the stages' Butcher rows (c_s, a_s0, .., a_s,S-1), and b - b_hat
 STAGE_LOOP = unrolled({S})  # the stages written out
 CONTROLLER = {controller!r}  # alpha, beta, safety, min_factor, max_factor
-
+'''
+ADAPTIVE_EVENTS = EVENT_VALUES + '''ADVANCE = adaptive_advance(rhs, TABLEAU, STAGE_LOOP)
+BEGIN, WATCH = events.adaptive_watcher(VALUES, ADVANCE, {first_event_row}, {E})
+'''
+ADAPTIVE_KERNEL = '''
 
 @njit(nogil=True, cache=True, **FAST)
 def kernel(state0, rate, control, save_dt, limit, samples, counts, status, failure_time, progress, works, start,
            first_block, end_block):
     adaptive(rhs, TABLEAU, STAGE_LOOP, CONTROLLER, LIKE_Y, LIKE_P, B, state0, rate, control, save_dt, limit,
-             samples, counts, status, failure_time, progress, works, start, first_block, end_block)
+             samples, counts, status, failure_time, progress, works, start, first_block, end_block, BEGIN, WATCH,
+             ())
+'''
+ADAPTIVE_KERNEL_EVENTS = '''
+
+@njit(nogil=True, cache=True, **FAST)
+def kernel(state0, rate, control, save_dt, limit, samples, counts, status, failure_time, progress, works,
+           event_arrays, start, first_block, end_block):
+    adaptive(rhs, TABLEAU, STAGE_LOOP, CONTROLLER, LIKE_Y, LIKE_P, B, state0, rate, control, save_dt, limit,
+             samples, counts, status, failure_time, progress, works, start, first_block, end_block, BEGIN, WATCH,
+             event_arrays)
 '''
 
 

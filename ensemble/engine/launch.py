@@ -36,7 +36,7 @@ import numpy as np
 
 from ..errors import EXIT_FAILED, EnsembleError
 from ..methods import Method
-from ..results import DEFAULT_BLOWUP_FACTOR, Outcome
+from ..results import DEFAULT_BLOWUP_FACTOR, Outcome, Status
 from ..scenes.contract import SceneError
 from ..tuning import applied
 from . import kernels
@@ -44,18 +44,19 @@ from .blocks import flush_subnormals, restore_float_mode
 from .inputs import adaptive_control, blowup_limits, fixed_counts
 
 
-def layout(scene, method: Method, constants: dict, block: int | None = None) -> kernels.Layout:
-    """The layout of a scene's CPU kernel for `method` (kernels.layout), computed without making the kernel; the
-    closed form has no kernel: no rows (its block is the one a kernel would have: records times it so)."""
+def layout(scene, method: Method, constants: dict, block: int | None = None, events: tuple = ()) -> kernels.Layout:
+    """The layout of a scene's CPU kernel for `method` (kernels.layout) with `events` (results.Event), computed
+    without making the kernel; the closed form has no kernel: no rows (its block is the one a kernel would have:
+    records times it so)."""
     if method.closed_form:
         return kernels.Layout(kernels.block_size(scene, constants, method, block, applied()), 0)
-    return kernels.layout(scene, method, constants, block)
+    return kernels.layout(scene, method, constants, block, events=tuple(event.source for event in events))
 
 
 def integrate(scene, method: Method, values: dict[str, np.ndarray], constants: dict, *, n_save: int,
               save_dt: float, dt=None, rtol=None, atol=None,
               blowup_factor: float = DEFAULT_BLOWUP_FACTOR, watch=None, device: str = "cpu",
-              precision: str = "float64", block: int | None = None) -> Outcome:
+              precision: str = "float64", block: int | None = None, events: tuple = ()) -> Outcome:
     """Integrate the members described by `values` with `method`, saving n_save samples every save_dt (s).
 
     Fixed-step methods take the step dt (s, one value; save_dt a whole multiple
@@ -68,9 +69,10 @@ def integrate(scene, method: Method, values: dict[str, np.ndarray], constants: d
     depends only on its own values: never on how many members run with it,
     the chunking or the thread count. watch(fraction done) is called every WATCH_SECONDS while the kernel runs.
     `block`: members per kernel block for a run of few members (None: block_size's); the bits do not depend on it.
+    `events` (results.Event): crossings located within each step (ensemble.engine.events), in the Outcome.
     """
     call = new_launch(scene, method, values, constants, n_save=n_save, save_dt=save_dt, dt=dt, rtol=rtol, atol=atol,
-                      blowup_factor=blowup_factor, device=device, precision=precision, block=block)
+                      blowup_factor=blowup_factor, device=device, precision=precision, block=block, events=events)
     call.run(watch=watch)
     return call.outcome()
 
@@ -84,6 +86,8 @@ def new_launch(scene, method: Method, values: dict[str, np.ndarray], constants: 
         from .gpu_launch import GpuLaunch
 
         settings.pop("block", None)  # a CPU kernel's layout
+        if settings.pop("events", ()):
+            raise EnsembleError("events run on the CPU for now")  # the run file is refused before (spec)
         return GpuLaunch(scene, method, values, constants, **settings)
     return Launch(scene, method, values, constants, **settings)
 
@@ -95,8 +99,10 @@ class Launch:
 
     def __init__(self, scene, method: Method, values: dict[str, np.ndarray], constants: dict, *, n_save: int,
                  save_dt: float, dt=None, rtol=None, atol=None, blowup_factor: float = DEFAULT_BLOWUP_FACTOR,
-                 segment: int | None = None, precision: str = "float64", block: int | None = None):
+                 segment: int | None = None, precision: str = "float64", block: int | None = None,
+                 events: tuple = ()):
         self.scene, self.method, self.n_save, self.save_dt, self.dt = scene, method, n_save, save_dt, dt
+        self.events = tuple(events)
         self.segment = max(1, min(segment or n_save, n_save))
         self.members = len(next(iter(values.values())))
         if method.closed_form:
@@ -105,7 +111,7 @@ class Launch:
             self.exact = lambda first, count: scene.exact(values, constants, np.arange(first, first + count) * spacing)
             return
         state0, rate = scene.inputs(values, constants)
-        self.layout = layout(scene, method, constants, block)
+        self.layout = layout(scene, method, constants, block, self.events)
         self.kernel = kernels.kernel(scene, method, constants, self.layout)
         block = self.layout.block
         limit = blowup_limits(state0, blowup_factor)
@@ -124,6 +130,12 @@ class Launch:
         self.status, self.failure_time = np.zeros(padded), np.empty(padded)
         self.progress = np.zeros(blocks, dtype=np.int64)
         self.counts = np.zeros((3, padded)) if method.adaptive else None  # fixed steps are counted afterwards
+        if self.events:
+            kept = max(event.count for event in self.events)
+            self.event_spec = np.array([(e.level, e.sign, float(e.stop), e.count) for e in self.events])
+            self.event_times = np.empty((len(self.events), kept, padded))
+            self.event_counts = np.empty((len(self.events), padded))
+            self.stopped = np.empty((self.state_rows, padded))
 
     def segments(self, threads: int | None = None, watch=None, resume: tuple[int, dict] | None = None):
         """Run the kernel (or evaluate the closed form) from the start, on `threads` threads (default
@@ -142,6 +154,7 @@ class Launch:
         self.status[:] = 0.0
         self.failure_time[:] = np.nan
         self.works[:] = 0.0
+
         if self.method.adaptive:
             self.counts[:] = 0.0
             head = (self.state0, self.rate, self.control, float(self.save_dt), self.limit)
@@ -149,6 +162,9 @@ class Launch:
         else:
             head = (self.state0, self.rate, float(self.dt), int(self.steps_per_save), self.limit)
             tail = (self.status, self.failure_time, self.progress, self.works)
+        if self.events:
+            self.event_times[:], self.event_counts[:], self.stopped[:] = np.nan, 0.0, np.nan
+            tail += ((self.event_spec, self.event_times, self.event_counts, self.stopped),)
         for name, value in (resume[1] if resume else {}).items():
             getattr(self, name)[:] = value
         for first in range(first_sample, self.n_save, self.segment):
@@ -171,6 +187,7 @@ class Launch:
         if self.method.closed_form:
             return {}
         names = ("works", "status", "failure_time") + (("counts",) if self.method.adaptive else ())
+        names += ("event_times", "event_counts", "stopped") if self.events else ()
         return {name: getattr(self, name).copy() for name in names}
 
     def takes(self, state: dict[str, np.ndarray]) -> bool:
@@ -191,13 +208,17 @@ class Launch:
         n = self.members
         if self.method.closed_form:
             return Outcome(samples, np.zeros((3, n), dtype=np.int64), np.zeros(n, dtype=np.int8), np.full(n, np.nan))
-        failure_time = self.failure_time[:n].copy()
+        ended = self.failure_time[:n].copy()  # a failure's time, or a stop's (ensemble.engine.events)
         if self.method.adaptive:
             counts = self.counts[:, :n].astype(np.int64)
         else:
-            counts = fixed_counts(self.method, self.scene, failure_time, self.dt,
-                                  self.steps_per_save * (self.n_save - 1))
-        return Outcome(samples, counts, self.status[:n].astype(np.int8), failure_time)
+            counts = fixed_counts(self.method, self.scene, ended, self.dt, self.steps_per_save * (self.n_save - 1))
+        failure_time = np.where(self.status[:n] == Status.STOPPED_BY_EVENT, np.nan, ended)
+        if not self.events:
+            return Outcome(samples, counts, self.status[:n].astype(np.int8), failure_time)
+        return Outcome(samples, counts, self.status[:n].astype(np.int8), failure_time,
+                       self.event_times[:, :, :n].copy(), self.event_counts[:, :n].astype(np.int64),
+                       self.stopped[:, :n].copy())
 
 
 class SceneRaised(EnsembleError):
@@ -259,7 +280,7 @@ def run_blocks(kernel, arguments: tuple, blocks: int, threads: int | None = None
 
 
 def prepare(scene, method: Method, constants: dict, device: str = "cpu", precision: str = "float64",
-            values: dict | None = None, block: int | None = None) -> None:
+            values: dict | None = None, block: int | None = None, events: tuple = ()) -> None:
     """Compile (or load from Numba's disk cache) the kernel of a stepping method, on one empty block of `block`
     members (None: block_size's; on a GPU, on the first member of `values`, saving only its start). A scene whose
     functions Numba cannot compile raises SceneError, one line saying why."""
@@ -270,7 +291,7 @@ def prepare(scene, method: Method, constants: dict, device: str = "cpu", precisi
             new_launch(scene, method, values, constants, n_save=1, save_dt=1.0, dt=values["dt"] if method.adaptive
                        else 1.0, rtol=values["rtol"], atol=values["atol"], device=device, precision=precision).run()
             return
-        _call_fresh(scene, method, constants, block)
+        _call_fresh(scene, method, constants, block, events)
     except Exception as error:  # Numba's errors (numba-cuda has classes of its own)
         if not type(error).__module__.startswith("numba"):
             raise
@@ -286,14 +307,14 @@ def _numba_cause(message: str) -> str:
     return (useful[0] if useful else lines[0])[:300]
 
 
-def _call_fresh(scene, method: Method, constants: dict, block: int | None = None) -> None:
+def _call_fresh(scene, method: Method, constants: dict, block: int | None = None, events: tuple = ()) -> None:
     """_call_once; where Numba's disk cache of the kernel cannot be loaded (a truncated or damaged file), its
     cache files are deleted, with one line said, and the kernel compiled again; where it cannot be written (a
     full disk, a folder that cannot be written), one line says so and the kernel compiled here is used."""
     try:
-        _call_once(scene, method, constants, block)
+        _call_once(scene, method, constants, block, events)
     except Exception as error:  # noqa: BLE001 (unpickling and LLVM's parser raise many kinds)
-        made = kernels.kernel(scene, method, constants, layout(scene, method, constants, block)).function
+        made = kernels.kernel(scene, method, constants, layout(scene, method, constants, block, events)).function
         files = cache_files(made)
         cannot_write = isinstance(error, OSError) and error.errno in CANNOT_WRITE
         if not files and not cannot_write:  # nothing was cached: the kernel does not compile
@@ -306,7 +327,7 @@ def _call_fresh(scene, method: Method, constants: dict, block: int | None = None
         else:
             print(f"ensemble: Numba's cache of the {method.name} kernel in {files[0].parent} could not be loaded "
                   f"({type(error).__name__}); compiling it again", file=sys.stderr, flush=True)
-        _call_once(scene, method, constants, block)
+        _call_once(scene, method, constants, block, events)
 
 
 CANNOT_WRITE = {errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES, errno.EPERM}  # a cache that cannot be saved
@@ -327,19 +348,23 @@ def cache_files(dispatcher) -> list[Path]:
     return sorted([*folder.glob(f"{stem}.nbi"), *folder.glob(f"{stem}.*.nbc")])
 
 
-def _call_once(scene, method: Method, constants: dict, block: int | None = None) -> None:
+def _call_once(scene, method: Method, constants: dict, block: int | None = None, events: tuple = ()) -> None:
     state_rows, rate_rows = scene.kernel_rows(constants)
-    chosen = layout(scene, method, constants, block)
+    chosen = layout(scene, method, constants, block, events)
     kernel, block = kernels.kernel(scene, method, constants, chosen), chosen.block
     works = np.zeros((1, kernel.rows * block))
     state0, rate = np.zeros((1, state_rows, block)), np.zeros((1, rate_rows, block))
     samples = np.empty((block, 1, state_rows))
     limit, status, failure_time, progress = np.ones(block), np.zeros(block), np.zeros(block), np.zeros(1, np.int64)
+    E = len(events)
+    watched = ((np.zeros((E, 4)), np.zeros((E, 1, block)), np.zeros((E, block)), np.zeros((state_rows, block))),
+               ) if events else ()
     if method.adaptive:
         kernel.function(state0, rate, np.ones((3, block)), 1.0, limit, samples, np.zeros((3, block)), status,
-                        failure_time, progress, works, 0, 0, 1)
+                        failure_time, progress, works, *watched, 0, 0, 1)
     else:
-        kernel.function(state0, rate, 1.0, 1, limit, samples, status, failure_time, progress, works, 0, 0, 1)
+        kernel.function(state0, rate, 1.0, 1, limit, samples, status, failure_time, progress, works, *watched, 0, 0,
+                        1)
 
 
 def _padded(arrays, block: int) -> tuple[np.ndarray, ...]:

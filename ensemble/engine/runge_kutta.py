@@ -38,17 +38,31 @@ def _stage_slopes(s, slopes, rhs, context):
 
 
 def members_interval(rhs, tableau, stage_loop):
-    """interval(like_y, like_p, work, B, i, h, steps_per_save) for frames.fixed_step: save interval i (its
-    steps_per_save steps of h, s) of a block of B members, each member's whole step at a time: state in work rows
+    """interval(like_y, like_p, work, B, i, h, steps_per_save, remember, watch, context) for frames.fixed_step:
+    save interval i (its steps_per_save steps of h, s) of a block of B members, each member's whole step at a
+    time, its events watched by remember and watch (ensemble.engine.events.fixed_watcher): state in work rows
     0 .. D - 1, parameters in D .. D + P - 1 (like_y, like_p: tuples of D and P). stage_loop: tuples.unrolled(S)."""
     stages, b = tableau
 
     @njit(inline="always", **FAST)
-    def interval(like_y, like_p, work, B, i, h, steps_per_save):
+    def interval(like_y, like_p, work, B, i, h, steps_per_save, remember, watch, context):
         D = len(like_y)
         for n in range(steps_per_save):
             t = ((i - 1) * steps_per_save + n) * h
             for j in range(B):
                 y, p = loaded(work, 0, B, j, like_y), loaded(work, D, B, j, like_p)
+                remember(work, B, j, y)
                 stored(work, 0, B, j, step(rhs, t, h, y, p, stages, b, stage_loop))
+            watch(like_y, like_p, work, B, t, h, context)
     return interval
+
+
+def advance_of(rhs, tableau, stage_loop):
+    """advance(t0, h, y0, p): one member's step of h (s) from (t0, y0), the method's own path through a step
+    (ensemble.engine.events locates crossings on it)."""
+    stages, b = tableau
+
+    @njit(inline="always", **FAST)
+    def advance(t0, h, y0, p):
+        return step(rhs, t0, h, y0, p, stages, b, stage_loop)
+    return advance

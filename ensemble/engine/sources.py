@@ -6,7 +6,7 @@ from functools import cache
 from pathlib import Path
 
 ENGINE_SOURCES = ("blocks.py", "tuples.py", "frames.py", "runge_kutta.py", "adaptive.py", "control.py",
-                  "splitting.py", "../results.py")
+                  "splitting.py", "events.py", "../results.py")
 CODE_LINE = "# ---------------------------------------------------------------- CODE"
 
 

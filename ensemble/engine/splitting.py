@@ -60,24 +60,27 @@ def sequence_factors(entries: tuple, compiled=_inlined):
 
 
 def members_interval(step, factors, like_factors, entered=None, left=None):
-    """interval(like_y, like_p, work, B, i, h, steps_per_save) for frames.fixed_step: save interval i (its
-    steps_per_save steps of h, s) of a block of B members, a step of all its members at a time. Work rows: state
+    """interval(like_y, like_p, work, B, i, h, steps_per_save, remember, watch, context) for frames.fixed_step:
+    save interval i (its steps_per_save steps of h, s) of a block of B members, a step of all its members at a
+    time, its events watched by remember and watch (ensemble.engine.events.fixed_watcher). Work rows: state
     (D), parameters (P), then each entry's factors (shaped like like_factors). step, factors: sequence_step and
     sequence_factors of the method's sequence; entered, left: a scene's to_pieces and from_pieces (both or
     neither), applied to each member before and after the interval's steps."""
     @njit(inline="always", **FAST)
-    def steps(like_y, like_p, work, B, h, steps_per_save):
+    def steps(like_y, like_p, work, B, i, h, steps_per_save, remember, watch, context):
         D, P = len(like_y), len(like_p)
         for j in range(B):
             stored(work, D + P, B, j, factors(h, loaded(work, D, B, j, like_p)))
-        for _ in range(steps_per_save):
+        for n in range(steps_per_save):
             for j in range(B):
                 y, p = loaded(work, 0, B, j, like_y), loaded(work, D, B, j, like_p)
+                remember(work, B, j, y)
                 stored(work, 0, B, j, converted(step(h, y, p, loaded(work, D + P, B, j, like_factors)), y))
+            watch(like_y, like_p, work, B, ((i - 1) * steps_per_save + n) * h, h, context)
     if entered is None:
         @njit(inline="always", **FAST)
-        def interval(like_y, like_p, work, B, i, h, steps_per_save):
-            steps(like_y, like_p, work, B, h, steps_per_save)
+        def interval(like_y, like_p, work, B, i, h, steps_per_save, remember, watch, context):
+            steps(like_y, like_p, work, B, i, h, steps_per_save, remember, watch, context)
         return interval
 
     @njit(inline="always", **FAST)
@@ -87,9 +90,9 @@ def members_interval(step, factors, like_factors, entered=None, left=None):
             stored(work, 0, B, j, converted(change(*y, *p), y))
 
     @njit(inline="always", **FAST)
-    def interval_changed(like_y, like_p, work, B, i, h, steps_per_save):
+    def interval_changed(like_y, like_p, work, B, i, h, steps_per_save, remember, watch, context):
         changed(entered, like_y, like_p, work, B)
-        steps(like_y, like_p, work, B, h, steps_per_save)
+        steps(like_y, like_p, work, B, i, h, steps_per_save, remember, watch, context)
         changed(left, like_y, like_p, work, B)
     return interval_changed
 
@@ -101,3 +104,21 @@ def interval_of(pieces: tuple, factors: tuple, to_pieces, from_pieces, sequence:
     step = sequence_step(tuple((pieces[number], fraction) for number, fraction in sequence))
     factor_values = sequence_factors(tuple((factors[number], fraction) for number, fraction in sequence))
     return members_interval(step, factor_values, like_factors, to_pieces, from_pieces)
+
+
+def advance_of(pieces: tuple, factors: tuple, to_pieces, from_pieces, sequence: tuple):
+    """advance(t0, h, y0, p): one member's step of h (s) from y0 in the scene's coordinates (interval_of's
+    arguments), the splitting's own path through a step (ensemble.engine.events locates crossings on it)."""
+    step = sequence_step(tuple((pieces[number], fraction) for number, fraction in sequence))
+    factor_values = sequence_factors(tuple((factors[number], fraction) for number, fraction in sequence))
+    if to_pieces is None:
+        @njit(inline="always", **FAST)
+        def advance(t0, h, y0, p):
+            return converted(step(h, y0, p, factor_values(h, p)), y0)
+        return advance
+
+    @njit(inline="always", **FAST)
+    def advance_changed(t0, h, y0, p):
+        z = converted(step(h, converted(to_pieces(*y0, *p), y0), p, factor_values(h, p)), y0)
+        return converted(from_pieces(*z, *p), y0)
+    return advance_changed

@@ -16,6 +16,8 @@ Optional:
 - exact(t, *state0, *parameters): the closed form with numpy broadcasting (t is a column (times, 1), every
   other argument a row (1, members)), a tuple of len(STATE) arrays; it gives the `exact` method and
   [measure] error;
+- EVENTS, and for each name `event_<name>(t, *state, *parameters)`: a value whose crossings a run file's
+  [events] can watch (`of = "<name>"`) where no state variable says it;
 - check(values): raise ensemble.ParameterError(name, problem) for a value no member can have;
 - fit(ds): the scene's fit of a result, an xarray.Dataset (its theory against what was measured);
 - charts(plt, ds, fits, rows, stem, members): the scene's own charts of that fit for `ensemble fit --charts`,
@@ -222,6 +224,10 @@ class UserScene:
         self.rates = [name for name in self.PARAMETERS if name not in self.starts]
         self.OBSERVABLES = {name: (("member", "t"), units, long_name)
                             for name, (units, long_name) in self.STATE.items()}
+        self.EVENTS = tuple(getattr(module, "EVENTS", ()))
+        self.EVENT_VALUES = {name: ("state", k) for k, name in enumerate(self.STATE)}  # ensemble.events
+        self.EVENT_VALUES.update({name: ("function", f"event_{name}") for name in self.EVENTS
+                                  if isinstance(name, str)})
         if hasattr(module, "exact"):
             self.exact = self._exact
         if hasattr(module, "fit"):
@@ -400,6 +406,7 @@ def _check(scene: UserScene) -> None:
         _compiled_helpers(where, module, piece)
         _returns(where, getattr(module, piece), piece, [0.5] + [1.0] * (len(arguments) - 1 + len(factors)),
                  len(scene.STATE))
+    _check_events(scene, arguments)
     if hasattr(module, "exact"):
         _signature(where, module.exact, "exact", ["t", *scene.starts, *scene.rates])
         _exact_returns(where, module.exact, len(scene.STATE), len(scene.starts) + len(scene.rates))
@@ -408,6 +415,24 @@ def _check(scene: UserScene) -> None:
         missing = [name for name in STABILITY if name not in declared]
         raise SceneError(f"{where}: it declares {', '.join(declared)} for stability maps, but not "
                          f"{', '.join(missing)}")
+
+
+def _check_events(scene: UserScene, arguments: list[str]) -> None:
+    """EVENTS: names, each with its event_<name>(t, *state, *parameters) returning one number."""
+    where, module = scene.PHYSICS, scene.module
+    for name in scene.EVENTS:
+        if not (isinstance(name, str) and name.isidentifier() and name.isascii()):
+            raise SceneError(f"{where}: EVENTS holds {name!r}, not a name (letters, digits and _)")
+        if name in scene.STATE:
+            raise SceneError(f"{where}: EVENTS names {name!r}, a state variable, which events watch already")
+        function = getattr(module, f"event_{name}", None)
+        if function is None:
+            raise SceneError(f"{where}: EVENTS names {name!r}, but the file has no function event_{name}")
+        _signature(where, function, f"event_{name}", arguments)
+        _compiled_helpers(where, module, f"event_{name}")
+        value = _returns(where, function, f"event_{name}", [0.0] + [1.0] * (len(arguments) - 1))
+        if len(value) != 1:
+            raise SceneError(f"{where}: event_{name} must return one number, got {len(value)}")
 
 
 def _exact_returns(where: str, exact, size: int, arguments: int) -> None:

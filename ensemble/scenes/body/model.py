@@ -50,6 +50,11 @@ OBSERVABLES: dict[str, tuple[tuple[str, ...], str, str]] = {
     "angular_momentum": (("member", "t"), "kg m2 s-1", "magnitude of the angular momentum |L|"),
 }
 
+# What events can watch (ensemble.events): omega's components are the kernel's state rows 0..2, the energy and |L|
+# physics' value_ functions. (The tilt is measured from each member's spin axis, which the kernels do not hold.)
+EVENT_VALUES = {"omega": ("state", 0), "energy": ("function", "value_energy"),
+                "angular_momentum": ("function", "value_angular_momentum")}
+
 _FLAT_BODY_RTOL = 1e-9  # a flat body sits exactly on the triangle inequality lambda3 = lambda1 + lambda2
 
 

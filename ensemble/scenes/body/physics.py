@@ -19,6 +19,17 @@ def rhs(t, w1, w2, w3, a1, a2, a3, r1, r2, r3, lambda1, lambda2, lambda3, invers
     return a1 * w2 * w3 - r1 * w1, a2 * w3 * w1 - r2 * w2, a3 * w1 * w2 - r3 * w3
 
 
+def value_energy(t, w1, w2, w3, a1, a2, a3, r1, r2, r3, lambda1, lambda2, lambda3, inverse1, inverse2, inverse3):
+    """One member's kinetic energy 1/2 sum lambda_i w_i^2 (J): what events watch with of = "energy"."""
+    return 0.5 * (lambda1 * w1 * w1 + lambda2 * w2 * w2 + lambda3 * w3 * w3)
+
+
+def value_angular_momentum(t, w1, w2, w3, a1, a2, a3, r1, r2, r3, lambda1, lambda2, lambda3, inverse1, inverse2,
+                           inverse3):
+    """One member's |L| (kg m2 s-1): what events watch with of = "angular_momentum"."""
+    return math.sqrt((lambda1 * w1) ** 2 + (lambda2 * w2) ** 2 + (lambda3 * w3) ** 2)
+
+
 @njit(inline="always", **FAST)  # a helper of the pieces: compiled, as what they call must be
 def turn(x, y, angle):
     """(x, y) turned by -angle: the pair of L across a body axis under that axis' piece L_i^2 / (2 lambda_i)."""

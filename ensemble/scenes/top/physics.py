@@ -72,6 +72,11 @@ def _tilt_and_transverse(w1, w2, w3):
     return (on_axis if transverse == 0.0 and w3 == 0.0 else angle), transverse
 
 
+def value_tilt(t, w1, w2, w3, p, r1, r3):
+    """One member's tilt (rad), the value a run file's events watch with of = "tilt" (ensemble.events)."""
+    return _tilt_and_transverse(w1, w2, w3)[0]
+
+
 @njit(cache=True, nogil=True, **OBSERVING)
 def observed_tilt(omega):
     """Tilt (rad), (members, t), of member-major rates omega (members, t, 3) rad/s (see model.tilt)."""

@@ -1,0 +1,319 @@
+"""Events: the times at which a function of a member's state crosses a level, each located within its step, and
+members that stop at one. Written once for the CPU's member families (ensemble.engine.frames calls them around a
+family's steps); a kernel without events calls NO_BEGIN, NO_REMEMBER and NO_WATCH (NO_ADAPTIVE_WATCH), which
+are nothing.
+
+An event's value is a function value(t, y, p) -> float of a member's time (s), state and parameters (tuples):
+a state component, a scene's observable, or a scene's own event function (`value_functions` makes them). A kernel
+with E events evaluates all of them at once, `values(t, y, p)` -> E floats (`values_chain`), at the end of every
+step, and compares them with their values at the step's start. Where one crossed its level in its direction, the
+crossing is found on the method's own path through the step: the state at t0 + s h is the method's step of s h
+from the step's start (t0, y0), `advance(t0, s h, y0, p)` (each family's advance_of), by the Illinois variant of
+regula falsi, to the last bits of the step's time. The event's time is then as accurate as the method's states:
+a cubic Hermite of the step's ends was not (a top's split4, exact but for rounding, put its tilt events 1e-10 s
+off, 20 times its own error), and dopri5's fourth-order dense output would not be either at a loose tolerance.
+
+A kernel call's events are a tuple (spec, times, counts, stopped):
+- spec (E, 4): per event its level, direction (+1 up: from below to level or above; -1 down; 0 both), stop
+  (1: the member stops at its first occurrence) and count (occurrences kept);
+- times (E, count, members), s: the first `count` occurrences of each event per member (count: the largest),
+  NaN where fewer occurred (filled by the caller);
+- counts (E, members): every occurrence so far, kept or not (floats);
+- stopped (D, members): a stopped member's state at its event, in the scene's coordinates (NaN elsewhere).
+A stopped member's status is STOPPED (results.Status.STOPPED_BY_EVENT), its state NaN after its event, so that
+its later samples are NaN and its block's steps carry it as they carry a failed member.
+
+Work rows from a kernel's `first` event row: fixed steps keep the levels and directions, the values at the
+step's end and start, the state at its start and a flag row (`fixed_watcher`); adaptive kernels G and GNEW (E
+each: the values at the step's start and end; its states are in rows 0 and NEW).
+"""
+from __future__ import annotations
+
+from functools import cache
+
+import numpy as np
+from numba import njit
+
+from ..results import Status
+from .blocks import ERR, FAST, REJECTED_LAST, STEP, TIME, H, select
+from .tuples import converted, loaded, stored
+
+STOPPED = int(Status.STOPPED_BY_EVENT)
+ROOT_ITERATIONS = 80  # Illinois steps at most; it converges superlinearly, in a dozen for a smooth crossing
+
+
+def _inlined(function):
+    return njit(inline="always", **FAST)(function)
+
+
+@cache
+def component(k: int, compiled=_inlined):
+    """value(t, y, p) = y[k]: a state component."""
+    def value(t, y, p):
+        return y[k]
+    return compiled(value)
+
+
+@cache
+def function_value(function, index: int, compiled=_inlined):
+    """value(t, y, p) = function(t, *y, *p), or its value `index` where index >= 0 (a vector observable)."""
+    if index < 0:
+        def value(t, y, p):
+            return float(function(t, *y, *p))
+    else:
+        def value(t, y, p):
+            return float(function(t, *y, *p)[index])
+    return compiled(value)
+
+
+@cache
+def values_chain(functions: tuple, compiled=_inlined):
+    """values(t, y, p) -> (functions[0](t, y, p), functions[1](t, y, p), ..): every event's value, written out."""
+    if not functions:
+        def values(t, y, p):
+            return ()
+        return compiled(values)
+    previous, last = values_chain(functions[:-1], compiled), functions[-1]
+
+    def values(t, y, p):
+        return previous(t, y, p) + (last(t, y, p),)
+    return compiled(values)
+
+
+# ---------------------------------------------------------------- one member's crossings
+
+@njit(inline="always", **FAST)
+def crossed(before, after, level, direction):
+    """Whether a value went from `before` to `after` across `level` in `direction` (+1 up, -1 down, 0 either):
+    up from below to the level or above, down from above to the level or below (a value resting on the level
+    crosses once). False for NaN."""
+    up = (before < level) & (after >= level)
+    down = (before > level) & (after <= level)
+    return (up & (direction >= 0.0)) | (down & (direction <= 0.0))
+
+
+@njit(inline="always", **FAST)
+def user_state(to_user, y, p):
+    """A member's state in the scene's coordinates (a splitting's from_pieces, or None: as it is)."""
+    if to_user is None:
+        return y
+    return converted(to_user(*y, *p), y)
+
+
+@njit(inline="always", **FAST)  # inlined: a function handed to a call of its own makes a kernel uncacheable
+def root(values, advance, e, level, t0, h, y0, p, before, after):
+    """The fraction s of a step of h (s) from t0 (s) and state y0 at which event e's value on the method's path
+    (advance) reaches `level`, its values at the ends before and after on either side of it: Illinois regula
+    falsi."""
+    a, b, ga, gb = 0.0, 1.0, before - level, after - level
+    if gb == 0.0:
+        return 1.0
+    side = 0
+    s = 1.0
+    for _ in range(ROOT_ITERATIONS):
+        s = (a * gb - b * ga) / (gb - ga)
+        if not (a < s < b):
+            s = 0.5 * (a + b)
+        if not (a < s < b):
+            break  # a and b are neighbouring floats
+        g = values(t0 + s * h, advance(t0, s * h, y0, p), p)[e] - level
+        if g == 0.0:
+            return s
+        if (g > 0.0) == (gb > 0.0):
+            b, gb = s, g
+            if side == 1:
+                ga *= 0.5
+            side = 1
+        else:
+            a, ga = s, g
+            if side == -1:
+                gb *= 0.5
+            side = -1
+        if b - a <= 1e-15:
+            break
+    return b  # the first point known to have crossed
+
+
+@cache
+def locator(values, advance):
+    """located(spec, times, counts, stopped, member, t0, h, y0, p, before, after) for an event kernel of
+    `values` and a family's `advance`: every event of one member that crossed within its step of h (s) from t0
+    (s) and state y0 (before, after:
+    each event's values at the step's ends, tuples of E) is located (`root`) and recorded in times and counts, but
+    those after the step's first stopping event, at which the member's state goes to `stopped`. Returns the
+    stopping time (s), or NaN where the member goes on. A function of its own, called where an event occurred:
+    inlined into the members' loop, it tripled the kernel's compile time."""
+    @njit(**FAST)
+    def located(spec, times, counts, stopped, member, t0, h, y0, p, before, after):
+        E = spec.shape[0]
+        fractions = np.full(E, 2.0)
+        stop = 2.0
+        for e in range(E):
+            if crossed(before[e], after[e], spec[e, 0], spec[e, 1]):
+                fractions[e] = root(values, advance, e, spec[e, 0], t0, h, y0, p, before[e], after[e])
+                if spec[e, 2] > 0.0:
+                    stop = min(stop, fractions[e])
+        for e in range(E):
+            if fractions[e] <= min(stop, 1.0):
+                kept = int(counts[e, member])
+                if kept < spec[e, 3]:
+                    times[e, kept, member] = t0 + fractions[e] * h
+                counts[e, member] += 1.0
+        if stop > 1.0:
+            return np.nan
+        stored(stopped, 0, stopped.shape[1], member, advance(t0, stop * h, y0, p))
+        return t0 + stop * h
+    return located
+
+
+@njit(inline="always", **FAST)
+def any_crossed(before, after, levels, directions):
+    """Whether any event crossed (`crossed`): tuples of E values each, E a constant (the loop is written out)."""
+    hit = False
+    for e in range(len(before)):
+        hit |= crossed(before[e], after[e], levels[e], directions[e])
+    return hit
+
+
+@njit(inline="always", **FAST)
+def levels_and_directions(spec, like_g):
+    """spec's levels and directions as tuples shaped like like_g (E values): constants of a block's loops, which
+    LLVM need not load again after each store into the work array."""
+    return loaded(spec, 0, 4, 0, like_g), loaded(spec, 0, 4, 1, like_g)
+
+
+# ---------------------------------------------------------------- the frames' calls
+
+
+@njit(inline="always", **FAST)
+def NO_BEGIN(like_y, like_p, work, B, context):
+    """A kernel without events: nothing at the start."""
+
+
+@njit(inline="always", **FAST)
+def NO_REMEMBER(work, B, j, y):
+    """A fixed-step kernel without events: nothing kept of a member's step."""
+
+
+@njit(inline="always", **FAST)
+def NO_WATCH(like_y, like_p, work, B, t, h, context):
+    """A fixed-step kernel without events: nothing after a step."""
+
+
+@njit(inline="always", **FAST)
+def NO_ADAPTIVE_WATCH(like_y, like_p, work, B, K, NEW, C0, S, context):
+    """An adaptive kernel without events: nothing after a step's control."""
+
+
+def fixed_watcher(values, advance, to_user, first: int, E: int):
+    """(begin, remember, watch) for a fixed-step kernel (ensemble.engine.frames.fixed_step) whose E events' rows
+    start at `first`: the events' levels and directions (E rows each, the same in every member's column: loads
+    from the work array, which LLVM knows no store to it changes), their values at the step's end and start (E
+    rows each), the state at the step's start (D rows), and a row flagging a member whose event crossed.
+
+    begin(like_y, like_p, work, B, context) at t = 0. In a family's loop over a block's members, remember(work,
+    B, j, y) keeps a member's state before its step (y, in the family's coordinates). After that loop,
+    watch(like_y, like_p, work, B, t, h, context) evaluates every member's events at its new state (to_user: a
+    splitting's from_pieces to the scene's coordinates, or None) in a loop of its own, and where one crossed
+    (counted in an integer: a float sum, which LLVM may not reorder, kept the loop from vectorizing) locates that
+    member's events on advance(t0, h, y0, p), the family's step in the scene's coordinates
+    (runge_kutta.advance_of, splitting.advance_of); the member stops at the first that stops it. Every row is
+    stored whole: a store of a value selected against what the row held became a masked store (vmaskmovpd, slow
+    on AMD Zen 3), and rows chosen at run time kept LLVM from proving a block's members apart. In the members'
+    loop of the step itself the events cost more: a top's tilt, a call there, kept the step from vectorizing.
+    context: (events, status, failure_time, j0) as frames hands it."""
+    located, like_g = locator(values, advance), (0.0,) * E
+    LEVELS, DIRECTIONS, G, BEFORE, OLD = first, first + E, first + 2 * E, first + 3 * E, first + 4 * E
+
+    @njit(inline="always", **FAST)
+    def begin(like_y, like_p, work, B, context):
+        D, spec = len(like_y), context[0][0]
+        for j in range(B):
+            y, p = loaded(work, 0, B, j, like_y), loaded(work, D, B, j, like_p)
+            stored(work, LEVELS, B, j, loaded(spec, 0, 4, 0, like_g))
+            stored(work, DIRECTIONS, B, j, loaded(spec, 0, 4, 1, like_g))
+            stored(work, G, B, j, values(0.0, y, p))
+
+    @njit(inline="always", **FAST)
+    def remember(work, B, j, y):
+        stored(work, OLD, B, j, y)
+
+    @njit(inline="always", **FAST)
+    def watch(like_y, like_p, work, B, t, h, context):
+        (spec, times, counts, stopped), status, failure_time, j0 = context
+        D = len(like_y)
+        FLAG = OLD + D
+        hits = 0
+        for j in range(B):
+            p = loaded(work, D, B, j, like_p)
+            levels, directions = loaded(work, LEVELS, B, j, like_g), loaded(work, DIRECTIONS, B, j, like_g)
+            before = loaded(work, G, B, j, like_g)
+            after = values(t + h, user_state(to_user, loaded(work, 0, B, j, like_y), p), p)
+            hit = any_crossed(before, after, levels, directions)
+            stored(work, G, B, j, after)
+            stored(work, BEFORE, B, j, before)
+            work[FLAG * B + j] = select(hit, 1.0, 0.0)
+            hits += hit
+        if hits == 0:
+            return
+        for j in range(B):
+            if work[FLAG * B + j] != 0.0:
+                y, p = loaded(work, OLD, B, j, like_y), loaded(work, D, B, j, like_p)
+                when = located(spec, times, counts, stopped, j0 + j, t, h, user_state(to_user, y, p), p,
+                               loaded(work, BEFORE, B, j, like_g), loaded(work, G, B, j, like_g))
+                if when == when:
+                    _stop(work, 0, D, B, j, status, failure_time, j0, when)
+    return begin, remember, watch
+
+
+def adaptive_watcher(values, advance, first: int, E: int):
+    """(begin, watch) for an adaptive kernel (ensemble.engine.frames.adaptive) whose event rows start at
+    `first`: begin(like_y, like_p, work, B, context) at t = 0; watch(like_y, like_p, work, B, K, NEW, C0, S,
+    context) after control_step, before the accepted steps move to their new states. advance: the pair's step
+    (adaptive.advance_of). E: the events' count."""
+    located, like_g = locator(values, advance), (0.0,) * E
+
+    @njit(inline="always", **FAST)
+    def begin(like_y, like_p, work, B, context):
+        D = len(like_y)
+        for j in range(B):
+            y, p = loaded(work, 0, B, j, like_y), loaded(work, D, B, j, like_p)
+            stored(work, first, B, j, values(0.0, y, p))
+
+    @njit(inline="always", **FAST)
+    def watch(like_y, like_p, work, B, K, NEW, C0, S, context):
+        (spec, times, counts, stopped), status, failure_time, j0 = context
+        D = len(like_y)
+        G, GNEW = first, first + E
+        levels, directions = levels_and_directions(spec, like_g)
+        hits = 0
+        for j in range(B):
+            accepted = (work[(C0 + REJECTED_LAST) * B + j] == 0.0) & (work[(C0 + ERR) * B + j] >= 0.0)
+            p, before = loaded(work, D, B, j, like_p), loaded(work, G, B, j, like_g)
+            after = values(work[(C0 + TIME) * B + j], loaded(work, NEW, B, j, like_y), p)
+            for e in range(E):
+                work[(GNEW + e) * B + j] = select(accepted, after[e], before[e])
+            hits += accepted & any_crossed(before, after, levels, directions)
+        if hits:
+            for j in range(B):
+                before, after = loaded(work, G, B, j, like_g), loaded(work, GNEW, B, j, like_g)
+                if any_crossed(before, after, levels, directions):
+                    p, y0 = loaded(work, D, B, j, like_p), loaded(work, 0, B, j, like_y)
+                    t1, h = work[(C0 + TIME) * B + j], work[(C0 + STEP) * B + j]
+                    when = located(spec, times, counts, stopped, j0 + j, t1 - h, h, y0, p, before, after)
+                    if when == when:
+                        _stop(work, NEW, D, B, j, status, failure_time, j0, when)
+                        work[(C0 + H) * B + j] = 0.0  # no further steps
+        for j in range(B):
+            stored(work, G, B, j, loaded(work, GNEW, B, j, like_g))
+    return begin, watch
+
+
+@njit(inline="always", **FAST)
+def _stop(work, row, D, B, j, status, failure_time, j0, when):
+    """Member j stops at an event at time `when` (s): status STOPPED, its state rows from `row` NaN, the time in
+    failure_time (the launch counts its steps up to it, then clears it: a stop is not a failure)."""
+    status[j0 + j] = STOPPED
+    failure_time[j0 + j] = when
+    for c in range(D):
+        work[(row + c) * B + j] = np.nan

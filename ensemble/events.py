@@ -1,0 +1,130 @@
+"""A run's events, from its run file to its result: the [events.<name>] tables checked (`parse`), and the result's
+variables they add (`variables`, `records`). The kernels locate them (ensemble.engine.events).
+
+    [events.tip]          # the event's name in the result
+    of = "tilt"           # a saved variable of the scene, or one of its EVENTS (a vector takes `index = k`)
+    value = 0.6           # the level it crosses (default 0)
+    direction = "up"      # "up", "down" or "both" (the default)
+    count = 1             # occurrences kept per member (default 1)
+    stop = true           # the member stops at its first occurrence (default false)
+
+The result gains tip_time(member, tip) (s; NaN where fewer occurred), tip_count(member) (every occurrence, kept
+or not) and, where an event stops its members, each saved variable's value at the stop, <variable>_at_stop.
+
+A scene says what its events can watch in EVENT_VALUES: name -> ("state", first row) for a state variable (a
+vector's components follow), or ("function", name of a function in its physics, f(t, *state, *parameters) -> a
+value or a vector's values).
+"""
+from __future__ import annotations
+
+import re
+
+import numpy as np
+
+from .results import Event
+from .runfile import SpecError, expect, unknown
+
+KEYS = {"of": str, "value": float, "direction": str, "count": int, "stop": bool, "index": int}
+DIRECTIONS = ("up", "down", "both")
+MAX_COUNT = 10_000  # occurrences kept per member: each is 8 bytes a member in the result
+NAME = re.compile(r"[A-Za-z][A-Za-z0-9_]*\Z")
+
+
+def parse(table: dict, scene, constants: dict, taken: set[str]) -> tuple[Event, ...]:
+    """The run file's [events] table as Events, checked against the scene (its EVENT_VALUES, OBSERVABLES and
+    sizes for `constants`); `taken`: the result's other names, which an event's variables must not clash with.
+    SpecError names the first bad key."""
+    events = []
+    if expect("events", table, dict) and scene.SITES:
+        raise SpecError("events", f"scene {scene.NAME!r} is a field of sites, whose kernels have no events yet")
+    for name, entry in table.items():
+        key = f"events.{name}"
+        entry = expect(key, entry, dict)
+        if not NAME.match(name):
+            raise SpecError(key, "an event's name must be a letter then letters, digits or _ (it names the "
+                                 "result's variables)")
+        for inner in entry:
+            if inner not in KEYS:
+                raise unknown(f"{key}.{inner}", inner, KEYS)
+        given = {inner: expect(f"{key}.{inner}", value, KEYS[inner]) for inner, value in entry.items()}
+        if "of" not in given:
+            raise SpecError(f"{key}.of", "is missing: the variable whose crossing is the event")
+        clash = {f"{name}_time", f"{name}_count", name} & taken
+        if clash:
+            raise SpecError(key, f"its variable {sorted(clash)[0]!r} would clash with the result's own; rename it")
+        direction = given.get("direction", "both")
+        if direction not in DIRECTIONS:
+            raise SpecError(f"{key}.direction", f"must be one of {', '.join(map(repr, DIRECTIONS))}, got "
+                                                f"{direction!r}")
+        count = given.get("count", 1)
+        if not 1 <= count <= MAX_COUNT:
+            raise SpecError(f"{key}.count", f"must be in 1..{MAX_COUNT} (occurrences kept per member), got {count}")
+        index, source = _source(key, given["of"], given.get("index"), scene, constants)
+        events.append(Event(name, given["of"], index, source, float(given.get("value", 0.0)), direction, count,
+                            given.get("stop", False)))
+        taken = taken | {f"{name}_time", f"{name}_count", name}
+    return tuple(events)
+
+
+def _source(key: str, of: str, index: int | None, scene, constants: dict) -> tuple[int, tuple]:
+    """(index or -1, the kernels' value: ("state", row) or ("function", name, index or -1)) of `of`."""
+    known = getattr(scene, "EVENT_VALUES", {})
+    if of not in known:
+        saved = [name for name in scene.OBSERVABLES if name not in known]
+        why = f"; {', '.join(saved)} cannot be watched yet" if saved else ""
+        raise SpecError(f"{key}.of", f"unknown variable {of!r}; {scene.NAME}'s events watch: "
+                                     f"{', '.join(known) or 'nothing'}{why}")
+    dims = scene.OBSERVABLES[of][0] if of in scene.OBSERVABLES else ("member", "t")
+    vector = dims[2:]
+    if vector:
+        size = scene.sizes(constants)[vector[0]]
+        if index is None:
+            raise SpecError(f"{key}.index", f"{of!r} is a vector over {vector[0]}: say which value, index = 0.."
+                                            f"{size - 1}")
+        if not 0 <= index < size:
+            raise SpecError(f"{key}.index", f"must be in 0..{size - 1} ({of!r} has {size} values), got {index}")
+    elif index is not None:
+        raise SpecError(f"{key}.index", f"{of!r} is a single value: leave index out")
+    index = -1 if index is None else index
+    kind, where = known[of]
+    return index, (("state", where + max(index, 0)) if kind == "state" else ("function", where, index))
+
+
+def variables(events: tuple[Event, ...], scene, save: tuple[str, ...]) -> dict[str, tuple]:
+    """The result's variables of `events`: name -> (type, dims, units, long_name, comment). Per event
+    <name>_time (member, <name>) and <name>_count (member,); where an event stops members, each saved variable
+    at the stop, <variable>_at_stop (its dims but t)."""
+    out = {}
+    for e in events:
+        what = f"{e.of}[{e.index}]" if e.index >= 0 else e.of
+        crossing = {"up": "rises to", "down": "falls to", "both": "crosses"}[e.direction]
+        out[f"{e.name}_time"] = ("f8", ("member", e.name), "s", f"time of {e.name}",
+                                 f"the first {e.count} times at which {what} {crossing} {e.level:g}, located on "
+                                 f"each step's interpolant; NaN where fewer occurred")
+        out[f"{e.name}_count"] = ("i8", ("member",), "1", f"occurrences of {e.name}", "every occurrence, kept in "
+                                  f"{e.name}_time or not" + ("; at most 1: the member stops there" if e.stop else ""))
+    if any(e.stop for e in events):
+        for name in save:
+            dims, units, long_name = scene.OBSERVABLES[name]
+            out[f"{name}_at_stop"] = ("f8", tuple(d for d in dims if d != "t"), units, f"{long_name} at stop",
+                                      "at the event that stopped the member (status stopped_by_event); NaN for "
+                                      "the others")
+    return out
+
+
+def dimensions(events: tuple[Event, ...]) -> dict[str, int]:
+    """The result's dimensions of `events`: each one's kept occurrences."""
+    return {e.name: e.count for e in events}
+
+
+def records(events: tuple[Event, ...], outcome, scene, save: tuple[str, ...], values: dict,
+            constants: dict) -> dict[str, np.ndarray]:
+    """The per-member values of `variables` from a launch's Outcome (member first)."""
+    out = {}
+    for e, times, counts in zip(events, outcome.event_times, outcome.event_counts):
+        out[f"{e.name}_time"] = np.ascontiguousarray(times[:e.count].T)
+        out[f"{e.name}_count"] = counts
+    if any(e.stop for e in events) and save:
+        at_stop = scene.observe(outcome.stopped[None], save, values, constants)
+        out.update({f"{name}_at_stop": np.ascontiguousarray(value[:, 0]) for name, value in at_stop.items()})
+    return out

@@ -1,0 +1,196 @@
+"""Events (ensemble.events, ensemble.engine.events): each member's crossings located within its steps, against
+closed forms: the pendulum's zero crossings (2 j + 1) K(m) / omega0 and the time its bob falls through a height
+(an event function of the scene's own), a prolate top's tilt reaching a level; members that stop at an event;
+runs that keep events alone; bad [events] tables refused in one line."""
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import xarray as xr
+
+from ensemble import cli
+from ensemble.engine import launch
+from ensemble.methods import METHODS
+from ensemble.results import Event, Status
+from ensemble.scenes import resolve
+from ensemble.scenes.top.model import tilt_theory
+
+from .conftest import refused, top_runfile
+
+ROOT = Path(__file__).resolve().parents[1]
+PENDULUM = ROOT / "examples" / "pendulum.py"
+OMEGA0 = 2.0
+THETA0 = np.array([0.5, 1.5, 2.0, 2.8])  # the last two swing above the height of the axle
+# One kernel per method for every pendulum test: the sources (a state component, the scene's event function)
+# fix it; the levels, directions and counts are the run's.
+EVENTS = (Event("zero", "theta", -1, ("state", 0), 0.0, "both", 6),
+          Event("low", "height", -1, ("function", "event_height", -1), 1.0, "down", 1))
+
+
+def pendulum():
+    import sys
+
+    sys.path.insert(0, str(PENDULUM.parent))
+    try:
+        import pendulum as module
+    finally:
+        sys.path.pop(0)
+    return module
+
+
+def swing(method: str, dt: float, events=EVENTS, t_end: float = 10.0, save_dt: float = 0.1):
+    """Four pendulums released at rest from THETA0, with `events`: the launch's Outcome."""
+    values = {"omega0": np.full(4, OMEGA0), "theta0": THETA0, "theta_dot0": np.zeros(4)}
+    return launch.integrate(resolve(str(PENDULUM)), METHODS[method], values, {}, n_save=round(t_end / save_dt) + 1,
+                            save_dt=save_dt, dt=dt, rtol=1e-7, atol=1e-9, events=events)
+
+
+def state_error(outcome, save_dt: float) -> np.ndarray:
+    """The largest |theta - exact| of each member over the run, (members,)."""
+    t = np.arange(outcome.samples.shape[0])[:, None] * save_dt
+    exact, _ = pendulum().exact(t, THETA0[None], 0.0, OMEGA0)
+    return np.max(np.abs(outcome.samples[:, 0, :] - exact), axis=0)
+
+
+@pytest.mark.parametrize("method, dt", [("rk4", 0.02), ("yoshida4", 0.02), ("dopri5", np.nan)])
+def test_pendulum_crossings_are_the_elliptic_times_to_the_methods_own_error(method, dt):
+    outcome = swing(method, dt)
+    module = pendulum()
+    exact = module.crossing_times(THETA0, OMEGA0, 6)  # (members, 6), some after t = 10 s
+    times = outcome.event_times[0].T
+    assert np.all(outcome.event_counts[0] == np.sum(module.crossing_times(THETA0, OMEGA0, 20) < 10.0, axis=1))
+    assert np.array_equal(np.isfinite(times), exact < 10.0)  # six kept at most, NaN where fewer occurred
+    assert np.all(outcome.status == Status.OK) and np.all(np.isnan(outcome.stopped))
+    speed = 2.0 * np.sin(THETA0 / 2.0) * OMEGA0  # |theta_dot| at the bottom
+    own = state_error(outcome, 0.1)  # the method's error in theta, by its samples
+    error = np.abs(np.where(exact < 10.0, times - exact, 0.0))
+    assert np.all(error * speed[:, None] <= 2.0 * own[:, None] + 1e-13)
+    assert np.max(error) > 0.0  # (not exact by accident)
+    # the scene's event function: the bob falls through the axle's height once per swing (half a period) above it
+    low = outcome.event_times[1, 0]
+    first = module.height_times(THETA0[2:], OMEGA0, 1.0)
+    half_period = 2.0 * (exact[2:, 1] - exact[2:, 0]) / 2.0
+    falls = np.sum(first[:, None] + half_period[:, None] * np.arange(20) < 10.0, axis=1)
+    assert np.all(outcome.event_counts[1] == [0, 0, *falls]) and np.all(np.isnan(low[:2]))
+    falling = np.sin(math.pi / 2) * OMEGA0 * np.sqrt(2.0 * (np.cos(math.pi / 2) - np.cos(THETA0[2:])))  # |theta_dot|
+    assert np.all(np.abs(low[2:] - first) * falling <= 2.0 * own[2:] + 1e-13)
+
+
+def test_a_run_in_segments_and_a_resumed_one_find_the_bits_of_one_call():
+    whole = swing("rk4", 0.02)
+    values = {"omega0": np.full(4, OMEGA0), "theta0": THETA0, "theta_dot0": np.zeros(4)}
+    call = launch.new_launch(resolve(str(PENDULUM)), METHODS["rk4"], values, {}, n_save=101, save_dt=0.1, dt=0.02,
+                             events=EVENTS, segment=7)
+    kept = None
+    for first, _ in call.segments():
+        if first == 49:
+            kept = (first + 7, call.state())  # what a segment log keeps
+    call.run()
+    for name in ("event_times", "event_counts", "samples"):
+        np.testing.assert_array_equal(getattr(call.outcome(), name), getattr(whole, name))
+    list(call.segments(resume=kept))  # a run resumed from the middle
+    np.testing.assert_array_equal(call.outcome().event_times, whole.event_times)
+
+
+def test_rk4s_crossing_times_converge_at_its_order():
+    exact = pendulum().crossing_times(THETA0, OMEGA0, 6)
+    errors = [np.nanmax(np.abs(swing("rk4", dt).event_times[0].T - exact)) for dt in (0.04, 0.02)]
+    assert 2.0**4 / 1.5 < errors[0] / errors[1] < 2.0**4 * 1.5
+
+
+def test_a_prolate_tops_tilt_reaches_its_level_at_the_closed_forms_time():
+    """tan(tilt) = tan(tilt0) exp(c (1/lambda3 - 1/lambda1) t) for a prolate top (lambda3 < lambda1): the tilt
+    reaches `level` at ln(tan(level) / tan(tilt0)) / (c (1/lambda3 - 1/lambda1))."""
+    top = resolve("top")
+    tilt0 = np.array([0.05, 0.1, 0.3])
+    values = {"lambda1": np.full(3, 1e-3), "lambda3": np.full(3, 0.5e-3), "c": np.full(3, 1e-4),
+              "spin0": np.full(3, 60.0), "tilt0": tilt0, "azimuth0": np.zeros(3)}
+    level, rate = 0.6, 1e-4 * (1 / 0.5e-3 - 1 / 1e-3)
+    tip = Event("tip", "tilt", -1, ("function", "value_tilt", -1), level, "up", 1, True)
+    for method in ("rk4", "split4"):
+        outcome = launch.integrate(top, METHODS[method], values, {}, n_save=301, save_dt=0.1, dt=2e-3,
+                                   events=(tip,))
+        expected = np.log(math.tan(level) / np.tan(tilt0)) / rate
+        t = np.arange(301) * 0.1
+        own = np.nanmax(np.abs(top.tilt(outcome.samples, 1) - tilt_theory(values, t).T), axis=0)
+        slope = rate * math.sin(level) * math.cos(level)  # d tilt / dt at the level
+        assert np.all(outcome.status == Status.STOPPED_BY_EVENT)
+        assert np.all(np.abs(outcome.event_times[0, 0] - expected) * slope <= 2.0 * own + 1e-12), method
+        stopped = top.tilt(outcome.stopped, 0)  # the state kept at the event is on the level
+        assert np.allclose(stopped, level, rtol=0, atol=1e-9)
+
+
+def pendulum_runfile(extra: str = "", save: str | None = None) -> str:
+    return (f'scene = "{PENDULUM}"\nmethod = "rk4"\ndt = 0.02\nt_end = 10.0\nsave_dt = 0.1\nmembers = 4\n'
+            f'seed = 3\n' + (f"save = {save}\n" if save is not None else "") +
+            '[parameters]\nomega0 = 2.0\ntheta0 = { uniform = [0.3, 3.0] }\n'
+            '[events.bottom]\nof = "theta"\ndirection = "up"\nstop = true\n'
+            '[events.axle]\nof = "height"\nvalue = 1.0\ndirection = "down"\ncount = 2\n' + extra)
+
+
+def test_a_run_file_stops_members_at_an_event_and_keeps_their_state_there(tmp_path):
+    path = tmp_path / "run.toml"
+    path.write_text(pendulum_runfile())
+    assert cli.main(["run", str(path), "-o", str(tmp_path / "a.nc"), "--quiet"]) == 0
+    with xr.open_dataset(tmp_path / "a.nc") as ds:
+        theta0 = ds["theta0"].values
+        first_up = pendulum().crossing_times(theta0, OMEGA0, 2)[:, 1]  # down through 0 first, then up
+        assert np.all(ds["status"].values == Status.STOPPED_BY_EVENT)
+        assert np.all(np.isnan(ds["failure_time"].values))  # stopped, not failed
+        assert np.allclose(ds["bottom_time"].values[:, 0], first_up, rtol=0, atol=1e-6)
+        assert np.all(ds["bottom_count"].values == 1)
+        assert np.array_equal(ds["steps_accepted"].values, np.ceil(first_up / 0.02))  # to the step it stopped in
+        assert np.allclose(ds["theta_at_stop"].values, 0.0, atol=1e-9)
+        assert np.allclose(ds["theta_dot_at_stop"].values, 2 * np.sin(theta0 / 2) * OMEGA0, rtol=1e-6)
+        t = ds["t"].values[None, :]
+        theta = ds["theta"].values
+        assert np.all(np.isnan(theta[t > first_up[:, None] + 0.1]))
+        assert np.all(np.isfinite(theta[t < first_up[:, None]]))
+        above = theta0 > math.pi / 2  # those fall through the axle's height from either side before the stop
+        assert np.all(ds["axle_count"].values == 2 * above) and ds.sizes["axle"] == 2
+        assert np.array_equal(np.isfinite(ds["axle_time"].values), np.repeat(above[:, None], 2, axis=1))
+        first_fall = pendulum().height_times(theta0[above], OMEGA0, 1.0)
+        assert np.allclose(ds["axle_time"].values[above, 0], first_fall, rtol=0, atol=1e-6)
+        assert ds["status"].attrs["flag_meanings"].split()[3] == "stopped_by_event"
+        whole = ds.load()
+    # events alone (save = []), and one member per chunk: the same bits
+    path.write_text(pendulum_runfile(save="[]"))
+    assert cli.main(["run", str(path), "-o", str(tmp_path / "b.nc"), "--quiet", "--chunk", "1"]) == 0
+    with xr.open_dataset(tmp_path / "b.nc") as alone:
+        assert "theta" not in alone and "theta_at_stop" not in alone
+        for name in ("bottom_time", "bottom_count", "axle_time", "axle_count", "status"):
+            np.testing.assert_array_equal(alone[name].values, whole[name].values)
+
+
+def bad_pendulum(extra: str) -> str:
+    return (f'scene = "{PENDULUM}"\nmethod = "rk4"\ndt = 0.02\nt_end = 1.0\nsave_dt = 0.5\nmembers = 1\nseed = 3\n'
+            '[parameters]\nomega0 = 2.0\ntheta0 = 1.0\n' + extra)
+
+
+@pytest.mark.parametrize("table, expected", [
+    ('[events.e]\nof = "phi"\n', "events.e.of: unknown variable 'phi'"),
+    ('[events.e]\nof = "theta"\ncount = 0\n', "events.e.count: must be in 1..10000"),
+    ('[events.e]\nof = "theta"\ncount = 1000000000\n', "events.e.count: must be in 1..10000"),
+    ('[events.e]\nof = "theta"\ndirection = "sideways"\n', "events.e.direction: must be one of"),
+    ('[events.e]\nof = "theta"\nindex = 1\n', "events.e.index: 'theta' is a single value"),
+    ('[events.theta_dot]\nof = "theta"\n', "events.theta_dot: its variable 'theta_dot' would clash"),
+    ('[events.omega0]\nof = "theta"\n', "would clash"),
+    ('[events.e]\nvalue = 1.0\n', "events.e.of: is missing"),
+    ('[events.e]\nof = "theta"\nlevel = 1.0\n', "events.e.level: unknown key"),
+])
+def test_a_bad_events_table_is_one_line_and_nothing_written(tmp_path, capsys, table, expected):
+    refused(bad_pendulum(table), tmp_path, capsys, expected)
+
+
+def test_a_vector_without_index_and_an_event_function_of_the_wrong_signature_are_refused(tmp_path, capsys):
+    refused(top_runfile() + '[events.e]\nof = "omega"\n', tmp_path, capsys, "events.e.index: 'omega' is a vector")
+    refused(top_runfile() + '[events.e]\nof = "omega"\nindex = 3\n', tmp_path, capsys, "must be in 0..2")
+    scene = tmp_path / "scene.py"
+    scene.write_text(PENDULUM.read_text().replace("def event_height(t, theta, theta_dot, omega0):",
+                                                  "def event_height(t, theta):"))
+    line = refused(bad_pendulum('[events.e]\nof = "height"\n').replace(str(PENDULUM), str(scene)), tmp_path, capsys,
+                   "event_height takes 2 argument(s)")
+    assert "scene.py" in line
+    refused(top_runfile(method="exact") + '[events.e]\nof = "tilt"\nvalue = 0.1\n', tmp_path, capsys,
+            "no events yet")
