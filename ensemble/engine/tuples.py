@@ -151,20 +151,6 @@ def added_typing(typingctx, z, weight, slope):
 added = intrinsic(added_typing)
 
 
-def selected_typing(typingctx, condition, if_true, if_false):
-    """if_true if condition else if_false, tuples of one type, value by value as LLVM selects (blocks.select's
-    reasons: a branch in a vectorized loop becomes masked loads and stores)."""
-    def codegen(context, builder, signature, arguments):
-        flag, yes, no = arguments
-        return context.make_tuple(builder, if_true, [builder.select(flag, builder.extract_value(yes, c),
-                                                                    builder.extract_value(no, c))
-                                                     for c in range(if_true.count)])
-    return if_true(types.boolean, if_true, if_false), codegen
-
-
-selected = intrinsic(selected_typing)
-
-
 @njit(inline="always", **FAST)
 def combined(y, h, coefficients, slopes, first=0):
     """y + sum_r (h coefficients[first + r]) slopes[r], the nonzero coefficients in order. A zero coefficient's
