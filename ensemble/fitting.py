@@ -26,6 +26,7 @@ from scipy.signal.windows import blackmanharris
 
 from .errors import EnsembleError
 from .methods import METHODS
+from .results import Status
 
 Z_TOLERANCE = 5.0  # a noisy sweep point passes when its mean is within this many standard errors of theory...
 RTOL = 1e-6  # ...or within this relative difference, a noise-free one (whose z has no meaning) only within it;
@@ -49,7 +50,9 @@ def progress(count: int, what: str):
     return Bar(range(count), desc=what, unit="member", leave=False, disable=None, file=sys.stderr)
 
 
-def require(ds: xr.Dataset, scene: str, variables: tuple[str, ...], fit: str) -> None:
+def require(ds: xr.Dataset, scene: str, variables: tuple[str, ...], fit: str, sampled: bool = True) -> None:
+    """The result is the scene's and holds `variables`, and (sampled) enough saved times for a fit of them;
+    FitError otherwise."""
     found = ds.attrs.get("scene")
     if found != scene:
         what = "a " + repr(found) if found else "not from ensemble"
@@ -58,7 +61,7 @@ def require(ds: xr.Dataset, scene: str, variables: tuple[str, ...], fit: str) ->
     missing = [v for v in variables if v not in ds.variables]
     if missing:
         raise FitError(f"{fit}: the result lacks {', '.join(missing)} (save them in the run file)")
-    if ds.sizes.get("t", 0) < MIN_SAMPLES:
+    if sampled and ds.sizes.get("t", 0) < MIN_SAMPLES:
         raise FitError(f"{fit}: the result has {ds.sizes.get('t', 0)} saved times; a fit needs at least {MIN_SAMPLES}")
 
 
@@ -305,16 +308,19 @@ FIT_TITLES = {"tilt_decay": "tilt decay rate", "mode_frequencies": "normal-mode 
               "body_rates": "growth rate, wobble frequency and flip period"}  # what a physicist calls each fit
 
 
+ENDED_WELL = (Status.OK, Status.STOPPED_BY_EVENT)  # a member's status that a fit may use
+
+
 def dataset(ds: xr.Dataset, data: dict, dims, *, noise: float, fit: str,
              estimates: tuple[str, ...] = ("rate", "frequency")) -> xr.Dataset:
     """A fit's Dataset over members (and modes) from data: name -> (values, units, long_name). Members whose run
-    did not end well (status not ok: they blew up or their step underflowed) are left out: NaN in every float
-    variable, counted in members_not_ok and, having no estimate, in members_failed."""
+    did not end well (they blew up or their step underflowed; a stop at an event ends well) are left out: NaN in
+    every float variable, counted in members_not_ok and, having no estimate, in members_failed."""
     out = xr.Dataset(coords=_members(ds))
     if "mode" in dims:
         out = out.assign_coords(mode=("mode", np.arange(1, ds.sizes["site"] + 1, dtype=np.int32)))
         out["mode"].attrs = {"units": "1", "long_name": "normal mode number, ascending in frequency"}
-    not_ok = ds["status"].values != 0 if "status" in ds else np.zeros(ds.sizes["member"], dtype=bool)
+    not_ok = ~np.isin(ds["status"].values, ENDED_WELL) if "status" in ds else np.zeros(ds.sizes["member"], bool)
     for name, (values, units, long_name) in data.items():
         values = np.asarray(values)
         if values.dtype.kind == "f" and not_ok.any():

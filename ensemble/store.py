@@ -176,13 +176,13 @@ def record_names(spec: Spec) -> list[str]:
 
 
 def record_variables(spec: Spec) -> dict[str, tuple]:
-    """The per-member records a run of `spec` stores: name -> (type, dims, units, long_name, comment), dims
-    member first."""
+    """The per-member records a run of `spec` stores: name -> (type, dims, units, long_name, comment, attributes),
+    dims member first."""
     records = ["steps_accepted", "steps_rejected", "rhs_evals", "status", "failure_time"]
     records += ["growth_per_step"] if spec.measure["growth"] else []
     records += ["error_max", "error_final"] if spec.measure["error"] else []
     records += ["seconds_per_step"] if spec.measure["timing"] else []
-    out = {name: (kind, ("member",), units, long_name, comment)
+    out = {name: (kind, ("member",), units, long_name, comment, {})
            for name, (kind, units, long_name, comment) in ((name, RUN_RECORDS[name]) for name in records)}
     return {**out, **event_variables(spec.events, spec.model, spec.save)} if spec.events else out
 
@@ -297,13 +297,13 @@ class Writer:
 
     def _records(self) -> None:
         """How each member ran: step counts, status, failure time, growth, and what [measure] asks for."""
-        for name, (kind, dims, units, long_name, comment) in record_variables(self.spec).items():
+        for name, (kind, dims, units, long_name, comment, attributes) in record_variables(self.spec).items():
             var = self.nc.createVariable(name, kind, dims, contiguous=True, fill_value=np.nan if kind == "f8" else None)
             if name == "status":
                 var.setncatts({"long_name": long_name, "flag_values": Status.flag_values(),
                                "flag_meanings": Status.flag_meanings()})
             else:
-                var.setncatts({"units": units, "long_name": long_name, "comment": comment})
+                var.setncatts({"units": units, "long_name": long_name, "comment": comment, **attributes})
 
     def _observables(self) -> None:
         """The saved variables, contiguous (member-major, as they are written); NaN marks a member's samples after

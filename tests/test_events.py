@@ -121,6 +121,23 @@ def test_a_prolate_tops_tilt_reaches_its_level_at_the_closed_forms_time():
         assert np.allclose(stopped, level, rtol=0, atol=1e-9)
 
 
+def test_a_tops_fit_finds_its_tilt_decay_rate_from_event_times_alone(tmp_path):
+    """An oblate top's tilt falls through 0.05 rad at ln(tan(tilt0) / tan(0.05)) / (c (1/lambda1 - 1/lambda3)):
+    `ensemble fit` of a run that saves nothing but that event finds the decay rate from it and tilt0."""
+    text = top_runfile(dt=2.5e-4, t_end=30.0, save_dt=30.0, save=[], members=6,
+                       parameters={"tilt0": {"uniform": [0.051, 0.09]}, "c": None}, sweep={"c": [2.5e-5, 1e-4]})
+    path = tmp_path / "tops.toml"
+    path.write_text(text + '[events.low]\nof = "tilt"\nvalue = 0.05\ndirection = "down"\nstop = true\n')
+    assert cli.main(["run", str(path), "-o", str(tmp_path / "tops.nc"), "--quiet"]) == 0
+    assert cli.main(["fit", str(tmp_path / "tops.nc"), "--check"]) == 0
+    with xr.open_dataset(tmp_path / "tops.nc") as ds, xr.open_dataset(tmp_path / "tops_tilt_decay.nc") as fits:
+        theory = ds["c"].values * (1 / 1e-3 - 1 / 2e-3)
+        crossed = np.log(np.tan(ds["tilt0"].values) / np.tan(0.05)) / theory < 30.0
+        assert np.array_equal(np.isfinite(fits["rate"].values), crossed) and 0 < crossed.sum() < 12
+        assert np.allclose(fits["rate"].values[crossed], theory[crossed], rtol=1e-8, atol=0)
+        assert np.all(ds["status"].values == np.where(crossed, Status.STOPPED_BY_EVENT, Status.OK))
+
+
 def pendulum_runfile(extra: str = "", save: str | None = None) -> str:
     return (f'scene = "{PENDULUM}"\nmethod = "rk4"\ndt = 0.02\nt_end = 10.0\nsave_dt = 0.1\nmembers = 4\n'
             f'seed = 3\n' + (f"save = {save}\n" if save is not None else "") +

@@ -15,19 +15,27 @@ NOISE_WINDOW = 5.0  # noisy tilts are used while the fitted tilt is this many st
 
 
 def tilt_decay(ds: xr.Dataset) -> xr.Dataset:
-    """Fit tan(tilt) ~ exp(-rate t) per member of a top result.
+    """Fit tan(tilt) ~ exp(-rate t) per member of a top result: to its saved tilts, or where it saved none, to the
+    times of its tilt events (`tilt_events`).
 
     Returns over member: rate (1/s; negative when the tilt grows, as for a
     prolate top), rate_stderr, rate_theory = c (1/lambda1 - 1/lambda3),
     rate_method (what the run's method shows, see top.tilt_rate_method),
     z = (rate - rate_theory) / rate_stderr, z_method likewise, and samples_used.
     """
-    fitting.require(ds, "top", ("tilt", "lambda1", "lambda3", "c", "tilt0", "spin0"), "tilt_decay")
+    events = [name for name in ds.data_vars if ds[name].attrs.get("event_of") == "tilt"]
+    sampled = "tilt" in ds or not events
+    fitting.require(ds, "top", ("tilt",) * sampled + ("lambda1", "lambda3", "c", "tilt0", "spin0"), "tilt_decay",
+                    sampled)
     t = ds["t"].values
-    tilt = ds["tilt"].values
-    sigma = fitting.noise_of(ds["tilt"])
+    sigma = fitting.noise_of(ds["tilt"]) if sampled else 0.0
     values = {name: ds[name].values for name in top.PARAMETERS if name in ds}
-    intercept, rate, stderr, used = _tilt_fit_noisy(t, tilt, sigma) if sigma > 0 else _tilt_fit_clean(t, tilt)
+    if not sampled:
+        intercept, rate, stderr, used = _tilt_fit_events(ds, events)
+    elif sigma > 0:
+        intercept, rate, stderr, used = _tilt_fit_noisy(t, ds["tilt"].values, sigma)
+    else:
+        intercept, rate, stderr, used = _tilt_fit_clean(t, ds["tilt"].values)
     theory = values["c"] * (1 / values["lambda1"] - 1 / values["lambda3"])
     method = fitting.method_prediction(ds, theory, lambda m, dt, chosen: top.tilt_rate_method(
         m, {k: v[chosen] for k, v in values.items()}, dt, t))
@@ -39,9 +47,27 @@ def tilt_decay(ds: xr.Dataset) -> xr.Dataset:
         "z": ((rate - theory) / stderr, "1", "(rate - rate_theory) / rate_stderr"),
         "z_method": ((rate - method) / stderr, "1", "(rate - rate_method) / rate_stderr"),
         "log_tan_tilt0": (intercept, "1", "fitted line's log tan(tilt) at t = 0"),
-        "samples_used": (used, "1", "saved times inside the fitted part of the record"),
+        "samples_used": (used, "1", "saved times inside the fitted part of the record (from events: the start and "
+                                    "the event times)"),
     }
     return fitting.dataset(ds, data, "member", noise=sigma, fit="tilt_decay")
+
+
+def _tilt_fit_events(ds: xr.Dataset, events: list[str]):
+    """From events alone: log tan(tilt) is log tan(tilt0) at t = 0 and log tan(level) at each time the tilt
+    crossed a level (`events`: the result's tilt events' time variables); least squares over those points per
+    member, its stderr from their residuals (0 with two points, whose line is exact: its error is the method's,
+    which a check against theory judges)."""
+    times = [np.zeros((ds.sizes["member"], 1))] + [ds[name].values for name in events]
+    logs = [np.log(np.tan(ds["tilt0"].values))[:, None]] + [
+        np.full(ds[name].shape, np.log(np.tan(ds[name].attrs["event_value"]))) for name in events]
+    t, y = np.concatenate(times, axis=1), np.concatenate(logs, axis=1)
+    a, rate, rss, count, sxx = fitting.masked_line(t, y, np.isfinite(t) & np.isfinite(y))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        stderr = np.where(count > 2, np.sqrt(rss / (count - 2) / sxx), 0.0)
+    bad = count < 2
+    return (np.where(bad, np.nan, a), np.where(bad, np.nan, rate), np.where(bad, np.nan, stderr),
+            count.astype(np.int32))
 
 
 def _tilt_fit_clean(t, tilt):
