@@ -24,7 +24,7 @@ A stopped member's status is STOPPED (results.Status.STOPPED_BY_EVENT), its stat
 its later samples are NaN and its block's steps carry it as they carry a failed member.
 
 Work rows from a kernel's `first` event row: fixed steps keep the levels and directions, the values at the
-step's end and start, the state at its start and a flag row (`fixed_watcher`); adaptive kernels G and GNEW (E
+step's end and start and the state at its start (`fixed_watcher`); adaptive kernels G and GNEW (E
 each: the values at the step's start and end; its states are in rows 0 and NEW).
 """
 from __future__ import annotations
@@ -209,7 +209,7 @@ def fixed_watcher(values, advance, to_user, first: int, E: int):
     """(begin, remember, watch) for a fixed-step kernel (ensemble.engine.frames.fixed_step) whose E events' rows
     start at `first`: the events' levels and directions (E rows each, the same in every member's column: loads
     from the work array, which LLVM knows no store to it changes), their values at the step's end and start (E
-    rows each), the state at the step's start (D rows), and a row flagging a member whose event crossed.
+    rows each) and the state at the step's start (D rows).
 
     begin(like_y, like_p, work, B, context) at t = 0. In a family's loop over a block's members, remember(work,
     B, j, y) keeps a member's state before its step (y, in the family's coordinates). After that loop,
@@ -242,25 +242,24 @@ def fixed_watcher(values, advance, to_user, first: int, E: int):
     def watch(like_y, like_p, work, B, t, h, context):
         (spec, times, counts, stopped), status, failure_time, j0 = context
         D = len(like_y)
-        FLAG = OLD + D
         hits = 0
         for j in range(B):
             p = loaded(work, D, B, j, like_p)
             levels, directions = loaded(work, LEVELS, B, j, like_g), loaded(work, DIRECTIONS, B, j, like_g)
             before = loaded(work, G, B, j, like_g)
             after = values(t + h, user_state(to_user, loaded(work, 0, B, j, like_y), p), p)
-            hit = any_crossed(before, after, levels, directions)
             stored(work, G, B, j, after)
             stored(work, BEFORE, B, j, before)
-            work[FLAG * B + j] = select(hit, 1.0, 0.0)
-            hits += hit
+            hits += any_crossed(before, after, levels, directions)
         if hits == 0:
             return
         for j in range(B):
-            if work[FLAG * B + j] != 0.0:
+            levels, directions = loaded(work, LEVELS, B, j, like_g), loaded(work, DIRECTIONS, B, j, like_g)
+            before, after = loaded(work, BEFORE, B, j, like_g), loaded(work, G, B, j, like_g)
+            if any_crossed(before, after, levels, directions):
                 y, p = loaded(work, OLD, B, j, like_y), loaded(work, D, B, j, like_p)
-                when = located(spec, times, counts, stopped, j0 + j, t, h, user_state(to_user, y, p), p,
-                               loaded(work, BEFORE, B, j, like_g), loaded(work, G, B, j, like_g))
+                when = located(spec, times, counts, stopped, j0 + j, t, h, user_state(to_user, y, p), p, before,
+                               after)
                 if when == when:
                     _stop(work, 0, D, B, j, status, failure_time, j0, when)
     return begin, remember, watch
