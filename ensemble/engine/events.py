@@ -4,14 +4,14 @@ family's steps); a kernel without events calls NO_BEGIN, NO_REMEMBER and NO_WATC
 are nothing.
 
 An event's value is a function value(t, y, p) -> float of a member's time (s), state and parameters (tuples):
-a state component, a scene's observable, or a scene's own event function (`value_functions` makes them). A kernel
+a state component, a scene's observable, or a scene's own event function (`component`, `function_value`). A kernel
 with E events evaluates all of them at once, `values(t, y, p)` -> E floats (`values_chain`), at the end of every
 step, and compares them with their values at the step's start. Where one crossed its level in its direction, the
 crossing is found on the method's own path through the step: the state at t0 + s h is the method's step of s h
 from the step's start (t0, y0), `advance(t0, s h, y0, p)` (each family's advance_of), by the Illinois variant of
 regula falsi, to the last bits of the step's time. The event's time is then as accurate as the method's states:
 a cubic Hermite of the step's ends was not (a top's split4, exact but for rounding, put its tilt events 1e-10 s
-off, 20 times its own error), and dopri5's fourth-order dense output would not be either at a loose tolerance.
+off, 20 times its own error), and dopri5's dense output is of order 4, one below its steps.
 
 A kernel call's events are a tuple (spec, times, counts, stopped):
 - spec (E, 4): per event its level, direction (+1 up: from below to level or above; -1 down; 0 both), stop
@@ -24,8 +24,8 @@ A stopped member's status is STOPPED (results.Status.STOPPED_BY_EVENT), its stat
 its later samples are NaN and its block's steps carry it as they carry a failed member.
 
 Work rows from a kernel's `first` event row: fixed steps keep the levels and directions, the values at the
-step's end and start and the state at its start (`fixed_watcher`); adaptive kernels G and GNEW (E
-each: the values at the step's start and end; its states are in rows 0 and NEW).
+step's end and start and the state at its start (`fixed_watcher`); adaptive kernels G and GNEW (E each: the
+values at the step's start and end; its states are in rows 0 and NEW).
 """
 from __future__ import annotations
 
