@@ -264,6 +264,21 @@ def crossing_period(t, spin, sigma):
     return 2 * solution[1], 2 * np.sqrt(half_period_variance), changes.size
 
 
+def event_period(times: np.ndarray, per_period: int) -> tuple[float, float, int]:
+    """(period (s), stderr, occurrences) from a member's event times (NaN where fewer occurred), `per_period` of
+    them a period apart (2 for a variable's crossings of zero both ways): a line through the times against their
+    count, its stderr from the scatter about it (0 where the line is exact to rounding). NaNs with fewer than
+    MIN_FLIPS."""
+    times = times[np.isfinite(times)]
+    if times.size < MIN_FLIPS:
+        return np.nan, np.nan, times.size
+    count = np.arange(times.size)
+    slope, intercept = np.polyfit(count, times, 1)
+    rss = np.sum((times - intercept - slope * count) ** 2)
+    stderr = np.sqrt(rss / (times.size - 2) / np.sum((count - count.mean()) ** 2))
+    return per_period * slope, per_period * stderr, times.size
+
+
 def _crossing(t, spin, after, sigma):
     """(time, variance) at which w_k crosses zero between samples after - 1 and after.
 

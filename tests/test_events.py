@@ -9,16 +9,19 @@ import numpy as np
 import pytest
 import xarray as xr
 
+import ensemble
 from ensemble import cli
 from ensemble.engine import launch
 from ensemble.methods import METHODS
 from ensemble.results import Event, Status
 from ensemble.scenes import resolve
+from ensemble.scenes.body.fits import body_rates
 from ensemble.scenes.top.model import tilt_theory
 
 from .conftest import refused, top_runfile
 
 ROOT = Path(__file__).resolve().parents[1]
+RUNS = ROOT / "runs"
 PENDULUM = ROOT / "examples" / "pendulum.py"
 OMEGA0 = 2.0
 THETA0 = np.array([0.5, 1.5, 2.0, 2.8])  # the last two swing above the height of the axle
@@ -136,6 +139,26 @@ def test_a_tops_fit_finds_its_tilt_decay_rate_from_event_times_alone(tmp_path):
         assert np.array_equal(np.isfinite(fits["rate"].values), crossed) and 0 < crossed.sum() < 12
         assert np.allclose(fits["rate"].values[crossed], theory[crossed], rtol=1e-8, atol=0)
         assert np.all(ds["status"].values == np.where(crossed, Status.STOPPED_BY_EVENT, Status.OK))
+
+
+def test_a_boxs_flip_period_from_its_flip_events_is_the_elliptic_period(tmp_path):
+    """Boxes spun near their intermediate axis flip over and back: the spin-axis rate crosses zero twice a period.
+    With those crossings as events (free of the observation noise on the samples), the body's fit finds the
+    period 4 K(m) / Omega to the method's error, and the same period as its fit of the noisy samples within
+    their error bars."""
+    text = (RUNS / "tennis_racket_noisy.toml").read_text().replace("members = 200", "members = 4").replace(
+        "[parameters]", '[events.flip]\nof = "omega"\nindex = 1\ncount = 64\n[parameters]')
+    path = tmp_path / "racket.toml"
+    path.write_text(text)
+    assert cli.main(["run", str(path), "-o", str(tmp_path / "racket.nc"), "--quiet"]) == 0
+    with xr.open_dataset(tmp_path / "racket.nc") as ds:
+        fits = ensemble.fit(ds)
+        sampled = body_rates(ds.drop_vars("flip_time"))  # the same fit of the noisy samples alone
+    period, theory = fits["flip_period"].values, fits["flip_period_theory"].values
+    assert np.all(np.isfinite(period)) and np.all(fits["flips"].values >= 3)
+    assert np.allclose(period, theory, rtol=1e-9, atol=0)
+    assert np.max(np.abs(period - theory) / theory) < 1e-3 * np.median(sampled["flip_period_stderr"] / theory)
+    assert np.all(np.abs(sampled["flip_period"] - period) < 5 * sampled["flip_period_stderr"])
 
 
 def pendulum_runfile(extra: str = "", save: str | None = None) -> str:

@@ -25,7 +25,9 @@ def body_rates(ds: xr.Dataset, max_tilt: float = BODY_MAX_TILT) -> xr.Dataset:
     given w_k(t), the rates across obey linear equations exactly, so without
     drag the fit holds at any tilt, not only to first order in it. The flip
     period (s) comes from the times at which the spin-axis rate crosses zero
-    (the tilt crosses pi/2), in records with at least MIN_FLIPS of them.
+    (the tilt crosses pi/2), in records with at least MIN_FLIPS of them: the
+    run's events on that rate where it has them (`_flip_periods`), else its
+    samples.
 
     Theory: the linear exponents at the start (body.transverse_exponents) and
     the elliptic flip period (c = 0 only, NaN otherwise). With drag the fit
@@ -53,8 +55,7 @@ def body_rates(ds: xr.Dataset, max_tilt: float = BODY_MAX_TILT) -> xr.Dataset:
     theory = _shown(body.transverse_exponents(values, constants)[0], growing)
     method = fitting.method_prediction(ds, theory, lambda m, dt, chosen: _shown(body.step_exponents(
         m, {name: v[chosen] for name, v in values.items()}, constants, dt)[0], growing[chosen]))
-    flips = np.array([fitting.crossing_period(t, omega[m, :, k[m]], sigma)
-                      for m in fitting.progress(omega.shape[0], "fitting flip periods")]).reshape(-1, 3).T
+    flips = _flip_periods(ds, t, omega, k, sigma)
     period_theory = np.where(growing & (values["c"] == 0), body.flip_period(values, constants), np.nan)
     with np.errstate(invalid="ignore", divide="ignore"):
         z, z_method, flip_z = (estimate - theory) / stderr, (estimate - method) / stderr, \
@@ -72,6 +73,25 @@ def body_rates(ds: xr.Dataset, max_tilt: float = BODY_MAX_TILT) -> xr.Dataset:
     })
     return fitting.dataset(ds, data, "member", noise=sigma, fit="body_rates",
                     estimates=("growth_rate", "wobble_frequency", "flip_period"))
+
+
+def _flip_periods(ds: xr.Dataset, t, omega, k, sigma) -> np.ndarray:
+    """(flip period, stderr, crossings) per member, (3, members): from the run's events on the member's spin-axis
+    rate crossing zero (located within the steps, free of observation noise: fitting.event_period) where it has
+    one, else from its samples (fitting.crossing_period). An event-based stderr is the crossing times' scatter
+    about their line: it holds their rounding, not the method's own error in the period, which then sets
+    flip_z."""
+    events = {int(ds[name].attrs["event_index"]): name for name in ds.data_vars
+              if ds[name].attrs.get("event_of") == "omega" and ds[name].attrs.get("event_value") == 0.0}
+    out = []
+    for m in fitting.progress(omega.shape[0], "fitting flip periods"):
+        name = events.get(int(k[m]))
+        if name is None:
+            out.append(fitting.crossing_period(t, omega[m, :, k[m]], sigma))
+        else:
+            both = ds[name].attrs["event_direction"] == "both"
+            out.append(fitting.event_period(ds[name].values[m], 2 if both else 1))
+    return np.array(out).reshape(-1, 3).T
 
 
 def _split_by_axis(growing, estimate, stderr, theory, method) -> dict:
