@@ -23,8 +23,8 @@ A kernel call's events are a tuple (spec, times, counts, stopped):
 A stopped member's status is STOPPED (results.Status.STOPPED_BY_EVENT), its state NaN after its event, so that
 its later samples are NaN and its block's steps carry it as they carry a failed member.
 
-Work rows from a kernel's `first` event row: fixed steps keep the levels and directions, the values at the
-step's end and start and the state at its start (`fixed_watcher`); adaptive kernels G and GNEW (E each: the
+Work rows from a kernel's `first` event row: fixed steps keep the values at the step's end and start and the
+state at its start (`fixed_watcher`); adaptive kernels G and GNEW (E each: the
 values at the step's start and end; its states are in rows 0 and NEW).
 """
 from __future__ import annotations
@@ -207,9 +207,9 @@ def NO_ADAPTIVE_WATCH(like_y, like_p, work, B, K, NEW, C0, S, context):
 
 def fixed_watcher(values, advance, to_user, first: int, E: int):
     """(begin, remember, watch) for a fixed-step kernel (ensemble.engine.frames.fixed_step) whose E events' rows
-    start at `first`: the events' levels and directions (E rows each, the same in every member's column: loads
-    from the work array, which LLVM knows no store to it changes), their values at the step's end and start (E
-    rows each) and the state at the step's start (D rows).
+    start at `first`: their values at the step's end and start (E rows each) and the state at the step's start
+    (D rows). The levels and directions are read from `spec` once per step, before the members' loop (read in it,
+    beside stores to the work array that LLVM could not prove apart, they cost a tenth of the top's rk4 rate).
 
     begin(like_y, like_p, work, B, context) at t = 0. In a family's loop over a block's members, remember(work,
     B, j, y) keeps a member's state before its step (y, in the family's coordinates). After that loop,
@@ -223,15 +223,13 @@ def fixed_watcher(values, advance, to_user, first: int, E: int):
     loop of the step itself the events cost more: a top's tilt, a call there, kept the step from vectorizing.
     context: (events, status, failure_time, j0) as frames hands it."""
     located, like_g = locator(values, advance), (0.0,) * E
-    LEVELS, DIRECTIONS, G, BEFORE, OLD = first, first + E, first + 2 * E, first + 3 * E, first + 4 * E
+    G, BEFORE, OLD = first, first + E, first + 2 * E
 
     @njit(inline="always", **FAST)
     def begin(like_y, like_p, work, B, context):
-        D, spec = len(like_y), context[0][0]
+        D = len(like_y)
         for j in range(B):
             y, p = loaded(work, 0, B, j, like_y), loaded(work, D, B, j, like_p)
-            stored(work, LEVELS, B, j, loaded(spec, 0, 4, 0, like_g))
-            stored(work, DIRECTIONS, B, j, loaded(spec, 0, 4, 1, like_g))
             stored(work, G, B, j, values(0.0, y, p))
 
     @njit(inline="always", **FAST)
@@ -242,10 +240,10 @@ def fixed_watcher(values, advance, to_user, first: int, E: int):
     def watch(like_y, like_p, work, B, t, h, context):
         (spec, times, counts, stopped), status, failure_time, j0 = context
         D = len(like_y)
+        levels, directions = levels_and_directions(spec, like_g)  # loaded once: constants of the loops
         hits = 0
         for j in range(B):
             p = loaded(work, D, B, j, like_p)
-            levels, directions = loaded(work, LEVELS, B, j, like_g), loaded(work, DIRECTIONS, B, j, like_g)
             before = loaded(work, G, B, j, like_g)
             after = values(t + h, user_state(to_user, loaded(work, 0, B, j, like_y), p), p)
             stored(work, G, B, j, after)
@@ -254,7 +252,6 @@ def fixed_watcher(values, advance, to_user, first: int, E: int):
         if hits == 0:
             return
         for j in range(B):
-            levels, directions = loaded(work, LEVELS, B, j, like_g), loaded(work, DIRECTIONS, B, j, like_g)
             before, after = loaded(work, BEFORE, B, j, like_g), loaded(work, G, B, j, like_g)
             if any_crossed(before, after, levels, directions):
                 y, p = loaded(work, OLD, B, j, like_y), loaded(work, D, B, j, like_p)
