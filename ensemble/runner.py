@@ -47,6 +47,7 @@ class Summary:
     steps_each: int | None = None  # when every member took the same number of steps
     blew_up: int = 0  # failed members (status BLEW_UP)
     underflowed: int = 0  # failed members (status STEP_SIZE_UNDERFLOW)
+    stopped: int = 0  # members stopped at an event (status STOPPED_BY_EVENT): not failures
     closed_form: bool = False  # every member was evaluated in closed form (no steps)
     preparing: float = 0.0  # seconds spent compiling or loading kernels before the run, not in `seconds`
     resumed: int = 0  # members of the result computed by an earlier, interrupted run (not counted above)
@@ -56,6 +57,7 @@ class Summary:
         failed = self.blew_up + self.underflowed
         failures = (f"; {failed} of {_members(self.members + self.resumed)} failed ({self.blew_up} blew up, "
                     f"{self.underflowed} step size underflow)" if failed else "")
+        failures += f"; {self.stopped} stopped at events" if self.stopped else ""
         if self.complete_already:
             return (f"complete already ({_members(self.resumed)}): the run that made it was stopped before removing "
                     f"its parts, which are removed now")
@@ -434,6 +436,7 @@ def _summary(spec: Spec, tally: Tally, records: dict[str, np.ndarray], seconds: 
     return Summary(tally.members, tally.member_steps, seconds,
                    tally.step_counts.pop() if len(tally.step_counts) == 1 else None,
                    blew_up=int(failed[Status.BLEW_UP]), underflowed=int(failed[Status.STEP_SIZE_UNDERFLOW]),
+                   stopped=int(failed[Status.STOPPED_BY_EVENT]),
                    closed_form=all(METHODS[name].closed_form for name in spec.methods), preparing=preparing,
                    resumed=spec.n_members - tally.members)
 

@@ -169,10 +169,11 @@ def pendulum_runfile(extra: str = "", save: str | None = None) -> str:
             '[events.axle]\nof = "height"\nvalue = 1.0\ndirection = "down"\ncount = 2\n' + extra)
 
 
-def test_a_run_file_stops_members_at_an_event_and_keeps_their_state_there(tmp_path):
+def test_a_run_file_stops_members_at_an_event_and_keeps_their_state_there(tmp_path, capsys):
     path = tmp_path / "run.toml"
     path.write_text(pendulum_runfile())
     assert cli.main(["run", str(path), "-o", str(tmp_path / "a.nc"), "--quiet"]) == 0
+    assert "; 4 stopped at events" in capsys.readouterr().out
     with xr.open_dataset(tmp_path / "a.nc") as ds:
         theta0 = ds["theta0"].values
         first_up = pendulum().crossing_times(theta0, OMEGA0, 2)[:, 1]  # down through 0 first, then up
