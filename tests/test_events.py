@@ -161,6 +161,34 @@ def test_a_boxs_flip_period_from_its_flip_events_is_the_elliptic_period(tmp_path
     assert np.all(np.abs(sampled["flip_period"] - period) < 5 * sampled["flip_period_stderr"])
 
 
+def test_a_heavy_tops_nutation_period_from_its_turning_points_is_the_elliptic_one(tmp_path):
+    """runs/heavy_top.toml: tops released at a tilt of 0.5 rad with their spin alone nutate between that tilt
+    (a root of the cubic f(u), u = cos(tilt)) and a lower one; their turning points (the scene's event function
+    u' = 0) are half a period apart, the period 4 K(m) / sqrt(beta (u3 - u1)), and near the fast top's
+    2 pi lambda1 / (lambda3 w3)."""
+    import sys
+
+    out = tmp_path / "heavy.nc"
+    assert cli.main(["run", str(RUNS / "heavy_top.toml"), "-o", str(out), "--quiet"]) == 0
+    assert cli.main(["fit", str(out), "--check"]) == 0
+    sys.path.insert(0, str(ROOT / "examples"))
+    try:
+        import heavy_top
+    finally:
+        sys.path.pop(0)
+    with xr.open_dataset(out) as ds, xr.open_dataset(tmp_path / "heavy_fit.nc") as fits:
+        spin = ds["w30"].values
+        start = [np.broadcast_to(ds[f"{name}0"].values, spin.shape) for name in heavy_top.STATE]
+        moments = [np.broadcast_to(ds[name].values, spin.shape) for name in ("lambda1", "lambda3", "MgR")]
+        u1, u2, u3 = heavy_top.nutation_roots(*start, *moments)
+        assert np.allclose(u2, math.cos(0.5), rtol=0, atol=1e-12) and np.all((u1 < u2) & (u3 > 1))
+        theory = fits["nutation_period_theory"].values
+        assert np.allclose(fits["nutation_period"].values, theory, rtol=1e-9, atol=0)
+        ratio = theory / (2 * np.pi * 1e-3 / (5e-4 * spin))  # to the fast top's period, spins in rising order
+        assert np.all(np.diff(ratio) < 0) and np.all(ratio > 1) and ratio[-1] < 1.01
+        assert np.all(ds["turn_count"].values == np.floor(2.0 / (theory / 2)))  # a turning point every half period
+
+
 def pendulum_runfile(extra: str = "", save: str | None = None) -> str:
     return (f'scene = "{PENDULUM}"\nmethod = "rk4"\ndt = 0.02\nt_end = 10.0\nsave_dt = 0.1\nmembers = 4\n'
             f'seed = 3\n' + (f"save = {save}\n" if save is not None else "") +
