@@ -25,9 +25,8 @@ def body_rates(ds: xr.Dataset, max_tilt: float = BODY_MAX_TILT) -> xr.Dataset:
     given w_k(t), the rates across obey linear equations exactly, so without
     drag the fit holds at any tilt, not only to first order in it. The flip
     period (s) comes from the times at which the spin-axis rate crosses zero
-    (the tilt crosses pi/2), in records with at least MIN_FLIPS of them: the
-    run's events on that rate where it has them (`_flip_periods`), else its
-    samples.
+    (the tilt crosses pi/2), at least MIN_FLIPS of them: the run's events on
+    that rate where it has them, else its samples (`_flip_periods`).
 
     Theory: the linear exponents at the start (body.transverse_exponents) and
     the elliptic flip period (c = 0 only, NaN otherwise). With drag the fit
