@@ -85,17 +85,30 @@ def nutation_period(w1, w2, w3, g1, g2, g3, lambda1, lambda3, MgR):
 
 
 def fit(ds):
-    """Each member's nutation period from its turning-point events alone (`nutation` crossing zero, both ways:
-    half a period apart), against the elliptic theory; an xarray Dataset over member. The events are located to
-    the method's own accuracy, so `ensemble fit --check` holds it to 1e-6 relative (check_rtol)."""
+    """The run's nutation event (of = "nutation") against the elliptic theory, an xarray Dataset over member:
+    the nutation period from the turning points alone (the event kept both ways: half a period apart), against
+    4 K(m) / sqrt(beta (u3 - u1)); or, where the event stops each top at its first turning point (direction
+    "up": the lowest u, a top released at rest tilts further first), the largest tilt arccos(g3 there) against
+    arccos(u1). The events are located to the method's own accuracy, so `ensemble fit --check` holds both to
+    1e-6 relative (check_rtol)."""
     import xarray as xr
 
     from ensemble.fitting import event_period
 
-    times = ds["turn_time"].values
-    period = np.array([event_period(row, 2)[0] for row in times])
+    turns = [name for name in ds.data_vars if ds[name].attrs.get("event_of") == "nutation"]
+    if not turns:
+        raise ValueError("heavy_top's fit needs a run with an event of = \"nutation\"")
+    times = ds[turns[0]].values
     starts = [np.broadcast_to(ds[f"{name}0"].values, times.shape[:1]) for name in STATE]
     moments = [np.broadcast_to(ds[name].values, times.shape[:1]) for name in ("lambda1", "lambda3", "MgR")]
+    if ds[turns[0]].attrs["event_stop"]:
+        lowest = nutation_roots(*starts, *moments)[0]
+        tilt = np.arccos(np.clip(ds["g3_at_stop"].values, -1.0, 1.0))
+        return xr.Dataset({"max_tilt": ("member", tilt, {"units": "rad", "check_rtol": 1e-6,
+                                                          "long_name": "tilt at the first turning point"}),
+                           "max_tilt_theory": ("member", np.arccos(lowest), {
+                               "units": "rad", "long_name": "arccos(u1), the cubic's lowest root"})})
+    period = np.array([event_period(row, 2)[0] for row in times])
     theory = nutation_period(*starts, *moments)
     return xr.Dataset({"nutation_period": ("member", period, {"units": "s", "check_rtol": 1e-6,
                                                               "long_name": "nutation period from turning points"}),

@@ -189,6 +189,22 @@ def test_a_heavy_tops_nutation_period_from_its_turning_points_is_the_elliptic_on
         assert np.all(ds["turn_count"].values == np.floor(2.0 / (theory / 2)))  # a turning point every half period
 
 
+def test_a_sleeping_top_stays_up_above_the_spin_threshold_and_falls_below_it(tmp_path):
+    """runs/sleeping_top.toml: tops at a tilt of 0.05 rad, spun across (lambda3 w3)^2 = 4 lambda1 M g R, each
+    stopped at its first turning point: the tilt kept there is the cubic's arccos(u1), large below the threshold
+    and near the start above it."""
+    out = tmp_path / "sleeping.nc"
+    assert cli.main(["run", str(RUNS / "sleeping_top.toml"), "-o", str(out), "--quiet"]) == 0
+    assert cli.main(["fit", str(out), "--check"]) == 0
+    with xr.open_dataset(out) as ds, xr.open_dataset(tmp_path / "sleeping_fit.nc") as fits:
+        threshold = 2 * math.sqrt(1e-3 * 0.05) / 5e-4  # rad/s
+        below = ds["w30"].values < threshold
+        assert below.any() and (~below).any() and np.all(ds["status"].values == Status.STOPPED_BY_EVENT)
+        tilt = fits["max_tilt"].values
+        assert np.allclose(tilt, fits["max_tilt_theory"].values, rtol=1e-9, atol=0)
+        assert np.all(tilt[below] > 0.9) and np.all(tilt[~below] < 0.11)
+
+
 def pendulum_runfile(extra: str = "", save: str | None = None) -> str:
     return (f'scene = "{PENDULUM}"\nmethod = "rk4"\ndt = 0.02\nt_end = 10.0\nsave_dt = 0.1\nmembers = 4\n'
             f'seed = 3\n' + (f"save = {save}\n" if save is not None else "") +
