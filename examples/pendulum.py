@@ -78,18 +78,20 @@ def exact(t, theta0, theta_dot0, omega0):
 
 
 def fit(ds):
-    """Each member's period from its zero-crossing events alone, against the elliptic theory 4 K(m) / omega0,
-    an xarray Dataset over member: the crossing times t_j = t_0 + j T / 2 fitted by least squares (a member with
-    fewer than two crossings: NaN). The events are located to the method's own accuracy, so `ensemble fit
+    """Each member's period from its zero-crossing events alone (an event of = "theta", value 0, both ways: half
+    a period apart), against the elliptic theory 4 K(m) / omega0; an xarray Dataset over member (a member with
+    fewer than three crossings: NaN). The events are located to the method's own accuracy, so `ensemble fit
     --check` holds the period to 1e-6 relative (check_rtol)."""
     import xarray as xr
 
-    times = ds["zero_time"].values  # (member, occurrence), NaN where fewer occurred
-    period = np.full(times.shape[0], np.nan)
-    for j, row in enumerate(times):
-        kept = np.isfinite(row)
-        if kept.sum() >= 2:
-            period[j] = 2.0 * np.polyfit(np.flatnonzero(kept), row[kept], 1)[0]
+    from ensemble.fitting import event_period
+
+    zeros = [name for name in ds.data_vars if ds[name].attrs.get("event_of") == "theta"
+             and ds[name].attrs.get("event_value") == 0.0 and ds[name].attrs.get("event_direction") == "both"]
+    if not zeros:
+        raise ValueError('the pendulum\'s fit needs a run with an event of = "theta" (value 0, both directions)')
+    times = ds[zeros[0]].values  # (member, occurrence), NaN where fewer occurred
+    period = np.array([event_period(row, 2)[0] for row in times])
     theta0, omega0 = (np.broadcast_to(ds[name].values, times.shape[:1]) for name in ("theta0", "omega0"))
     theory = 4.0 * ellipk(np.sin(theta0 / 2.0) ** 2) / omega0
     return xr.Dataset({"period": ("member", period, {"units": "s", "long_name": "period from zero crossings",
