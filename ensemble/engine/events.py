@@ -9,9 +9,9 @@ with E events evaluates all of them at once, `values(t, y, p)` -> E floats (`val
 step, and compares them with their values at the step's start. Where one crossed its level in its direction, the
 crossing is found on the method's own path through the step: the state at t0 + s h is the method's step of s h
 from the step's start (t0, y0), `advance(t0, s h, y0, p)` (each family's advance_of), by the Illinois variant of
-regula falsi, to the last bits of the step's time. The event's time is then as accurate as the method's states:
-a cubic Hermite of the step's ends was not (a top's split4, exact but for rounding, put its tilt events 1e-10 s
-off, 20 times its own error), and dopri5's dense output is of order 4, one below its steps.
+regula falsi, to the last bits of the step's time. The event's time is then as accurate as the method's states,
+for every family: an interpolant of the step's ends would not be (a cubic Hermite is of order 3, dopri5's dense
+output of order 4, below the methods' own).
 
 A kernel call's events are a tuple (spec, times, counts, stopped):
 - spec (E, 4): per event its level, direction (+1 up: from below to level or above; -1 down; 0 both), stop
