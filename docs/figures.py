@@ -28,6 +28,9 @@ FIGURES = {
     "tennis_racket_noisy": ("fit", ["body_rates_flip_z"]),
     "stability_chain": ("stability", ["stability_map"]),
     "work_precision_top": ("work-precision", ["work_precision"]),
+    "pendulum": ("fit", ["fit_period"]),
+    "heavy_top": ("fit", ["fit_nutation"]),
+    "sleeping_top": ("fit", ["fit_max_tilt"]),
 }
 
 

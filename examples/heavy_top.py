@@ -114,3 +114,35 @@ def fit(ds):
                                                               "long_name": "nutation period from turning points"}),
                        "nutation_period_theory": ("member", theory, {
                            "units": "s", "long_name": "nutation period, 4 K(m) / sqrt(beta (u3 - u1))"})})
+
+
+def charts(plt, ds, fits, rows, stem, members=None):
+    """`ensemble fit --charts`: the largest tilt against the spin across the sleeping threshold (STEM_max_tilt.png),
+    or the nutation period against the spin with the fast top's 2 pi lambda1 / (lambda3 w3) (STEM_nutation.png);
+    the fitted values from the events as dots, the theory as a line."""
+    spin = np.broadcast_to(ds["w30"].values, (ds.sizes["member"],))
+    grid = np.linspace(spin.min(), spin.max(), 300)
+    starts = [np.full(grid.shape, float(ds[f"{name}0"].values.ravel()[0])) for name in STATE]
+    starts[2] = grid
+    moments = [np.full(grid.shape, float(ds[name].values.ravel()[0])) for name in ("lambda1", "lambda3", "MgR")]
+    fig, ax = plt.subplots(figsize=(6, 3.6), layout="constrained")
+    if "max_tilt" in fits:
+        lambda1, lambda3, mgr = (moments[k][0] for k in range(3))
+        ax.plot(grid, np.arccos(nutation_roots(*starts, *moments)[0]), color="0.3", label="theory arccos(u1)")
+        ax.plot(spin, fits["max_tilt"].values, "o", color="C0", label="tilt at the first turning point (event)")
+        ax.axvline(2 * np.sqrt(lambda1 * mgr) / lambda3, color="C3", ls="--", label="(lambda3 w3)^2 = 4 lambda1 M g R")
+        ax.set(ylabel="largest tilt (rad)", title="the sleeping top: which spins stay up")
+        name = "max_tilt"
+    else:
+        ax.plot(grid, nutation_period(*starts, *moments), color="0.3", label="theory 4 K(m) / sqrt(beta (u3 - u1))")
+        ax.plot(grid, 2 * np.pi * moments[0] / (moments[1] * grid), color="C3", ls="--",
+                label="fast top 2 pi lambda1 / (lambda3 w3)")
+        ax.plot(spin, fits["nutation_period"].values, "o", color="C0", label="from turning-point events")
+        ax.set(ylabel="nutation period (s)", yscale="log", title="the heavy top's nutation")
+        name = "nutation"
+    ax.set(xlabel="spin w3 (rad/s)")
+    ax.legend(fontsize="small")
+    path = f"{stem}_{name}.png"
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return [path]

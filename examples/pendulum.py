@@ -97,3 +97,21 @@ def fit(ds):
     return xr.Dataset({"period": ("member", period, {"units": "s", "long_name": "period from zero crossings",
                                                       "check_rtol": 1e-6}),
                        "period_theory": ("member", theory, {"units": "s", "long_name": "period, 4 K(m) / omega0"})})
+
+
+def charts(plt, ds, fits, rows, stem, members=None):
+    """`ensemble fit --charts`: each member's period from its zero crossings, in units of the small-swing
+    2 pi / omega0, against the elliptic theory over the amplitude; STEM_period.png."""
+    theta0 = np.broadcast_to(ds["theta0"].values, fits["period"].shape)
+    small = 2 * np.pi / np.broadcast_to(ds["omega0"].values, theta0.shape)
+    grid = np.linspace(0.0, theta0.max(), 200)
+    fig, ax = plt.subplots(figsize=(6, 3.6), layout="constrained")
+    ax.plot(grid, 2 / np.pi * ellipk(np.sin(grid / 2) ** 2), color="0.3", label="theory 4 K(m) / omega0")
+    ax.plot(theta0, fits["period"].values / small, ".", ms=3, color="C0", label="from zero-crossing events")
+    ax.set(xlabel="amplitude theta0 (rad)", ylabel="period / (2 pi / omega0)",
+           title="pendulum period from its events")
+    ax.legend()
+    path = f"{stem}_period.png"
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return [path]
