@@ -60,7 +60,7 @@ def output_bytes(spec: Spec) -> int:
     scene = spec.model
     sizes = {"member": spec.n_members, "t": spec.n_save, **scene.sizes(spec.constants)}
     saved = sum(math.prod(sizes[d] for d in scene.OBSERVABLES[name][0]) for name in spec.save)
-    records = len(RUN_RECORDS) + record_values(spec) - len(record_names(spec)) + len(spec.events)  # all, at most
+    records = max(len(RUN_RECORDS), record_values(spec))  # every record there is, or what this run stores
     return 8 * (saved + spec.n_members * (records + len(spec.declared)))
 
 

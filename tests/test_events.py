@@ -31,15 +31,15 @@ EVENTS = (Event("zero", "theta", -1, ("state", 0), 0.0, "both", 6),
           Event("low", "height", -1, ("function", "event_height", -1), 1.0, "down", 1))
 
 
-def pendulum():
+def example(name: str):
+    """The module of examples/<name>.py, for its closed forms."""
     import sys
 
-    sys.path.insert(0, str(PENDULUM.parent))
+    sys.path.insert(0, str(ROOT / "examples"))
     try:
-        import pendulum as module
+        return __import__(name)
     finally:
         sys.path.pop(0)
-    return module
 
 
 def swing(method: str, dt: float, events=EVENTS, t_end: float = 10.0, save_dt: float = 0.1):
@@ -52,14 +52,14 @@ def swing(method: str, dt: float, events=EVENTS, t_end: float = 10.0, save_dt: f
 def state_error(outcome, save_dt: float) -> np.ndarray:
     """The largest |theta - exact| of each member over the run, (members,)."""
     t = np.arange(outcome.samples.shape[0])[:, None] * save_dt
-    exact, _ = pendulum().exact(t, THETA0[None], 0.0, OMEGA0)
+    exact, _ = example("pendulum").exact(t, THETA0[None], 0.0, OMEGA0)
     return np.max(np.abs(outcome.samples[:, 0, :] - exact), axis=0)
 
 
 @pytest.mark.parametrize("method, dt", [("rk4", 0.02), ("yoshida4", 0.02), ("dopri5", np.nan)])
 def test_pendulum_crossings_are_the_elliptic_times_to_the_methods_own_error(method, dt):
     outcome = swing(method, dt)
-    module = pendulum()
+    module = example("pendulum")
     exact = module.crossing_times(THETA0, OMEGA0, 6)  # (members, 6), some after t = 10 s
     times = outcome.event_times[0].T
     assert np.all(outcome.event_counts[0] == np.sum(module.crossing_times(THETA0, OMEGA0, 20) < 10.0, axis=1))
@@ -97,7 +97,7 @@ def test_a_run_in_segments_and_a_resumed_one_find_the_bits_of_one_call():
 
 
 def test_rk4s_crossing_times_converge_at_its_order():
-    exact = pendulum().crossing_times(THETA0, OMEGA0, 6)
+    exact = example("pendulum").crossing_times(THETA0, OMEGA0, 6)
     errors = [np.nanmax(np.abs(swing("rk4", dt).event_times[0].T - exact)) for dt in (0.04, 0.02)]
     assert 2.0**4 / 1.5 < errors[0] / errors[1] < 2.0**4 * 1.5
 
@@ -166,16 +166,10 @@ def test_a_heavy_tops_nutation_period_from_its_turning_points_is_the_elliptic_on
     (a root of the cubic f(u), u = cos(tilt)) and a lower one; their turning points (the scene's event function
     u' = 0) are half a period apart, the period 4 K(m) / sqrt(beta (u3 - u1)), and near the fast top's
     2 pi lambda1 / (lambda3 w3)."""
-    import sys
-
     out = tmp_path / "heavy.nc"
     assert cli.main(["run", str(RUNS / "heavy_top.toml"), "-o", str(out), "--quiet"]) == 0
     assert cli.main(["fit", str(out), "--check"]) == 0
-    sys.path.insert(0, str(ROOT / "examples"))
-    try:
-        import heavy_top
-    finally:
-        sys.path.pop(0)
+    heavy_top = example("heavy_top")
     with xr.open_dataset(out) as ds, xr.open_dataset(tmp_path / "heavy_fit.nc") as fits:
         spin = ds["w30"].values
         start = [np.broadcast_to(ds[f"{name}0"].values, spin.shape) for name in heavy_top.STATE]
@@ -220,7 +214,7 @@ def test_a_run_file_stops_members_at_an_event_and_keeps_their_state_there(tmp_pa
     assert "; 4 stopped at events" in capsys.readouterr().out
     with xr.open_dataset(tmp_path / "a.nc") as ds:
         theta0 = ds["theta0"].values
-        first_up = pendulum().crossing_times(theta0, OMEGA0, 2)[:, 1]  # down through 0 first, then up
+        first_up = example("pendulum").crossing_times(theta0, OMEGA0, 2)[:, 1]  # down through 0 first, then up
         assert np.all(ds["status"].values == Status.STOPPED_BY_EVENT)
         assert np.all(np.isnan(ds["failure_time"].values))  # stopped, not failed
         assert np.allclose(ds["bottom_time"].values[:, 0], first_up, rtol=0, atol=1e-6)
@@ -235,7 +229,7 @@ def test_a_run_file_stops_members_at_an_event_and_keeps_their_state_there(tmp_pa
         above = theta0 > math.pi / 2  # those fall through the axle's height from either side before the stop
         assert np.all(ds["axle_count"].values == 2 * above) and ds.sizes["axle"] == 2
         assert np.array_equal(np.isfinite(ds["axle_time"].values), np.repeat(above[:, None], 2, axis=1))
-        first_fall = pendulum().height_times(theta0[above], OMEGA0, 1.0)
+        first_fall = example("pendulum").height_times(theta0[above], OMEGA0, 1.0)
         assert np.allclose(ds["axle_time"].values[above, 0], first_fall, rtol=0, atol=1e-6)
         assert ds["status"].attrs["flag_meanings"].split()[3] == "stopped_by_event"
         whole = ds.load()

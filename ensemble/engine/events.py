@@ -205,6 +205,19 @@ def NO_ADAPTIVE_WATCH(like_y, like_p, work, B, K, NEW, C0, S, context):
     """An adaptive kernel without events: nothing after a step's control."""
 
 
+@cache
+def beginning(values, first: int):
+    """begin(like_y, like_p, work, B, context) for either watcher: every member's events' values at t = 0 into
+    its rows from `first` (the values at the first step's start)."""
+    @njit(inline="always", **FAST)
+    def begin(like_y, like_p, work, B, context):
+        D = len(like_y)
+        for j in range(B):
+            y, p = loaded(work, 0, B, j, like_y), loaded(work, D, B, j, like_p)
+            stored(work, first, B, j, values(0.0, y, p))
+    return begin
+
+
 def fixed_watcher(values, advance, to_user, first: int, E: int):
     """(begin, remember, watch) for a fixed-step kernel (ensemble.engine.frames.fixed_step) whose E events' rows
     start at `first`: their values at the step's end and start (E rows each) and the state at the step's start
@@ -222,15 +235,8 @@ def fixed_watcher(values, advance, to_user, first: int, E: int):
     on AMD Zen 3), and rows chosen at run time kept LLVM from proving a block's members apart. In the members'
     loop of the step itself the events cost more: a top's tilt, a call there, kept the step from vectorizing.
     context: (events, status, failure_time, j0) as frames hands it."""
-    located, like_g = locator(values, advance), (0.0,) * E
+    located, like_g, begin = locator(values, advance), (0.0,) * E, beginning(values, first)
     G, BEFORE, OLD = first, first + E, first + 2 * E
-
-    @njit(inline="always", **FAST)
-    def begin(like_y, like_p, work, B, context):
-        D = len(like_y)
-        for j in range(B):
-            y, p = loaded(work, 0, B, j, like_y), loaded(work, D, B, j, like_p)
-            stored(work, G, B, j, values(0.0, y, p))
 
     @njit(inline="always", **FAST)
     def remember(work, B, j, y):
@@ -267,14 +273,7 @@ def adaptive_watcher(values, advance, first: int, E: int):
     `first`: begin(like_y, like_p, work, B, context) at t = 0; watch(like_y, like_p, work, B, K, NEW, C0, S,
     context) after control_step, before the accepted steps move to their new states. advance: the pair's step
     (adaptive.advance_of). E: the events' count."""
-    located, like_g = locator(values, advance), (0.0,) * E
-
-    @njit(inline="always", **FAST)
-    def begin(like_y, like_p, work, B, context):
-        D = len(like_y)
-        for j in range(B):
-            y, p = loaded(work, 0, B, j, like_y), loaded(work, D, B, j, like_p)
-            stored(work, first, B, j, values(0.0, y, p))
+    located, like_g, begin = locator(values, advance), (0.0,) * E, beginning(values, first)
 
     @njit(inline="always", **FAST)
     def watch(like_y, like_p, work, B, K, NEW, C0, S, context):
