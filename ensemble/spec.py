@@ -254,7 +254,7 @@ def parse(text: str, path: str = "<string>") -> Spec:
         [{k: v for k, v in grid.items() if k not in SETTINGS} for grid in grids], labels, module)
     for grid, axes in zip(grids, setting_axes):
         grid.update(axes)
-    events = _events(values.get("events", {}), module, constants, declared, setting_axes, settings, device)
+    events = _events(values.get("events", {}), module, constants, declared, device)
 
     spec = Spec(path=str(path), text=text, scene=scene, method=settings.get("method"), dt=settings.get("dt"),
                 t_end=t_end, save_dt=save_dt, members=values["members"], seed=values["seed"], save=save,
@@ -286,15 +286,10 @@ def _save(save: tuple, module, events: bool) -> tuple[str, ...]:
     return save
 
 
-def _events(table: dict, module, constants: dict, declared: dict, setting_axes: list[dict], settings: dict,
-            device: str) -> tuple:
-    """The [events] tables (ensemble.events.parse), for the methods that have them: every stepping method on the
-    CPU, for now."""
+def _events(table: dict, module, constants: dict, declared: dict, device: str) -> tuple:
+    """The [events] tables (ensemble.events.parse), on the CPU for now."""
     if not table:
         return ()
-    methods = {m for axes in setting_axes for m in axes.get("method", ())} | {settings.get("method")} - {None}
-    if "exact" in methods:
-        raise SpecError("events", "the closed form (method exact) has no events yet; use a stepping method")
     if device != "cpu":
         raise SpecError("events", "events run on the CPU for now (device = \"cpu\")")
     taken = set(RESERVED) | set(declared) | set(module.OBSERVABLES) | set(module.sizes(constants))

@@ -96,6 +96,31 @@ def test_a_run_in_segments_and_a_resumed_one_find_the_bits_of_one_call():
     np.testing.assert_array_equal(call.outcome().event_times, whole.event_times)
 
 
+def test_the_closed_forms_events_are_found_on_it_to_rounding():
+    """Method exact: the crossings are root-found on the scene's closed form itself (a grid of dt brackets them),
+    so they are the elliptic times to rounding; a run in segments, resumed from the middle, or of one member at a
+    time gives the same bits."""
+    module = example("pendulum")
+    outcome = swing("exact", 0.05)
+    exact = module.crossing_times(THETA0, OMEGA0, 6)
+    times = outcome.event_times[0].T
+    assert np.array_equal(np.isfinite(times), exact < 10.0)
+    assert np.all(outcome.event_counts[0] == np.sum(module.crossing_times(THETA0, OMEGA0, 20) < 10.0, axis=1))
+    assert np.nanmax(np.abs(times - exact)) < 1e-13
+    assert np.allclose(outcome.event_times[1, 0, 2:], module.height_times(THETA0[2:], OMEGA0, 1.0), rtol=0,
+                       atol=1e-13) and np.all(np.isnan(outcome.event_times[1, 0, :2]))
+    values = {"omega0": np.full(4, OMEGA0), "theta0": THETA0, "theta_dot0": np.zeros(4)}
+    call = launch.new_launch(resolve(str(PENDULUM)), METHODS["exact"], values, {}, n_save=101, save_dt=0.1, dt=0.05,
+                             events=EVENTS, segment=7)
+    kept = next((first + 7, call.state()) for first, _ in call.segments() if first == 49)
+    list(call.segments(resume=kept))
+    np.testing.assert_array_equal(call.outcome().event_times, outcome.event_times)
+    for j in range(4):
+        one = launch.integrate(resolve(str(PENDULUM)), METHODS["exact"], {k: v[j:j + 1] for k, v in values.items()},
+                               {}, n_save=101, save_dt=0.1, dt=0.05, events=EVENTS)
+        np.testing.assert_array_equal(one.event_times[..., 0], outcome.event_times[..., j])
+
+
 def test_rk4s_crossing_times_converge_at_its_order():
     exact = example("pendulum").crossing_times(THETA0, OMEGA0, 6)
     errors = [np.nanmax(np.abs(swing("rk4", dt).event_times[0].T - exact)) for dt in (0.04, 0.02)]
@@ -111,7 +136,7 @@ def test_a_prolate_tops_tilt_reaches_its_level_at_the_closed_forms_time():
               "spin0": np.full(3, 60.0), "tilt0": tilt0, "azimuth0": np.zeros(3)}
     level, rate = 0.6, 1e-4 * (1 / 0.5e-3 - 1 / 1e-3)
     tip = Event("tip", "tilt", -1, ("function", "value_tilt", -1), level, "up", 1, True)
-    for method in ("rk4", "split4"):
+    for method in ("rk4", "split4", "exact"):
         outcome = launch.integrate(top, METHODS[method], values, {}, n_save=301, save_dt=0.1, dt=2e-3,
                                    events=(tip,))
         expected = np.log(math.tan(level) / np.tan(tilt0)) / rate
@@ -122,6 +147,8 @@ def test_a_prolate_tops_tilt_reaches_its_level_at_the_closed_forms_time():
         assert np.all(np.abs(outcome.event_times[0, 0] - expected) * slope <= 2.0 * own + 1e-12), method
         stopped = top.tilt(outcome.stopped, 0)  # the state kept at the event is on the level
         assert np.allclose(stopped, level, rtol=0, atol=1e-9)
+        later = t[:, None] > expected[None, :] + 2e-3  # samples after the step it stopped in are NaN
+        assert np.all(np.isnan(outcome.samples[:, 0, :][later])) and np.all(np.isfinite(outcome.samples[:, 0][~later]))
 
 
 def test_a_tops_fit_finds_its_tilt_decay_rate_from_event_times_alone(tmp_path):
@@ -271,5 +298,5 @@ def test_a_vector_without_index_and_an_event_function_of_the_wrong_signature_are
     line = refused(bad_pendulum('[events.e]\nof = "height"\n').replace(str(PENDULUM), str(scene)), tmp_path, capsys,
                    "event_height takes 2 argument(s)")
     assert "scene.py" in line
-    refused(top_runfile(method="exact") + '[events.e]\nof = "tilt"\nvalue = 0.1\n', tmp_path, capsys,
-            "no events yet")
+    refused(top_runfile(device="cuda") + '[events.e]\nof = "tilt"\nvalue = 0.1\n', tmp_path, capsys,
+            "events run on the CPU for now")

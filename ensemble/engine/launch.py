@@ -41,6 +41,7 @@ from ..scenes.contract import SceneError
 from ..tuning import applied
 from . import kernels
 from .blocks import flush_subnormals, restore_float_mode
+from .exact_events import ExactEvents
 from .inputs import adaptive_control, blowup_limits, fixed_counts
 
 
@@ -109,6 +110,8 @@ class Launch:
             step = save_dt if dt is None or not np.isfinite(dt) else float(dt)
             spacing = round(save_dt / step) * step
             self.exact = lambda first, count: scene.exact(values, constants, np.arange(first, first + count) * spacing)
+            self.watcher = ExactEvents(scene, values, constants, self.events, step, round(save_dt / step)) \
+                if self.events else None
             return
         state0, rate = scene.inputs(values, constants)
         self.layout = layout(scene, method, constants, block, self.events)
@@ -147,9 +150,7 @@ class Launch:
         run that had made samples 0 .. sample - 1 and then stopped, from what state() gave there."""
         first_sample = resume[0] if resume else 0
         if self.method.closed_form:
-            for first in range(first_sample, self.n_save, self.segment):
-                exact = self.exact(first, min(self.segment, self.n_save - first))
-                yield first, lambda exact=exact: exact
+            yield from self._closed_form(first_sample, resume)
             return
         self.status[:] = 0.0
         self.failure_time[:] = np.nan
@@ -180,12 +181,24 @@ class Launch:
                                   f"t = {first * self.save_dt:g} and {stop * self.save_dt:g} s") from None
             yield first, lambda samples=samples: samples.transpose(1, 2, 0)
 
+    def _closed_form(self, first_sample: int, resume: tuple[int, dict] | None):
+        """segments of the closed form: its samples, and its events (ExactEvents) where the run has them."""
+        if self.watcher is not None:
+            self.watcher.reset()
+            for name, value in (resume[1] if resume else {}).items():
+                getattr(self.watcher, name)[:] = value
+        for first in range(first_sample, self.n_save, self.segment):
+            exact = self.exact(first, min(self.segment, self.n_save - first))
+            if self.watcher is not None:
+                self.watcher.watch(first, exact)
+            yield first, lambda exact=exact: exact
+
     def state(self) -> dict[str, np.ndarray]:
         """Copies of what the kernel continues from (work arrays, status, failure times, adaptive counts), as the
         last segment that `segments` yielded left them: `segments(resume=(its first + count, state()))` continues
         from there, to the same bits. Empty for a closed form."""
         if self.method.closed_form:
-            return {}
+            return self.watcher.state() if self.watcher is not None else {}
         names = ("works", "status", "failure_time") + (("counts",) if self.method.adaptive else ())
         names += ("event_times", "event_counts", "stopped") if self.events else ()
         return {name: getattr(self, name).copy() for name in names}
@@ -207,7 +220,11 @@ class Launch:
         samples = getattr(self, "samples", None)
         n = self.members
         if self.method.closed_form:
-            return Outcome(samples, np.zeros((3, n), dtype=np.int64), np.zeros(n, dtype=np.int8), np.full(n, np.nan))
+            if self.watcher is None:
+                return Outcome(samples, np.zeros((3, n), np.int64), np.zeros(n, np.int8), np.full(n, np.nan))
+            watched = self.watcher
+            return Outcome(samples, np.zeros((3, n), np.int64), watched.status.astype(np.int8), np.full(n, np.nan),
+                           watched.event_times.copy(), watched.event_counts.astype(np.int64), watched.stopped.copy())
         ended = self.failure_time[:n].copy()  # a failure's time, or a stop's (ensemble.engine.events)
         if self.method.adaptive:
             counts = self.counts[:, :n].astype(np.int64)

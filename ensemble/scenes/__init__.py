@@ -46,7 +46,8 @@ class Scene(Protocol):
     def derive(self, values: dict, constants: dict) -> dict: ...  # parameters computed from others
     def inputs(self, values: dict, constants: dict) -> tuple[np.ndarray, np.ndarray]: ...  # state0, rate
     def kernel_rows(self, constants: dict) -> tuple[int, int]: ...  # rows of state0 and rate
-    def exact(self, values: dict, constants: dict, t: np.ndarray) -> np.ndarray: ...  # (len(t), state, members)
+    def exact(self, values: dict, constants: dict, t: np.ndarray) -> np.ndarray: ...  # (times, state, members)
+    # t: (times,), or (times, members): each member's own (closed_form.times_by_members)
     def observe(self, samples: np.ndarray, names, values: dict, constants: dict) -> dict: ...  # saved variables
     def amplitudes(self, samples: np.ndarray, values: dict, constants: dict) -> np.ndarray: ...  # (M, motions, t)
     def axis_growth(self, method: Method, axis: str, x: np.ndarray) -> np.ndarray: ...

@@ -14,8 +14,8 @@ Optional:
 - PIECES, and for each piece `<piece>(tau, *state, *parameters)`: its exact flow for time tau, for splitting
   methods (methods.KICK_DRIFT, say); EVALUATING_PIECES: those that evaluate the forces;
 - exact(t, *state0, *parameters): the closed form with numpy broadcasting (t is a column (times, 1), every
-  other argument a row (1, members)), a tuple of len(STATE) arrays; it gives the `exact` method and
-  [measure] error;
+  other argument a row (1, members); for events, t is (times, members), each member's own times), a tuple of
+  len(STATE) arrays; it gives the `exact` method and [measure] error;
 - EVENTS, and for each name `event_<name>(t, *state, *parameters)`: a value whose crossings a run file's
   [events] can watch (`of = "<name>"`) where no state variable says it;
 - check(values): raise ensemble.ParameterError(name, problem) for a value no member can have;
@@ -45,6 +45,7 @@ import numpy as np
 from ..errors import EXIT_FAILED, EnsembleError
 from ..parameter import Parameter
 from . import chain
+from .closed_form import times_by_members
 
 #: Names a result already uses: a scene's state and parameters must not take them.
 RESERVED = ("t", "member", "method", "dt", "rtol", "atol", "steps_accepted", "steps_rejected", "rhs_evals",
@@ -274,9 +275,10 @@ class UserScene:
         return state0, np.stack(rates) if rates else np.zeros((0, members))
 
     def _exact(self, values: dict[str, np.ndarray], constants: dict, t: np.ndarray) -> np.ndarray:
-        """The module's closed form at times t (s): (len(t), len(STATE), members)."""
+        """The module's closed form at times t (s; (times,), or (times, members) for each member's own): (times,
+        len(STATE), members)."""
         state0, rates = self.inputs(values, constants)
-        t = np.asarray(t, dtype=float)[:, None]
+        t = times_by_members(t)
         columns = self.module.exact(t, *(row[None, :] for row in state0), *(row[None, :] for row in rates))
         return np.stack([np.broadcast_to(c, (t.shape[0], state0.shape[1])) for c in columns], axis=1)
 

@@ -21,6 +21,7 @@ import numpy as np
 from ...inertia import Body
 from ...methods import AXIS_ROTATIONS, Method
 from ...parameter import Parameter, ParameterError
+from ..closed_form import times_by_members
 
 NAME = "body"
 PHYSICS = "ensemble.scenes.body.physics"  # rhs and pieces, from which ensemble.engine builds the kernels
@@ -159,7 +160,8 @@ def kernel_rows(constants: dict) -> tuple[int, int]:
 
 
 def exact(values: dict[str, np.ndarray], constants: dict, t: np.ndarray) -> np.ndarray:
-    """Torque-free body rates at times t (s) in Jacobi elliptic functions; shape (len(t), 3, members).
+    """Torque-free body rates at times t (s; (times,), or (times, members) for each member's own) in Jacobi
+    elliptic functions; shape (times, 3, members).
 
     Members must have c = 0 (see check_exact). Per member the axes are put in
     the order (cn axis, intermediate axis, dn axis): the dn axis is the one
@@ -182,7 +184,7 @@ def exact(values: dict[str, np.ndarray], constants: dict, t: np.ndarray) -> np.n
     sense = np.where(w[2] < 0, -1.0, 1.0) * np.sign(lam_f[2] - lam_f[1])
     moving = np.isfinite(rate) & (rate > 0) & np.isfinite(m)
     u0 = ellipkinc(phi0, np.where(moving, m, 0.0))
-    u = np.where(moving, sense * rate, 0.0)[None, :] * np.asarray(t, dtype=float)[:, None] + u0
+    u = np.where(moving, sense * rate, 0.0)[None, :] * times_by_members(t) + u0
     period = 4 * ellipk(np.where(moving, m, 0.0))  # sn, cn and dn repeat after 4 K: ellipj is most exact near 0
     sn, cn, dn, _ = ellipj(np.mod(u, period[None, :]), np.where(moving, m, 0.0)[None, :])
     spun = np.stack((a1 * cn, a2 * sn, np.where(w[2] < 0, -1.0, 1.0) * a3 * dn), axis=1)  # (t, 3, members)

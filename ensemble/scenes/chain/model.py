@@ -15,6 +15,7 @@ import numpy as np
 
 from ...methods import KICK_DRIFT, Method
 from ...parameter import Mode, Parameter, ParameterError
+from ..closed_form import times_by_members
 
 NAME = "chain"
 PHYSICS = "ensemble.scenes.chain.physics"  # `acceleration` of a mass between its neighbours
@@ -262,21 +263,22 @@ def kernel_rows(constants: dict) -> tuple[int, int]:
 
 
 def exact(values: dict[str, np.ndarray], constants: dict, t: np.ndarray) -> np.ndarray:
-    """Modal superposition at times t (s); samples (len(t), 2n, members) as (x; v).
+    """Modal superposition at times t (s; (times,), or (times, members) for each member's own); samples (times,
+    2n, members) as (x; v).
 
     q_j(t) = q_j(0) cos(w_j t) + q_j'(0) sin(w_j t) / w_j, with q = shape^T M x;
     a zero mode drifts: q(t) = q(0) + q'(0) t.
     """
     boundary = constants["boundary"]
-    t = np.asarray(t, dtype=float)
+    t = times_by_members(t).T[:, :, None]  # (M or 1, T, 1)
     m = values["m"]
     omega, shapes = normal_modes(m, values["k"], boundary)  # (M, n), (M, n, n)
     q0 = np.einsum("mij,mi->mj", shapes, m * values["x0"])
     p0 = np.einsum("mij,mi->mj", shapes, m * values["v0"])
-    wt = omega[:, None, :] * t[None, :, None]  # (M, T, n)
+    wt = omega[:, None, :] * t  # (M, T, n)
     moving = omega[:, None, :] > 0
     safe = np.where(moving, omega[:, None, :], 1.0)
-    q = q0[:, None] * np.cos(wt) + p0[:, None] * np.where(moving, np.sin(wt) / safe, t[None, :, None])
+    q = q0[:, None] * np.cos(wt) + p0[:, None] * np.where(moving, np.sin(wt) / safe, t)
     qdot = -q0[:, None] * omega[:, None, :] * np.sin(wt) + p0[:, None] * np.cos(wt)
     x = np.einsum("mij,mtj->tim", shapes, q)
     v = np.einsum("mij,mtj->tim", shapes, qdot)

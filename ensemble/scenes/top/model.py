@@ -18,6 +18,7 @@ import numpy as np
 from ...inertia import EQUAL_RTOL, Body
 from ...methods import DRAG_ROTATION, Method
 from ...parameter import Parameter, ParameterError
+from ..closed_form import times_by_members
 
 NAME = "top"
 PHYSICS = "ensemble.scenes.top.physics"  # rhs and pieces, from which ensemble.engine builds the kernels
@@ -129,19 +130,21 @@ def kernel_rows(constants: dict) -> tuple[int, int]:
 
 
 def exact(values: dict[str, np.ndarray], constants: dict, t: np.ndarray) -> np.ndarray:
-    """Closed-form body rates at times t (s); returns shape (len(t), 3, members)."""
+    """Closed-form body rates at times t (s): (times,), or (times, members) for each member's own; returns shape
+    (times, 3, members)."""
     return closed_form(initial_state(values), rates(values), t)
 
 
 def closed_form(state0: np.ndarray, rate: np.ndarray, t: np.ndarray) -> np.ndarray:
-    """Body rates at times t (s) from rates at 0 (3, members) and (p, r1, r3); shape (len(t), 3, members).
+    """Body rates at times t (s; (times,) or (times, members)) from rates at 0 (3, members) and (p, r1, r3); shape
+    (times, 3, members).
 
     w3 = w30 exp(-r3 t). z = w1 + i w2 obeys z' = (i p w3 - r1) z, so
     z = z0 exp(-r1 t) exp(i theta), theta = p w30 (1 - exp(-r3 t)) / r3
     (p w30 t when r3 = 0).
     """
     p, r1, r3 = (x[None, :] for x in rate)
-    t = np.asarray(t, dtype=float)[:, None]
+    t = times_by_members(t)
     w10, w20, w30 = (x[None, :] for x in state0)
     with np.errstate(divide="ignore", invalid="ignore"):
         spun_time = np.where(r3 > 0, -np.expm1(-r3 * t) / r3, t)  # integral of exp(-r3 t)
