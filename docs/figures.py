@@ -29,7 +29,7 @@ FIGURES = {
     "stability_chain": ("stability", ["stability_map"]),
     "work_precision_top": ("work-precision", ["work_precision"]),
     "pendulum": ("fit", ["fit_period"]),
-    "heavy_top": ("fit", ["fit_nutation"]),
+    "heavy_top": ("fit", ["fit_nutation", "fit_precession"]),
     "sleeping_top": ("fit", ["fit_max_tilt"]),
 }
 

@@ -7,9 +7,11 @@ variables they add (`variables`, `records`). The kernels locate them (ensemble.e
     direction = "up"      # "up", "down" or "both" (the default)
     count = 1             # occurrences kept per member (default 1)
     stop = true           # the member stops at its first occurrence (default false)
+    keep = ["omega"]      # variables of the scene kept at each kept occurrence (default none)
 
 The result gains tip_time(member, tip) (s; NaN where fewer occurred), tip_count(member) (every occurrence, kept
-or not) and, where an event stops its members, each saved variable's value at the stop, <variable>_at_stop.
+or not), tip_<variable>(member, tip, ...) for each kept variable (as scipy's solve_ivp's y_events) and, where an
+event stops its members, each saved variable's value at the stop, <variable>_at_stop.
 
 A scene says what its events can watch in EVENT_VALUES: name -> ("state", first row) for a state variable (a
 vector's components follow), or ("function", name of a function in its physics, f(t, *state, *parameters) -> a
@@ -24,7 +26,7 @@ import numpy as np
 from .results import Event
 from .runfile import SpecError, expect, unknown
 
-KEYS = {"of": str, "value": float, "direction": str, "count": int, "stop": bool, "index": int}
+KEYS = {"of": str, "value": float, "direction": str, "count": int, "stop": bool, "index": int, "keep": list}
 DIRECTIONS = ("up", "down", "both")
 MAX_COUNT = 10_000  # occurrences kept per member: each is 8 bytes a member in the result
 NAME = re.compile(r"[A-Za-z][A-Za-z0-9_]*\Z")
@@ -49,7 +51,9 @@ def parse(table: dict, scene, constants: dict, taken: set[str]) -> tuple[Event, 
         given = {inner: expect(f"{key}.{inner}", value, KEYS[inner]) for inner, value in entry.items()}
         if "of" not in given:
             raise SpecError(f"{key}.of", "is missing: the variable whose crossing is the event")
-        clash = {f"{name}_time", f"{name}_count", name} & taken
+        keep = _kept(key, given.get("keep", []), scene)
+        own = {f"{name}_time", f"{name}_count", name, *(f"{name}_{variable}" for variable in keep)}
+        clash = own & taken
         if clash:
             raise SpecError(key, f"its variable {sorted(clash)[0]!r} would clash with the result's own; rename it")
         direction = given.get("direction", "both")
@@ -61,9 +65,20 @@ def parse(table: dict, scene, constants: dict, taken: set[str]) -> tuple[Event, 
             raise SpecError(f"{key}.count", f"must be in 1..{MAX_COUNT} (occurrences kept per member), got {count}")
         index, source = _source(key, given["of"], given.get("index"), scene, constants)
         events.append(Event(name, given["of"], index, source, float(given.get("value", 0.0)), direction, count,
-                            given.get("stop", False)))
-        taken = taken | {f"{name}_time", f"{name}_count", name}
+                            given.get("stop", False), keep))
+        taken = taken | own
     return tuple(events)
+
+
+def _kept(key: str, keep: list, scene) -> tuple[str, ...]:
+    """An event's `keep`: saved variables of the scene, each once."""
+    for i, variable in enumerate(keep):
+        if not isinstance(variable, str) or variable not in scene.OBSERVABLES:
+            raise SpecError(f"{key}.keep[{i}]", f"unknown variable {variable!r}; {scene.NAME} saves: "
+                                                f"{', '.join(scene.OBSERVABLES)}")
+        if variable in keep[:i]:
+            raise SpecError(f"{key}.keep[{i}]", f"names {variable!r} a second time")
+    return tuple(keep)
 
 
 def _source(key: str, of: str, index: int | None, scene, constants: dict) -> tuple[int, tuple]:
@@ -107,6 +122,10 @@ def variables(events: tuple[Event, ...], scene, save: tuple[str, ...]) -> dict[s
         out[f"{e.name}_count"] = ("i8", ("member",), "1", f"occurrences of {e.name}", "every occurrence, kept in "
                                   f"{e.name}_time or not" + ("; at most 1: the member stops there" if e.stop else ""),
                                   {})
+        for name in e.keep:
+            dims, units, long_name = scene.OBSERVABLES[name]
+            out[f"{e.name}_{name}"] = ("f8", ("member", e.name, *dims[2:]), units, f"{long_name} at {e.name}",
+                                       f"at each time of {e.name}_time; NaN where fewer occurred", {})
     if any(e.stop for e in events):
         for name in save:
             dims, units, long_name = scene.OBSERVABLES[name]
@@ -125,9 +144,12 @@ def records(events: tuple[Event, ...], outcome, scene, save: tuple[str, ...], va
             constants: dict) -> dict[str, np.ndarray]:
     """The per-member values of `variables` from a launch's Outcome (member first)."""
     out = {}
-    for e, times, counts in zip(events, outcome.event_times, outcome.event_counts):
+    for e, times, counts, states in zip(events, outcome.event_times, outcome.event_counts, outcome.event_states):
         out[f"{e.name}_time"] = np.ascontiguousarray(times[:e.count].T)
         out[f"{e.name}_count"] = counts
+        if e.keep:
+            kept = scene.observe(states[:e.count], e.keep, values, constants)  # (members, count, ...)
+            out.update({f"{e.name}_{name}": np.ascontiguousarray(value) for name, value in kept.items()})
     if any(e.stop for e in events) and save:
         at_stop = scene.observe(outcome.stopped[None], save, values, constants)
         out.update({f"{name}_at_stop": np.ascontiguousarray(value[:, 0]) for name, value in at_stop.items()})

@@ -462,7 +462,8 @@ class SegmentLog:
     part being written: each segment's end is saved as a segment file, and a resumed run continues from the last
     one kept (Parts.segments) instead of from sample 0."""
 
-    STATE = ("works", "status", "failure_time", "counts", "event_times", "event_counts", "stopped")  # Launch.state()
+    STATE = ("works", "status", "failure_time", "counts", "event_times", "event_counts", "stopped",
+             "event_states")  # Launch.state()
 
     def __init__(self, writer: PartWriter, start: int, stop: int):
         self.writer, self.start, self.stop = writer, start, stop

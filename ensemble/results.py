@@ -54,6 +54,7 @@ class Event(NamedTuple):
     direction: str = "both"  # "up", "down" or "both"
     count: int = 1  # occurrences kept per member
     stop: bool = False  # the member stops at its first occurrence
+    keep: tuple = ()  # saved variables kept at each kept occurrence (<name>_<variable>)
 
     @property
     def sign(self) -> float:
@@ -71,3 +72,5 @@ class Outcome(NamedTuple):
     event_times: np.ndarray | None = None  # (events, count, members) s: kept occurrences, NaN where fewer
     event_counts: np.ndarray | None = None  # (events, members) int64: every occurrence
     stopped: np.ndarray | None = None  # (state, members): a member's state at the event that stopped it, else NaN
+    event_states: np.ndarray | None = None  # (events, count, state, members): states at kept occurrences (see
+    # launch.event_states), NaN where none

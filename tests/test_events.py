@@ -27,7 +27,7 @@ OMEGA0 = 2.0
 THETA0 = np.array([0.5, 1.5, 2.0, 2.8])  # the last two swing above the height of the axle
 # One kernel per method for every pendulum test: the sources (a state component, the scene's event function)
 # fix it; the levels, directions and counts are the run's.
-EVENTS = (Event("zero", "theta", -1, ("state", 0), 0.0, "both", 6),
+EVENTS = (Event("zero", "theta", -1, ("state", 0), 0.0, "both", 6, keep=("theta", "theta_dot")),
           Event("low", "height", -1, ("function", "event_height", -1), 1.0, "down", 1))
 
 
@@ -70,6 +70,10 @@ def test_pendulum_crossings_are_the_elliptic_times_to_the_methods_own_error(meth
     error = np.abs(np.where(exact < 10.0, times - exact, 0.0))
     assert np.all(error * speed[:, None] <= 2.0 * own[:, None] + 1e-13)
     assert np.max(error) > 0.0  # (not exact by accident)
+    theta, theta_dot = outcome.event_states[0, :, 0].T, outcome.event_states[0, :, 1].T  # kept at each crossing
+    assert np.array_equal(np.isfinite(theta_dot), exact < 10.0) and np.nanmax(np.abs(theta)) < 1e-12
+    signs = np.where(np.arange(6) % 2 == 0, -1.0, 1.0)  # released at rest above 0: down through it first
+    assert np.all(np.nan_to_num(np.abs(theta_dot - signs * speed[:, None])) <= 4.0 * OMEGA0 * own[:, None] + 1e-12)
     # the scene's event function: the bob falls through the axle's height once per swing (half a period) above it
     low = outcome.event_times[1, 0]
     first = module.height_times(THETA0[2:], OMEGA0, 1.0)
@@ -107,6 +111,9 @@ def test_the_closed_forms_events_are_found_on_it_to_rounding():
     assert np.array_equal(np.isfinite(times), exact < 10.0)
     assert np.all(outcome.event_counts[0] == np.sum(module.crossing_times(THETA0, OMEGA0, 20) < 10.0, axis=1))
     assert np.nanmax(np.abs(times - exact)) < 1e-13
+    signs = np.where(np.arange(6) % 2 == 0, -1.0, 1.0)
+    speed = 2.0 * np.sin(THETA0 / 2.0) * OMEGA0
+    assert np.nanmax(np.abs(outcome.event_states[0, :, 1].T - signs * speed[:, None])) < 1e-12
     assert np.allclose(outcome.event_times[1, 0, 2:], module.height_times(THETA0[2:], OMEGA0, 1.0), rtol=0,
                        atol=1e-13) and np.all(np.isnan(outcome.event_times[1, 0, :2]))
     values = {"omega0": np.full(4, OMEGA0), "theta0": THETA0, "theta_dot0": np.zeros(4)}
@@ -192,7 +199,8 @@ def test_a_heavy_tops_nutation_period_from_its_turning_points_is_the_elliptic_on
     """runs/heavy_top.toml: tops released at a tilt of 0.5 rad with their spin alone nutate between that tilt
     (a root of the cubic f(u), u = cos(tilt)) and a lower one; their turning points (the scene's event function
     u' = 0) are half a period apart, the period 4 K(m) / sqrt(beta (u3 - u1)), and near the fast top's
-    2 pi lambda1 / (lambda3 w3)."""
+    2 pi lambda1 / (lambda3 w3); the precession angle kept at them (keep) advances at the mean rate that a
+    quadrature over a nutation period gives, near the fast top's M g R / (lambda3 w3)."""
     out = tmp_path / "heavy.nc"
     assert cli.main(["run", str(RUNS / "heavy_top.toml"), "-o", str(out), "--quiet"]) == 0
     assert cli.main(["fit", str(out), "--check"]) == 0
@@ -208,6 +216,10 @@ def test_a_heavy_tops_nutation_period_from_its_turning_points_is_the_elliptic_on
         ratio = theory / (2 * np.pi * 1e-3 / (5e-4 * spin))  # to the fast top's period, spins in rising order
         assert np.all(np.diff(ratio) < 0) and np.all(ratio > 1) and ratio[-1] < 1.01
         assert np.all(ds["turn_count"].values == np.floor(2.0 / (theory / 2)))  # a turning point every half period
+        precession = fits["precession_rate_theory"].values  # phi kept at each turning point: its mean rate
+        assert np.allclose(fits["precession_rate"].values, precession, rtol=1e-9, atol=0)
+        fast = precession / (0.05 / (5e-4 * spin))  # to the fast top's M g R / (lambda3 w3)
+        assert np.all(np.diff(fast) < 0) and np.all(fast > 1) and fast[-1] < 1.01
 
 
 def test_a_sleeping_top_stays_up_above_the_spin_threshold_and_falls_below_it(tmp_path):
@@ -284,6 +296,10 @@ def bad_pendulum(extra: str) -> str:
     ('[events.omega0]\nof = "theta"\n', "would clash"),
     ('[events.e]\nvalue = 1.0\n', "events.e.of: is missing"),
     ('[events.e]\nof = "theta"\nlevel = 1.0\n', "events.e.level: unknown key"),
+    ('[events.e]\nof = "theta"\nkeep = ["theta", "psi"]\n', "events.e.keep[1]: unknown variable 'psi'"),
+    ('[events.e]\nof = "theta"\nkeep = ["theta", "theta"]\n', "events.e.keep[1]: names 'theta' a second time"),
+    ('[events.e]\nof = "theta"\nkeep = "theta"\n', "events.e.keep: must be"),
+    ('[events.e]\nof = "theta"\nkeep = ["theta"]\n[events.e_theta]\nof = "theta"\n', "would clash"),
 ])
 def test_a_bad_events_table_is_one_line_and_nothing_written(tmp_path, capsys, table, expected):
     refused(bad_pendulum(table), tmp_path, capsys, expected)

@@ -13,13 +13,16 @@ regula falsi, to the last bits of the step's time. The event's time is then as a
 for every family: an interpolant of the step's ends would not be (a cubic Hermite is of order 3, dopri5's dense
 output of order 4, below the methods' own).
 
-A kernel call's events are a tuple (spec, times, counts, stopped):
-- spec (E, 4): per event its level, direction (+1 up: from below to level or above; -1 down; 0 both), stop
-  (1: the member stops at its first occurrence) and count (occurrences kept);
+A kernel call's events are a tuple (spec, times, counts, stopped, states):
+- spec (E, 5): per event its level, direction (+1 up: from below to level or above; -1 down; 0 both), stop
+  (1: the member stops at its first occurrence), count (occurrences kept) and keep (1: its state at each kept
+  occurrence goes to `states`);
 - times (E, count, members), s: the first `count` occurrences of each event per member (count: the largest),
   NaN where fewer occurred (filled by the caller);
 - counts (E, members): every occurrence so far, kept or not (floats);
-- stopped (D, members): a stopped member's state at its event, in the scene's coordinates (NaN elsewhere).
+- stopped (D, members): a stopped member's state at its event, in the scene's coordinates (NaN elsewhere);
+- states (E, count, D, members): the state at each kept occurrence of an event that keeps it, in the scene's
+  coordinates (NaN where none; a (E, 1, D, 1) placeholder where no event keeps it).
 A stopped member's status is STOPPED (results.Status.STOPPED_BY_EVENT), its state NaN after its event, so that
 its later samples are NaN and its block's steps carry it as they carry a failed member.
 
@@ -80,6 +83,17 @@ def values_chain(functions: tuple, compiled=_inlined):
     return compiled(values)
 
 
+EVENT_STATE = ("event_times", "event_counts", "stopped", "event_states")  # what a run's events carry on
+
+
+def event_states(events: tuple, state_rows: int, members: int) -> np.ndarray:
+    """The states at events' kept occurrences (above), (E, count, state rows, members): where no
+    event keeps them, a placeholder of one member (the kernel's argument type is the same)."""
+    if not any(e.keep for e in events):
+        return np.empty((len(events), 1, state_rows, 1))
+    return np.empty((len(events), max(e.count for e in events), state_rows, members))
+
+
 # ---------------------------------------------------------------- one member's crossings
 
 @njit(inline="always", **FAST)
@@ -136,7 +150,7 @@ def root(values, advance, e, level, t0, h, y0, p, before, after):
 
 @cache
 def locator(values, advance):
-    """located(spec, times, counts, stopped, member, t0, h, y0, p, before, after) for an event kernel of
+    """located(arrays, member, t0, h, y0, p, before, after) for an event kernel of
     `values` and a family's `advance`: every event of one member that crossed within its step of h (s) from t0
     (s) and state y0 (before, after:
     each event's values at the step's ends, tuples of E) is located (`root`) and recorded in times and counts, but
@@ -144,8 +158,9 @@ def locator(values, advance):
     stopping time (s), or NaN where the member goes on. A function of its own, called where an event occurred:
     inlined into the members' loop, it tripled the kernel's compile time."""
     @njit(**FAST)
-    def located(spec, times, counts, stopped, member, t0, h, y0, p, before, after):
-        E = spec.shape[0]
+    def located(arrays, member, t0, h, y0, p, before, after):
+        spec, times, counts, stopped, states = arrays
+        E, D, kept_most = spec.shape[0], stopped.shape[0], times.shape[1]
         fractions = np.full(E, 2.0)
         stop = 2.0
         for e in range(E):
@@ -158,6 +173,9 @@ def locator(values, advance):
                 kept = int(counts[e, member])
                 if kept < spec[e, 3]:
                     times[e, kept, member] = t0 + fractions[e] * h
+                    if spec[e, 4] > 0.0:
+                        stored(states, (e * kept_most + kept) * D, states.shape[3], member,
+                               advance(t0, fractions[e] * h, y0, p))
                 counts[e, member] += 1.0
         if stop > 1.0:
             return np.nan
@@ -179,7 +197,8 @@ def any_crossed(before, after, levels, directions):
 def levels_and_directions(spec, like_g):
     """spec's levels and directions as tuples shaped like like_g (E values): constants of a block's loops, which
     LLVM need not load again after each store into the work array."""
-    return loaded(spec, 0, 4, 0, like_g), loaded(spec, 0, 4, 1, like_g)
+    columns = spec.shape[1]
+    return loaded(spec, 0, columns, 0, like_g), loaded(spec, 0, columns, 1, like_g)
 
 
 # ---------------------------------------------------------------- the frames' calls
@@ -244,7 +263,8 @@ def fixed_watcher(values, advance, to_user, first: int, E: int):
 
     @njit(inline="always", **FAST)
     def watch(like_y, like_p, work, B, t, h, context):
-        (spec, times, counts, stopped), status, failure_time, j0 = context
+        arrays, status, failure_time, j0 = context
+        spec = arrays[0]
         D = len(like_y)
         levels, directions = levels_and_directions(spec, like_g)  # loaded once: constants of the loops
         hits = 0
@@ -261,8 +281,7 @@ def fixed_watcher(values, advance, to_user, first: int, E: int):
             before, after = loaded(work, BEFORE, B, j, like_g), loaded(work, G, B, j, like_g)
             if any_crossed(before, after, levels, directions):
                 y, p = loaded(work, OLD, B, j, like_y), loaded(work, D, B, j, like_p)
-                when = located(spec, times, counts, stopped, j0 + j, t, h, user_state(to_user, y, p), p, before,
-                               after)
+                when = located(arrays, j0 + j, t, h, user_state(to_user, y, p), p, before, after)
                 if when == when:
                     _stop(work, 0, D, B, j, status, failure_time, j0, when)
     return begin, remember, watch
@@ -277,7 +296,8 @@ def adaptive_watcher(values, advance, first: int, E: int):
 
     @njit(inline="always", **FAST)
     def watch(like_y, like_p, work, B, K, NEW, C0, S, context):
-        (spec, times, counts, stopped), status, failure_time, j0 = context
+        arrays, status, failure_time, j0 = context
+        spec = arrays[0]
         D = len(like_y)
         G, GNEW = first, first + E
         levels, directions = levels_and_directions(spec, like_g)
@@ -295,7 +315,7 @@ def adaptive_watcher(values, advance, first: int, E: int):
                 if any_crossed(before, after, levels, directions):
                     p, y0 = loaded(work, D, B, j, like_p), loaded(work, 0, B, j, like_y)
                     t1, h = work[(C0 + TIME) * B + j], work[(C0 + STEP) * B + j]
-                    when = located(spec, times, counts, stopped, j0 + j, t1 - h, h, y0, p, before, after)
+                    when = located(arrays, j0 + j, t1 - h, h, y0, p, before, after)
                     if when == when:
                         _stop(work, NEW, D, B, j, status, failure_time, j0, when)
                         work[(C0 + H) * B + j] = 0.0  # no further steps

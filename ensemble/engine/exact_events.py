@@ -18,7 +18,7 @@ from numba import njit
 from ..results import Status
 from . import kernels
 from .blocks import FAST
-from .events import ROOT_ITERATIONS
+from .events import EVENT_STATE, ROOT_ITERATIONS, event_states
 from .tuples import loaded, stored
 
 STOPPED = int(Status.STOPPED_BY_EVENT)
@@ -58,15 +58,18 @@ class ExactEvents:
         self.event_times = np.empty((len(events), int(self.kept.max()), members))
         self.event_counts = np.empty((len(events), members))
         self.stopped = np.empty((D, members))
+        self.event_states = event_states(events, D, members)
+        self.keeps = np.array([bool(e.keep) for e in events])
         self.reset()
 
     def reset(self) -> None:
         """Back to the run's start."""
-        self.status[:], self.event_times[:], self.event_counts[:], self.stopped[:] = 0.0, np.nan, 0.0, np.nan
+        self.status[:], self.event_times[:], self.event_counts[:] = 0.0, np.nan, 0.0
+        self.stopped[:], self.event_states[:] = np.nan, np.nan
 
     def state(self) -> dict[str, np.ndarray]:
         """Copies of what a later segment continues from (as launch.Launch.state)."""
-        return {name: getattr(self, name).copy() for name in ("status", "event_times", "event_counts", "stopped")}
+        return {name: getattr(self, name).copy() for name in ("status", *EVENT_STATE)}
 
     def watch(self, first: int, samples: np.ndarray) -> None:
         """Every crossing in the grid steps that end at samples first .. first + len(samples) - 1, recorded; the
@@ -140,6 +143,9 @@ class ExactEvents:
         rank = self.event_counts[e, j].astype(np.int64) + np.arange(e.size) - group_start
         kept = rank < self.kept[e]
         self.event_times[e[kept], rank[kept], j[kept]] = t[kept]
+        keeps = kept & self.keeps[e]
+        if keeps.any():
+            self.event_states[e[keeps], rank[keeps], :, j[keeps]] = self._at(t[keeps], j[keeps])[1].T
         np.add.at(self.event_counts, (e, j), 1.0)
 
     def _roots(self, t0, e, j, before, after) -> np.ndarray:

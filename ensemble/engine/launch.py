@@ -41,6 +41,7 @@ from ..scenes.contract import SceneError
 from ..tuning import applied
 from . import kernels
 from .blocks import flush_subnormals, restore_float_mode
+from .events import EVENT_STATE, event_states
 from .exact_events import ExactEvents
 from .inputs import adaptive_control, blowup_limits, fixed_counts
 
@@ -135,10 +136,12 @@ class Launch:
         self.counts = np.zeros((3, padded)) if method.adaptive else None  # fixed steps are counted afterwards
         if self.events:
             kept = max(event.count for event in self.events)
-            self.event_spec = np.array([(e.level, e.sign, float(e.stop), e.count) for e in self.events])
+            self.event_spec = np.array([(e.level, e.sign, float(e.stop), e.count, float(bool(e.keep)))
+                                        for e in self.events])
             self.event_times = np.empty((len(self.events), kept, padded))
             self.event_counts = np.empty((len(self.events), padded))
             self.stopped = np.empty((self.state_rows, padded))
+            self.event_states = event_states(self.events, self.state_rows, padded)
 
     def segments(self, threads: int | None = None, watch=None, resume: tuple[int, dict] | None = None):
         """Run the kernel (or evaluate the closed form) from the start, on `threads` threads (default
@@ -164,8 +167,9 @@ class Launch:
             head = (self.state0, self.rate, float(self.dt), int(self.steps_per_save), self.limit)
             tail = (self.status, self.failure_time, self.progress, self.works)
         if self.events:
-            self.event_times[:], self.event_counts[:], self.stopped[:] = np.nan, 0.0, np.nan
-            tail += ((self.event_spec, self.event_times, self.event_counts, self.stopped),)
+            self.event_times[:], self.event_counts[:] = np.nan, 0.0
+            self.stopped[:], self.event_states[:] = np.nan, np.nan
+            tail += ((self.event_spec, self.event_times, self.event_counts, self.stopped, self.event_states),)
         for name, value in (resume[1] if resume else {}).items():
             getattr(self, name)[:] = value
         for first in range(first_sample, self.n_save, self.segment):
@@ -200,7 +204,7 @@ class Launch:
         if self.method.closed_form:
             return self.watcher.state() if self.watcher is not None else {}
         names = ("works", "status", "failure_time") + (("counts",) if self.method.adaptive else ())
-        names += ("event_times", "event_counts", "stopped") if self.events else ()
+        names += EVENT_STATE if self.events else ()
         return {name: getattr(self, name).copy() for name in names}
 
     def takes(self, state: dict[str, np.ndarray]) -> bool:
@@ -224,7 +228,8 @@ class Launch:
                 return Outcome(samples, np.zeros((3, n), np.int64), np.zeros(n, np.int8), np.full(n, np.nan))
             watched = self.watcher
             return Outcome(samples, np.zeros((3, n), np.int64), watched.status.astype(np.int8), np.full(n, np.nan),
-                           watched.event_times.copy(), watched.event_counts.astype(np.int64), watched.stopped.copy())
+                           watched.event_times.copy(), watched.event_counts.astype(np.int64), watched.stopped.copy(),
+                           watched.event_states.copy())
         ended = self.failure_time[:n].copy()  # a failure's time, or a stop's (ensemble.engine.events)
         if self.method.adaptive:
             counts = self.counts[:, :n].astype(np.int64)
@@ -235,7 +240,7 @@ class Launch:
             return Outcome(samples, counts, self.status[:n].astype(np.int8), failure_time)
         return Outcome(samples, counts, self.status[:n].astype(np.int8), failure_time,
                        self.event_times[:, :, :n].copy(), self.event_counts[:, :n].astype(np.int64),
-                       self.stopped[:, :n].copy())
+                       self.stopped[:, :n].copy(), self.event_states[..., :n].copy())
 
 
 class SceneRaised(EnsembleError):
@@ -374,8 +379,8 @@ def _call_once(scene, method: Method, constants: dict, block: int | None = None,
     samples = np.empty((block, 1, state_rows))
     limit, status, failure_time, progress = np.ones(block), np.zeros(block), np.zeros(block), np.zeros(1, np.int64)
     E = len(events)
-    watched = ((np.zeros((E, 4)), np.zeros((E, 1, block)), np.zeros((E, block)), np.zeros((state_rows, block))),
-               ) if events else ()
+    watched = ((np.zeros((E, 5)), np.zeros((E, 1, block)), np.zeros((E, block)), np.zeros((state_rows, block)),
+                np.zeros((E, 1, state_rows, 1))),) if events else ()
     if method.adaptive:
         kernel.function(state0, rate, np.ones((3, block)), 1.0, limit, samples, np.zeros((3, block)), status,
                         failure_time, progress, works, *watched, 0, 0, 1)
