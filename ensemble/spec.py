@@ -254,7 +254,7 @@ def parse(text: str, path: str = "<string>") -> Spec:
         [{k: v for k, v in grid.items() if k not in SETTINGS} for grid in grids], labels, module)
     for grid, axes in zip(grids, setting_axes):
         grid.update(axes)
-    events = _events(values.get("events", {}), module, constants, declared, device)
+    events = _events(values.get("events", {}), module, constants, declared)
 
     spec = Spec(path=str(path), text=text, scene=scene, method=settings.get("method"), dt=settings.get("dt"),
                 t_end=t_end, save_dt=save_dt, members=values["members"], seed=values["seed"], save=save,
@@ -286,12 +286,10 @@ def _save(save: tuple, module, events: bool) -> tuple[str, ...]:
     return save
 
 
-def _events(table: dict, module, constants: dict, declared: dict, device: str) -> tuple:
-    """The [events] tables (ensemble.events.parse), on the CPU for now."""
+def _events(table: dict, module, constants: dict, declared: dict) -> tuple:
+    """The [events] tables (ensemble.events.parse)."""
     if not table:
         return ()
-    if device != "cpu":
-        raise SpecError("events", "events run on the CPU for now (device = \"cpu\")")
     taken = set(RESERVED) | set(declared) | set(module.OBSERVABLES) | set(module.sizes(constants))
     return parse_events(table, module, constants, taken)
 

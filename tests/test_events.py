@@ -314,5 +314,7 @@ def test_a_vector_without_index_and_an_event_function_of_the_wrong_signature_are
     line = refused(bad_pendulum('[events.e]\nof = "height"\n').replace(str(PENDULUM), str(scene)), tmp_path, capsys,
                    "event_height takes 2 argument(s)")
     assert "scene.py" in line
-    refused(top_runfile(device="cuda") + '[events.e]\nof = "tilt"\nvalue = 0.1\n', tmp_path, capsys,
-            "events run on the CPU for now")
+    from .test_chain import chain_runfile
+
+    refused(chain_runfile() + '[events.e]\nof = "x"\nindex = 0\n', tmp_path, capsys,
+            "scene 'chain' is a field of sites, whose kernels have no events yet")

@@ -20,6 +20,7 @@ from ensemble import cli, fitting, runner
 from ensemble.engine import launch
 from ensemble.methods import METHODS
 from ensemble.results import Status
+from ensemble.scenes import resolve
 from ensemble.spec import SpecError, load
 
 from .conftest import top_runfile
@@ -125,6 +126,54 @@ def test_a_run_in_segments_gives_the_bits_of_one_call(method):
     parts.run()
     assert whole.samples.tobytes() == parts.samples.tobytes()
     assert whole.outcome().counts.tobytes() == parts.outcome().counts.tobytes()
+
+
+PENDULUM = Path(__file__).parents[1] / "examples" / "pendulum.py"
+
+
+@pytest.mark.parametrize("method, dt", [("rk4", 0.05), ("yoshida4", 0.05), ("dopri5", None)])
+def test_events_on_the_gpu_are_the_cpus(method, dt):
+    """ensemble.engine.events on the GPU (gpu_kernels.event_watch): pendulums' zero crossings with their state
+    kept, and the bob falling through the axle's height (the scene's event function), as the CPU's to 1e-12; a
+    run in segments gives the bits of one call."""
+    from .test_events import EVENTS, OMEGA0, THETA0
+
+    values = {"omega0": np.full(4, OMEGA0), "theta0": THETA0, "theta_dot0": np.zeros(4)}
+    settings = dict(n_save=31, save_dt=0.1, dt=dt, rtol=1e-7, atol=1e-9, events=EVENTS)
+    scene = resolve(str(PENDULUM))
+    cpu = launch.integrate(scene, METHODS[method], values, {}, **settings)
+    gpu = launch.integrate(scene, METHODS[method], values, {}, **settings, device="cuda")
+    assert np.array_equal(cpu.event_counts, gpu.event_counts) and cpu.event_counts[1, 2] > 0
+    for name in ("event_times", "event_states", "samples"):
+        mine, theirs = getattr(gpu, name), getattr(cpu, name)
+        assert np.array_equal(np.isnan(mine), np.isnan(theirs)) and np.nanmax(np.abs(mine - theirs)) < 1e-12, name
+    parts = launch.new_launch(scene, METHODS[method], values, {}, **settings, device="cuda", segment=7)
+    parts.run()
+    assert parts.outcome().event_times.tobytes() == gpu.event_times.tobytes()
+
+
+@pytest.mark.parametrize("method", ["rk4", "split4", "dopri5"])
+def test_a_tops_stopping_event_on_the_gpu_is_the_cpus(method):
+    """A prolate top's tilt rising through 0.6 rad (the top's compiled observable) stops each member there: status,
+    steps, the state kept at the stop and the NaN samples after it as on the CPU."""
+    from ensemble.results import Event
+
+    values = {"lambda1": np.full(3, 1e-3), "lambda3": np.full(3, 0.5e-3), "c": np.full(3, 1e-4),
+              "spin0": np.full(3, 60.0), "tilt0": np.array([0.3, 0.45, 0.55]), "azimuth0": np.zeros(3)}
+    tip = Event("tip", "tilt", -1, ("function", "value_tilt", -1), 0.6, "up", 1, True)
+    settings = dict(n_save=41, save_dt=0.5, dt=2e-2, rtol=1e-8, atol=1e-10, events=(tip,))
+    top = resolve("top")
+    cpu = launch.integrate(top, METHODS[method], values, {}, **settings)
+    gpu = launch.integrate(top, METHODS[method], values, {}, **settings, device="cuda")
+    assert np.all(cpu.status == Status.STOPPED_BY_EVENT) and np.array_equal(cpu.status, gpu.status)
+    assert np.array_equal(cpu.counts, gpu.counts) and np.all(np.isnan(gpu.failure_time))
+    for name in ("event_times", "samples"):  # the rates reach 40 rad/s
+        mine, theirs = getattr(gpu, name), getattr(cpu, name)
+        assert np.allclose(mine, theirs, rtol=1e-12, atol=1e-12, equal_nan=True), name
+        assert np.array_equal(np.isnan(mine), np.isnan(theirs)), name
+    # the state at the stop turns at 60 rad/s: its rates move by 2400 rad/s^2 times the stop times' rounding
+    moved = 2400.0 * np.max(np.abs(gpu.event_times - cpu.event_times)) + 1e-12
+    assert np.max(np.abs(gpu.stopped - cpu.stopped)) <= moved and moved < 1e-9
 
 
 def test_chunks_and_resume_on_the_gpu_give_the_bits_of_one_run(tmp_path, monkeypatch):
@@ -345,15 +394,17 @@ def _example_error(module: str, family: str, step: float | None) -> float:
         rows = 4 * n + 7
     status, failure_time, limit = np.zeros(members, np.int8), np.zeros(members), np.full(members, 1e6)
     works = np.zeros((rows, members))
+    no_events = (np.zeros((0, 5)), np.zeros((0, 1, 1)), np.zeros((0, 1)), np.zeros((len(state0), 1)),
+                 np.zeros((0, 1, len(state0), 1))) if module == "gpu_kernels" else ()  # its example has none
     for start in (0, 1):
         samples = np.full((1, len(state0), members), np.nan)
         if family == "adaptive":
             control = np.array([[0.0] * members, [1e-8] * members, [1e-10] * members])
             example.adaptive_kernel[1, members](state0, rate, control, t_end, limit, samples, np.zeros((3, members)),
-                                               status, failure_time, works, start, members)
+                                               status, failure_time, works, start, members, *no_events)
         else:
             getattr(example, f"{family}_kernel")[1, members](state0, rate, step, round(t_end / step), limit, samples,
-                                                            status, failure_time, works, start, members)
+                                                            status, failure_time, works, start, members, *no_events)
     assert np.all(status == 0)
     return np.max(np.abs(samples[0] - exact))
 

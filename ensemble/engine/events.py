@@ -1,7 +1,8 @@
 """Events: the times at which a function of a member's state crosses a level, each located within its step, and
-members that stop at one. Written once for the CPU's member families (ensemble.engine.frames calls them around a
-family's steps); a kernel without events calls NO_BEGIN, NO_REMEMBER and NO_WATCH (NO_ADAPTIVE_WATCH), which
-are nothing.
+members that stop at one. Written once for the member families on both devices: the CPU's frames
+(ensemble.engine.frames) call the watchers here around a family's steps, and a GPU thread (gpu_kernels.event_watch)
+calls `crossed` and `located` as device functions; a CPU kernel without events calls NO_BEGIN, NO_REMEMBER and
+NO_WATCH (NO_ADAPTIVE_WATCH), which are nothing.
 
 An event's value is a function value(t, y, p) -> float of a member's time (s), state and parameters (tuples):
 a state component, a scene's observable, or a scene's own event function (`component`, `function_value`). A kernel
@@ -36,10 +37,11 @@ from functools import cache
 
 import numpy as np
 from numba import njit
+from numba.cpython.unsafe.tuple import tuple_setitem
 
 from ..results import Status
 from .blocks import ERR, FAST, REJECTED_LAST, STEP, TIME, H, select
-from .tuples import converted, loaded, stored
+from .tuples import converted, loaded, repeated, stored
 
 STOPPED = int(Status.STOPPED_BY_EVENT)
 ROOT_ITERATIONS = 80  # Illinois steps at most; it converges superlinearly, in a dozen for a smooth crossing
@@ -53,7 +55,7 @@ def _inlined(function):
 def component(k: int, compiled=_inlined):
     """value(t, y, p) = y[k]: a state component."""
     def value(t, y, p):
-        return y[k]
+        return float(y[k])  # a float64 in a GPU's float32 kernel too, as every event's value
     return compiled(value)
 
 
@@ -148,45 +150,52 @@ def root(values, advance, e, level, t0, h, y0, p, before, after):
     return b  # the first point known to have crossed
 
 
+@njit(inline="always", **FAST)
+def located(values, advance, arrays, member, t0, h, y0, p, before, after):
+    """Every event of one member that crossed within its step of h (s) from t0 (s) and state y0 (before, after:
+    each event's values at the step's ends, tuples of E), located on the method's path `advance` (`root`) and
+    recorded in the kernel call's event arrays (times, counts, and states where an event keeps them), but those
+    after the step's first stopping event, at which the member's state goes to `stopped`. Returns the stopping
+    time (s), or NaN where the member goes on. The CPU's kernels (`locator`) and the GPU's (gpu_kernels) call it."""
+    spec, times, counts, stopped, states = arrays
+    D, kept_most = stopped.shape[0], times.shape[1]
+    fractions = repeated(2.0, before)
+    stop = 2.0
+    for e in range(len(before)):
+        if crossed(before[e], after[e], spec[e, 0], spec[e, 1]):
+            fractions = tuple_setitem(fractions, e, root(values, advance, e, spec[e, 0], t0, h, y0, p, before[e],
+                                                         after[e]))
+            if spec[e, 2] > 0.0:
+                stop = min(stop, fractions[e])
+    for e in range(len(before)):
+        if fractions[e] <= min(stop, 1.0):
+            kept = int(counts[e, member])
+            if kept < spec[e, 3]:
+                times[e, kept, member] = t0 + fractions[e] * h
+                if spec[e, 4] > 0.0:
+                    stored(states, (e * kept_most + kept) * D, states.shape[3], member,
+                           advance(t0, fractions[e] * h, y0, p))
+            counts[e, member] += 1.0
+    if stop > 1.0:
+        return np.nan
+    stored(stopped, 0, stopped.shape[1], member, advance(t0, stop * h, y0, p))
+    return t0 + stop * h
+
+
 @cache
 def locator(values, advance):
-    """located(arrays, member, t0, h, y0, p, before, after) for an event kernel of
-    `values` and a family's `advance`: every event of one member that crossed within its step of h (s) from t0
-    (s) and state y0 (before, after:
-    each event's values at the step's ends, tuples of E) is located (`root`) and recorded in times and counts, but
-    those after the step's first stopping event, at which the member's state goes to `stopped`. Returns the
-    stopping time (s), or NaN where the member goes on. A function of its own, called where an event occurred:
-    inlined into the members' loop, it tripled the kernel's compile time; so is the family's step it calls
-    (`moved`), compiled once rather than at each of its three calls."""
+    """located(arrays, member, t0, h, y0, p, before, after) for a CPU event kernel of `values` and a family's
+    `advance` (`located`'s, bound). A function of its own, called where an event occurred: inlined into the
+    members' loop, it tripled the kernel's compile time; so is the family's step it calls (`moved`), compiled once
+    rather than at each of its three calls."""
     @njit(**FAST)
     def moved(t0, h, y0, p):
         return advance(t0, h, y0, p)
 
     @njit(**FAST)
-    def located(arrays, member, t0, h, y0, p, before, after):
-        spec, times, counts, stopped, states = arrays
-        E, D, kept_most = spec.shape[0], stopped.shape[0], times.shape[1]
-        fractions = np.full(E, 2.0)
-        stop = 2.0
-        for e in range(E):
-            if crossed(before[e], after[e], spec[e, 0], spec[e, 1]):
-                fractions[e] = root(values, moved, e, spec[e, 0], t0, h, y0, p, before[e], after[e])
-                if spec[e, 2] > 0.0:
-                    stop = min(stop, fractions[e])
-        for e in range(E):
-            if fractions[e] <= min(stop, 1.0):
-                kept = int(counts[e, member])
-                if kept < spec[e, 3]:
-                    times[e, kept, member] = t0 + fractions[e] * h
-                    if spec[e, 4] > 0.0:
-                        stored(states, (e * kept_most + kept) * D, states.shape[3], member,
-                               moved(t0, fractions[e] * h, y0, p))
-                counts[e, member] += 1.0
-        if stop > 1.0:
-            return np.nan
-        stored(stopped, 0, stopped.shape[1], member, moved(t0, stop * h, y0, p))
-        return t0 + stop * h
-    return located
+    def located_here(arrays, member, t0, h, y0, p, before, after):
+        return located(values, moved, arrays, member, t0, h, y0, p, before, after)
+    return located_here
 
 
 @njit(inline="always", **FAST)

@@ -33,6 +33,7 @@ from .sources import ENGINE_SOURCES, copied_code
 
 THREADS = 128  # threads per CUDA block
 OK, BLEW_UP, UNDERFLOW = int(Status.OK), int(Status.BLEW_UP), int(Status.STEP_SIZE_UNDERFLOW)
+STOPPED = int(Status.STOPPED_BY_EVENT)
 #: A hash of the GPU's files and the CPU kernels' code (sources.ENGINE_SOURCES), which every CUDA kernel's file
 #: holds: numba-cuda's disk cache (`cache=True`) keys a kernel on its own file, and would otherwise load one
 #: compiled before a device helper changed.
@@ -135,27 +136,36 @@ class GpuKernel(NamedTuple):
         return self.layout.threads
 
 
-def work_rows(method: Method, D: int) -> int:
-    """Rows of a member kernel's works: its state, and an adaptive member's first slopes and ADAPTIVE_ROWS."""
-    return 2 * D + len(ADAPTIVE_ROWS) if method.adaptive else D
+def work_rows(method: Method, D: int, E: int = 0) -> int:
+    """Rows of a member kernel's works: its state, and an adaptive member's first slopes and ADAPTIVE_ROWS, then
+    its E events' values."""
+    return (2 * D + len(ADAPTIVE_ROWS) if method.adaptive else D) + E
+
+
+EVENTS = '''from ensemble.engine.gpu_device import device_event_values
+E = {E}  # events
+VALUES = device_event_values({where!r}, {event_sources!r}, {sources!r})  # each one's value (engine.events)'''
 
 
 @cache
 def member_kernel(name: str, where: str, sources: str, pieces: tuple[str, ...], method: Method, D: int, P: int,
                   precision: str, chosen: Layout) -> GpuKernel:
-    """A scene's kernel for `method`, a member of D state values and P parameters to a thread, in `precision`."""
+    """A scene's kernel for `method`, a member of D state values and P parameters to a thread, in `precision`;
+    with the events of its layout (each one's results.Event.source), an event kernel."""
     family, used, bindings = member_bindings(method, where, pieces, sources, precision)
+    bindings += "\n" + EVENTS.format(E=len(chosen.events), where=where, event_sources=chosen.events, sources=sources)
     footer = f"kernel = {family}_kernel" + ("\nentered, left = into_pieces, out_of_pieces" if used and
                                            family == "splitting" else "")
+    footer += f"\nwatch, moved = event_watch, {family}_moved" if chosen.events else ""
     physics_import = f"{', '.join(used)}, = device_functions({where!r}, {used!r}, {sources!r})" if used else ""
     function = compiled(family, name, method, precision, physics_import, sources, D, P, KERNELS_FILE, bindings,
-                        footer)
+                        footer, events=bool(chosen.events))
     return GpuKernel(function, chosen)
 
 
 
 def compiled(family, name, method, precision, physics_import, physics, D, P, module, bindings, footer,
-             threads: int = 1):
+             threads: int = 1, events: bool = False):
     """The kernel of a file made of the header, `module`'s imports, the `bindings`, its code and the `footer`."""
     imports, code = copied_code(module)
     source = HEADER.format(family=family, scene=name, method=method.name, precision=precision, module=module[:-3],
@@ -163,4 +173,5 @@ def compiled(family, name, method, precision, physics_import, physics, D, P, mod
                            tiny=float(np.finfo(precision).tiny), imports=imports, bindings=bindings, code=code,
                            footer=footer)
     layout = f"_{threads}threads" if threads > 1 else ""
-    return load_source(source, f"cuda_{name}_{method.name}_{precision}{layout}").kernel
+    label = f"cuda_{name}_{method.name}_{precision}{layout}" + ("_events" if events else "")
+    return load_source(source, label).kernel

@@ -134,6 +134,27 @@ def device_functions(where: str, names: tuple[str, ...], expected: str) -> tuple
     return tuple(device_function(getattr(module, name), done) for name in names)
 
 
+@cache
+def device_event_values(where: str, sources: tuple, expected: str):
+    """values(t, y, p) -> each event's value (ensemble.engine.events.values_chain, kernels.event_values) of device
+    functions: a state component, or a scene's function (its physics module `where`, of identity `expected`)."""
+    from . import events
+
+    module = loaded(where, expected)
+    done: dict = {}
+    functions = tuple(events.component(source[1], device_inlined) if source[0] == "state" else
+                      events.function_value(device_function(getattr(module, source[1]), done), source[2],
+                                            device_inlined) for source in sources)
+    return events.values_chain(functions, device_inlined)
+
+
+@cache
+def device_events() -> tuple:
+    """(crossed, located): ensemble.engine.events's, as device functions (the event kernels import them)."""
+    from . import events
+    return device_function(events.crossed), device_function(events.located)
+
+
 def device_inlined(function):
     """A link of the engine's written-out loops (tuples.unrolled, the splitting's chains) as an inlined device
     function (plain Python under the simulator)."""

@@ -17,8 +17,15 @@ from numba import cuda, float64
 
 from ensemble.engine import adaptive, runge_kutta, splitting
 from ensemble.engine.blocks import FIRST_LOG2_ERR_PREVIOUS
-from ensemble.engine.gpu import BLEW_UP, OK, UNDERFLOW
-from ensemble.engine.gpu_device import device_function, device_helpers, device_inlined, device_tuples, device_unrolled
+from ensemble.engine.gpu import BLEW_UP, OK, STOPPED, UNDERFLOW
+from ensemble.engine.gpu_device import (
+    device_events,
+    device_function,
+    device_helpers,
+    device_inlined,
+    device_tuples,
+    device_unrolled,
+)
 
 # ---------------------------------------------------------------- EXAMPLE: what a kernel file's header binds
 
@@ -54,6 +61,13 @@ CONTROLLER = (0.7 / 3 - 0.75 * 0.04, 0.04, 0.9, 0.2, 10.0)  # alpha, beta, safet
 split_step = splitting.sequence_step(((kick, REAL(0.5)), (drift, REAL(1.0)), (kick, REAL(0.5))), device_inlined)
 split_factors = splitting.sequence_factors(((None, REAL(0.5)), (None, REAL(1.0)), (None, REAL(0.5))),
                                            device_inlined)
+E = 0  # events (an event kernel's header binds E and VALUES: gpu_device.device_event_values)
+
+
+@cuda.jit(device=True, inline="always")
+def VALUES(t, y, p):
+    """Each event's value (float64) at time t (s) of a member's state y and parameters p (tuples)."""
+    return ()
 
 # ---------------------------------------------------------------- CODE: copied into every kernel's file
 
@@ -62,6 +76,8 @@ rk_step = device_function(runge_kutta.step)
 trial_step, error_norm = device_function(adaptive.trial_step), device_function(adaptive.error_norm)
 LIKE_Y, LIKE_P, WIDE_Y = (ZERO,) * D, (ZERO,) * P, (0.0,) * D  # a state and parameters in REAL, a state in float64
 WIDE_CONTROL = (0.0,) * 7  # an adaptive member's time, step, log2 of its last error, rejected last, counts
+LIKE_G = (0.0,) * E  # the events' values
+crossed, located = device_events()
 
 
 @cuda.jit(device=True, inline="always")
@@ -143,49 +159,103 @@ def splitting_advance(h, t, y, p, factors):
     return converted(split_step(h, y, p, factors), LIKE_Y)
 
 
+@cuda.jit(device=True)
+def runge_kutta_moved(t0, h, y0, p):
+    """A member's step of h (s) from (t0, y0): the method's own path (ensemble.engine.events.located)."""
+    return rk_step(rhs, REAL(t0), REAL(h), y0, p, STAGES, WEIGHTS, STAGE_LOOP)
+
+
+@cuda.jit(device=True)
+def splitting_moved(t0, h, y0, p):
+    h = REAL(h)
+    return left(converted(split_step(h, entered(y0, p), p, split_factors(h, p)), LIKE_Y), p)
+
+
+@cuda.jit(device=True)
+def adaptive_moved(t0, h, y0, p):
+    t0, h = REAL(t0), REAL(h)
+    return trial_step(rhs, t0, h, y0, p, converted(rhs(t0, *y0, *p), LIKE_Y), STAGES, STAGE_LOOP)[1]
+
+
+@cuda.jit(device=True, inline="always")
+def no_watch(events, g, t, h, y, new, p, status, failure_time, m):
+    """A kernel without events: the step's new state."""
+    return new, g
+
+
+@cuda.jit(device=True, inline="always")
+def event_watch(events, g, t, h, y, new, p, status, failure_time, m):
+    """After member m's step of h (s) from t (s), from y to new (the family's coordinates), its events' values g
+    at the step's start: their values at its end, and where one crossed its level, the member's events located on
+    the family's path (`moved`) and recorded (ensemble.engine.events.located); a member stopped at one gets status
+    STOPPED, its time in failure_time (the launch counts its steps, then clears it) and a NaN state. Returns
+    (state, the events' values at the step's end)."""
+    spec = events[0]
+    after = VALUES(t + h, left(new, p), p)
+    hit = False
+    for e in range(E):
+        hit = hit or crossed(g[e], after[e], spec[e, 0], spec[e, 1])
+    if hit:
+        when = located(VALUES, moved, events, m, t, h, left(y, p), p, g, after)
+        if when == when:
+            status[m], failure_time[m] = STOPPED, when
+            new = repeated(NAN, LIKE_Y)
+    return new, after
+
+
+watch, moved = no_watch, None  # an event kernel's footer binds event_watch and its family's moved
+
+
 @cuda.jit(device=True, inline="always")
 def fixed_frame(advance, prepared, state0, rate, h, steps_per_save, limit, samples, status, failure_time, works,
-                start, m):
+                start, m, events):
     """Member m from sample `start` on (0: from state0; later: from where the last call left works): each save
     interval's steps_per_save steps of h (s), advance(h, t, y, p, prepared(h, p)) taking it one step from t (s),
-    the scene's coordinates for its pieces (`entered`, `left`) around them."""
+    the scene's coordinates for its pieces (`entered`, `left`) around them, and its events watched after each
+    (`watch`; their values carried in works rows D .. D + E - 1)."""
     p = converted(loaded(rate, 0, rate.shape[1], m, LIKE_P), LIKE_P)
     first = 0
     if start == 0:
         y = started(first_state(state0, m), limit, samples, status, failure_time, m)
+        g = VALUES(0.0, y, p)
         first = 1
     else:
         y = converted(loaded(works, 0, works.shape[1], m, WIDE_Y), LIKE_Y)
+        g = loaded(works, D, works.shape[1], m, LIKE_G)
     factors = prepared(h, p)
     for i in range(first, samples.shape[0]):
         if status[m] == OK:
             y = entered(y, p)
             for step in range(steps_per_save):
-                y = advance(h, REAL(((start + i - 1) * steps_per_save + step) * h), y, p, factors)
+                t = REAL(((start + i - 1) * steps_per_save + step) * h)
+                y, g = watch(events, g, t, h, y, advance(h, t, y, p, factors), p, status, failure_time, m)
             y = left(y, p)
         y = saved(y, limit, samples, status, failure_time, i, m, (start + i) * steps_per_save * h)
     stored(works, 0, works.shape[1], m, converted(y, WIDE_Y))
+    stored(works, D, works.shape[1], m, g)
 
 
 @cuda.jit(fastmath=False, cache=True)
 def runge_kutta_kernel(state0, rate, h, steps_per_save, limit, samples, status, failure_time, works, start,
-                       members):
+                       members, spec, times, counts, stopped, states):
     """state0, rate (D and P, members); limit (members,) -> samples (count, D, members) in REAL, status
-    (members,), failure_time (members,; s, set only where a member fails); works (D, members)."""
+    (members,), failure_time (members,; s, set only where a member fails); works (D + E, members); the events'
+    arrays (ensemble.engine.events; placeholders in a kernel without events)."""
     m = cuda.grid(1)
     if m < members:
         fixed_frame(runge_kutta_advance, no_factors, state0, rate, REAL(h), steps_per_save, limit, samples, status,
-                    failure_time, works, start, m)
+                    failure_time, works, start, m, (spec, times, counts, stopped, states))
 
 
 @cuda.jit(fastmath=False, cache=True)
-def splitting_kernel(state0, rate, h, steps_per_save, limit, samples, status, failure_time, works, start, members):
+def splitting_kernel(state0, rate, h, steps_per_save, limit, samples, status, failure_time, works, start, members,
+                     spec, times, counts, stopped, states):
     """As runge_kutta_kernel: a step is the splitting's sequence (split_step), its pieces' factors computed once a
     call (split_factors)."""
     m = cuda.grid(1)
     if m < members:
         fixed_frame(splitting_advance, split_factors, state0, rate, REAL(h), steps_per_save, limit, samples, status,
-                    failure_time, works, start, m)
+                    failure_time, works, start, m, (spec, times, counts, stopped, states))
 
 
 @cuda.jit(device=True, inline="always")
@@ -205,21 +275,21 @@ def first_guess(y, k0, rtol, atol, h, save_dt):
 @cuda.jit(device=True, inline="always")
 def resumed(works, m):
     """Where the last call left an adaptive member: its state, first slopes, time, step, log2 of its last error,
-    whether its last step was rejected, and its counts."""
+    whether its last step was rejected, its counts, and its events' values."""
     y = converted(loaded(works, 0, works.shape[1], m, WIDE_Y), LIKE_Y)
     k0 = converted(loaded(works, D, works.shape[1], m, WIDE_Y), LIKE_Y)
     time, h, log2_previous, rejected, accepted_count, rejected_count, evaluations = loaded(
         works, 2 * D, works.shape[1], m, WIDE_CONTROL)
     return (y, k0, REAL(time), REAL(h), REAL(log2_previous), 0.0 != rejected,
-            (accepted_count, rejected_count, evaluations))
+            (accepted_count, rejected_count, evaluations), loaded(works, 2 * D + 7, works.shape[1], m, LIKE_G))
 
 
 @cuda.jit(fastmath=False, cache=True)
 def adaptive_kernel(state0, rate, control, save_dt, limit, samples, counts, status, failure_time, works, start,
-                    members):
+                    members, spec, times, counts_of_events, stopped, states):
     """As runge_kutta_kernel, each member stepping to each saved time i save_dt (s) in trial steps its own
     controller sizes; control (3, members): first step (s; <= 0: guess it), rtol, atol -> counts (3, members):
-    accepted, rejected, right-hand-side evaluations; works (2 D + 7, members)."""
+    accepted, rejected, right-hand-side evaluations; works (2 D + 7 + E, members)."""
     m = cuda.grid(1)
     if m >= members:
         return
@@ -233,20 +303,24 @@ def adaptive_kernel(state0, rate, control, save_dt, limit, samples, counts, stat
         time, log2_previous, rejected_last = REAL(0.0), REAL(FIRST_LOG2_ERR_PREVIOUS), False
         tally = (0.0, 0.0, 1.0)  # accepted and rejected steps, right-hand-side evaluations
         y = started(y, limit, samples, status, failure_time, m)
+        g = VALUES(0.0, y, p)
         first = 1
     else:
-        y, k0, time, h, log2_previous, rejected_last, tally = resumed(works, m)
+        y, k0, time, h, log2_previous, rejected_last, tally, g = resumed(works, m)
+    events = (spec, times, counts_of_events, stopped, states)
     for i in range(first, samples.shape[0]):
         target = (start + i) * save_dt
         while status[m] == OK and time < target:
             step = min(h, REAL(target - time))
+            t0 = time
             slopes, new = trial_step(rhs, REAL(time), step, y, p, k0, STAGES, STAGE_LOOP)
             err = error_norm(step, y, new, slopes, ERROR, rtol, atol)
             accepted, underflowed, h_next, log2_previous, time, tally = counted(
                 err, step, h, log2_previous, rejected_last, time, target, tally, S - 1, CONTROLLER)
             h, rejected_last = REAL(h_next), not accepted  # h in REAL; time, as the controller's state, in float64
             if accepted:
-                y, k0 = new, slopes[S - 1]
+                y, g = watch(events, g, t0, step, y, new, p, status, failure_time, m)
+                k0 = slopes[S - 1]
             elif underflowed:
                 status[m], failure_time[m] = UNDERFLOW, time
                 y = repeated(NAN, LIKE_Y)
@@ -255,4 +329,5 @@ def adaptive_kernel(state0, rate, control, save_dt, limit, samples, counts, stat
     stored(works, D, works.shape[1], m, converted(k0, WIDE_Y))
     stored(works, 2 * D, works.shape[1], m, converted((time, h, log2_previous, 1.0 if rejected_last else 0.0, *tally),
                                                       WIDE_CONTROL))
+    stored(works, 2 * D + 7, works.shape[1], m, g)
     counts[0, m], counts[1, m], counts[2, m] = tally

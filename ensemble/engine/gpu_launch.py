@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 
 from ..methods import Method
-from ..results import DEFAULT_BLOWUP_FACTOR, Outcome
+from ..results import DEFAULT_BLOWUP_FACTOR, Outcome, Status
+from .events import EVENT_STATE, event_states
 from .gpu import THREADS, GpuKernel, member_kernel, require_gpu
 from .gpu import work_rows as member_work_rows
 from .gpu_device import PRECISIONS
@@ -15,14 +16,16 @@ from .inputs import adaptive_control, blowup_limits, fixed_counts
 from .kernels import Layout, scene_identity
 
 
-def layout(scene, method: Method, constants: dict) -> Layout:
+def layout(scene, method: Method, constants: dict, events: tuple = ()) -> Layout:
     """The Layout of a scene's CUDA kernel for `method`: a thread per member, THREADS members to a block of
-    threads, or a field of sites' threads per member (gpu_sites.site_threads), then a member to a block."""
+    threads, or a field of sites' threads per member (gpu_sites.site_threads), then a member to a block. events:
+    each one's results.Event.source (a member kernel's)."""
     if scene.SITES:
         n = constants["n"]
         threads = site_threads(n, method)
         return Layout(1 if threads > 1 else THREADS, sites_work_rows(method, n), threads=threads)
-    return Layout(THREADS, member_work_rows(method, scene.kernel_rows(constants)[0]))
+    D = scene.kernel_rows(constants)[0]
+    return Layout(THREADS, member_work_rows(method, D, len(events)), events=tuple(events))
 
 
 def kernel(scene, method: Method, constants: dict, precision: str = "float64", chosen: Layout | None = None
@@ -45,18 +48,26 @@ class GpuLaunch:
 
     def __init__(self, scene, method: Method, values: dict[str, np.ndarray], constants: dict, *, n_save: int,
                  save_dt: float, dt=None, rtol=None, atol=None, blowup_factor: float = DEFAULT_BLOWUP_FACTOR,
-                 segment: int | None = None, precision: str = "float64"):
+                 segment: int | None = None, precision: str = "float64", events: tuple = ()):
         from numba import cuda
 
         require_gpu()
         self.scene, self.method, self.n_save, self.save_dt, self.dt = scene, method, n_save, save_dt, dt
+        self.events = tuple(events)
         self.segment = max(1, min(segment or n_save, n_save))
         self.members = len(next(iter(values.values())))
         self.real = PRECISIONS[precision]
         self.buffers = {}  # see _buffer
         state0, rate = scene.inputs(values, constants)
         self.state_rows = state0.shape[0]
-        self.kernel = kernel(scene, method, constants, precision)
+        chosen = layout(scene, method, constants, tuple(e.source for e in self.events))
+        self.kernel = kernel(scene, method, constants, precision, chosen)
+        self.no_events = () if scene.SITES else tuple(cuda.to_device(np.zeros(shape)) for shape in (
+            (0, 5), (0, 1, 1), (0, 1), (self.state_rows, 1), (0, 1, self.state_rows, 1)))  # a member kernel's
+        # event arguments where it has none
+        if self.events:
+            self.event_spec = cuda.to_device(np.array([(e.level, e.sign, float(e.stop), e.count, float(bool(e.keep)))
+                                                       for e in self.events]))
         self.limit = cuda.to_device(blowup_limits(state0, blowup_factor).astype(self.real))
         self.state0 = cuda.to_device(np.ascontiguousarray(state0, dtype=self.real))
         self.rate = cuda.to_device(np.ascontiguousarray(rate, dtype=self.real))
@@ -75,12 +86,14 @@ class GpuLaunch:
 
         n = self.members
         compute, copy = cuda.stream(), cuda.stream()
+        adaptive = {"counts": np.zeros((3, n))} if self.method.adaptive else {}
         start = {"status": np.zeros(n, np.int8), "failure_time": np.full(n, np.nan),
-                 "works": np.zeros((self.kernel.rows, n)), **({"counts": np.zeros((3, n))} if self.method.adaptive
-                                                                else {}), **(resume[1] if resume else {})}
+                 "works": np.zeros((self.kernel.rows, n)), **adaptive, **self._event_start(),
+                 **(resume[1] if resume else {})}
         for name, value in start.items():
             setattr(self, name, cuda.to_device(value))
         tail = ((self.counts,) if self.method.adaptive else ()) + (self.status, self.failure_time, self.works)
+        watched = (self.event_spec, *(getattr(self, name) for name in EVENT_STATE)) if self.events else self.no_events
         chosen = self.kernel.layout
         grid, block = max(1, -(-n // chosen.block)), chosen.block * chosen.threads  # blocks, threads per block
         copied, waiting = {}, None
@@ -90,7 +103,7 @@ class GpuLaunch:
             if k >= 2:
                 copied[k - 2].wait(compute)  # its buffer is copied out before this segment overwrites it
             samples = self._buffer(("device", k % 2, shape), lambda: cuda.device_array(shape, dtype=self.real))
-            self.kernel.function[grid, block, compute](*self.head, samples, *tail, first, n)
+            self.kernel.function[grid, block, compute](*self.head, samples, *tail, first, n, *watched)
             snapshot = {name: getattr(self, name).copy_to_host(
                 self._buffer(("state", k % 2, name), lambda name=name: cuda.pinned_array_like(start[name])),
                 stream=compute) for name in start} if self.segment < self.n_save else {}  # state() of a
@@ -108,6 +121,15 @@ class GpuLaunch:
         if waiting is not None:
             yield self._handed(waiting, watch)
         cuda.synchronize()
+
+    def _event_start(self) -> dict[str, np.ndarray]:
+        """The events' arrays at a run's start (ensemble.engine.events; none without events)."""
+        if not self.events:
+            return {}
+        E, n, kept = len(self.events), self.members, max(e.count for e in self.events)
+        return {"event_times": np.full((E, kept, n), np.nan), "event_counts": np.zeros((E, n)),
+                "stopped": np.full((self.state_rows, n), np.nan),
+                "event_states": np.full(event_states(self.events, self.state_rows, n).shape, np.nan)}
 
     def _buffer(self, key, make):
         """A buffer kept for later segments and runs of this launch: allocating pinned memory costs about as much
@@ -132,7 +154,8 @@ class GpuLaunch:
     def takes(self, state: dict[str, np.ndarray]) -> bool:
         n, rows = self.members, self.kernel.rows
         mine = {"status": ((n,), np.int8), "failure_time": ((n,), np.float64), "works": ((rows, n), np.float64),
-                **({"counts": ((3, n), np.float64)} if self.method.adaptive else {})}
+                **({"counts": ((3, n), np.float64)} if self.method.adaptive else {}),
+                **{name: (value.shape, value.dtype) for name, value in self._event_start().items()}}
         return mine.keys() == state.keys() and all((v.shape, v.dtype) == mine[k] for k, v in state.items())
 
     def run(self, threads: int | None = None, watch=None) -> None:
@@ -141,10 +164,15 @@ class GpuLaunch:
         self.samples = parts[0] if len(parts) == 1 else np.concatenate(parts)
 
     def outcome(self) -> Outcome:
-        status, failure_time = self.status.copy_to_host(), self.failure_time.copy_to_host()
+        """As launch.Launch.outcome: a stopped member's failure time is its stop's until its steps are counted."""
+        status, ended = self.status.copy_to_host(), self.failure_time.copy_to_host()
         if self.method.adaptive:
             counts = self.counts.copy_to_host().astype(np.int64)
         else:
-            counts = fixed_counts(self.method, self.scene, failure_time, self.dt,
-                                  self.steps_per_save * (self.n_save - 1))
-        return Outcome(getattr(self, "samples", None), counts, status, failure_time)
+            counts = fixed_counts(self.method, self.scene, ended, self.dt, self.steps_per_save * (self.n_save - 1))
+        failure_time = np.where(status == Status.STOPPED_BY_EVENT, np.nan, ended)
+        if not self.events:
+            return Outcome(getattr(self, "samples", None), counts, status, failure_time)
+        times, event_counts, stopped, states = (getattr(self, name).copy_to_host() for name in EVENT_STATE)
+        return Outcome(getattr(self, "samples", None), counts, status, failure_time, times,
+                       event_counts.astype(np.int64), stopped, states)

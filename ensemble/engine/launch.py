@@ -88,8 +88,8 @@ def new_launch(scene, method: Method, values: dict[str, np.ndarray], constants: 
         from .gpu_launch import GpuLaunch
 
         settings.pop("block", None)  # a CPU kernel's layout
-        if settings.pop("events", ()):
-            raise EnsembleError("events run on the CPU for now")  # the run file is refused before (spec)
+        if settings.get("events") and scene.SITES:
+            raise EnsembleError("a field of sites has no events yet")  # the run file is refused before (events)
         return GpuLaunch(scene, method, values, constants, **settings)
     return Launch(scene, method, values, constants, **settings)
 
@@ -311,7 +311,8 @@ def prepare(scene, method: Method, constants: dict, device: str = "cpu", precisi
     try:
         if device == "cuda":
             new_launch(scene, method, values, constants, n_save=1, save_dt=1.0, dt=values["dt"] if method.adaptive
-                       else 1.0, rtol=values["rtol"], atol=values["atol"], device=device, precision=precision).run()
+                       else 1.0, rtol=values["rtol"], atol=values["atol"], device=device, precision=precision,
+                       events=events).run()
             return
         _call_fresh(scene, method, constants, block, events)
     except Exception as error:  # Numba's errors (numba-cuda has classes of its own)
