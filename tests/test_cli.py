@@ -271,14 +271,14 @@ def test_default_chunk_keeps_kernel_samples_and_saved_data_near_the_budget(text)
 
 
 def test_a_long_record_runs_in_segments_within_the_memory_budget(tmp_path, monkeypatch):
-    """One member with 200,001 samples: its kernel block (128 members) would hold 614 MB of samples in one call.
+    """One member with 50,001 samples: its kernel block (128 members) would hold 154 MB of samples in one call.
     With a 1 MiB budget the record runs in segments of 146 samples, and traced memory peaks at what fitting
-    growth_per_step to the whole record's two amplitudes takes (3.2 MB, and ten or so temporaries that size)."""
+    growth_per_step to the whole record's two amplitudes takes (0.8 MB, and ten or so temporaries that size)."""
     import tracemalloc
 
     monkeypatch.setattr(runner, "CHUNK_BYTES", 2**20)
-    spec = parse(top_runfile(members=1, t_end=200.0, save_dt=1e-3) + "[measure]\ngrowth = true\n")
-    assert spec.n_save == 200_001 and runner.segment_samples(spec) == 2**20 // (8 * 7 * 128)
+    spec = parse(top_runfile(members=1, t_end=50.0, save_dt=1e-3) + "[measure]\ngrowth = true\n")
+    assert spec.n_save == 50_001 and runner.segment_samples(spec) == 2**20 // (8 * 7 * 128)
     tracemalloc.start()
     try:
         runner.run(spec, tmp_path / "long.nc", progress=False)
