@@ -15,6 +15,8 @@
 #            kernels (cuda.jit(cache=True))
 #   kernels  the full kernel figures of gpu.py: rates, crossover and float32's error (not in the     (300 s)
 #            default: a call of its own)
+#   events   analysis/bench/event_cost.py on the GPU: 2^22 tops with events that never fire against   (120 s)
+#            none (issue 52's cost; not in the default)
 # Usage:
 #   OUT=gpu-out bash analysis/bench/gpu_check.sh [stage ...]
 #   TOPS="100000000" RATES_SECONDS=80 bash analysis/bench/gpu_check.sh rates     # tops of these sizes alone
@@ -28,8 +30,9 @@ PYTHON=${PYTHON:-python3}
 STAGES=()
 for arg in "$@"; do
     case $arg in
-        lorenz|rates|whole|tests|float32|cache|kernels) STAGES+=("$arg") ;;
-        *) echo "gpu_check.sh: unknown stage $arg (lorenz rates whole tests float32 cache kernels)" >&2; exit 2 ;;
+        lorenz|rates|whole|tests|float32|cache|kernels|events) STAGES+=("$arg") ;;
+        *) echo "gpu_check.sh: unknown stage $arg (lorenz rates whole tests float32 cache kernels events)" >&2
+           exit 2 ;;
     esac
 done
 [ ${#STAGES[@]} -eq 0 ] && STAGES=(lorenz rates whole tests float32 cache)
@@ -90,6 +93,9 @@ for stage in "${STAGES[@]}"; do
                 | wc -l) data files" | tee -a "$OUT/log.txt" ;;
         kernels)
             timeout 300 $PYTHON analysis/bench/gpu.py --only kernels --json "$OUT/gpu.json" 2>&1 \
+                | tee -a "$OUT/log.txt" ;;
+        events)
+            timeout 120 $PYTHON analysis/bench/event_cost.py --device cuda --members 4194304 --repeats 3 2>&1 \
                 | tee -a "$OUT/log.txt" ;;
     esac
 done
