@@ -2,9 +2,9 @@
 points are events (runs/heavy_top.toml).
 
 The state is the body-frame angular velocity w (rad/s) and the body-frame components of the upward vertical,
-g (a unit vector): no Euler angles, so nothing is singular when the top stands upright. With moments lambda1
-(transverse, about the pivot) and lambda3, and gravity's torque M g R (R: the pivot to the centre of mass, along
-the symmetry axis e3):
+g (a unit vector): no Euler angles, so the motion is not singular when the top stands upright (phi, below, is).
+With moments lambda1 (transverse, about the pivot) and lambda3, and gravity's torque M g R (R: the pivot to the
+centre of mass, along the symmetry axis e3):
 
     lambda1 w1' = (lambda1 - lambda3) w2 w3 + M g R g2,    lambda1 w2' = (lambda3 - lambda1) w3 w1 - M g R g1,
     w3' = 0,    g' = g x w.
