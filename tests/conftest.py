@@ -20,18 +20,6 @@ if "ENSEMBLE_TUNING_FILE" not in os.environ:  # runs under test keep the engine'
     tuning.pending_line()  # the untuned hint of the import, before the file was there
 
 
-# Modules whose module-scoped fixtures are dear (a stability scan's kernels, a local Dask cluster, a run through
-# the command line): with pytest-xdist's --dist loadgroup each runs on one worker, which makes them once.
-ONE_WORKER = ("test_stability", "test_cluster", "test_targets", "test_cli", "test_combine")
-
-
-def pytest_collection_modifyitems(items):
-    for item in items:
-        module = item.module.__name__.rsplit(".", 1)[-1]
-        if module in ONE_WORKER:
-            item.add_marker(pytest.mark.xdist_group(module))
-
-
 def _toml_value(value) -> str:
     if isinstance(value, str):
         return f'"{value}"'
