@@ -88,12 +88,19 @@ def values_chain(functions: tuple, compiled=_inlined):
 EVENT_STATE = ("event_times", "event_counts", "stopped", "event_states")  # what a run's events carry on
 
 
-def event_states(events: tuple, state_rows: int, members: int) -> np.ndarray:
-    """The states at events' kept occurrences (above), (E, count, state rows, members): where no
-    event keeps them, a placeholder of one member (the kernel's argument type is the same)."""
-    if not any(e.keep for e in events):
-        return np.empty((len(events), 1, state_rows, 1))
-    return np.empty((len(events), max(e.count for e in events), state_rows, members))
+def event_spec(events: tuple) -> np.ndarray:
+    """The kernels' spec of events (results.Event), (E, 5): level, direction, stop, count, keep (above)."""
+    return np.array([(e.level, e.sign, float(e.stop), e.count, float(bool(e.keep))) for e in events]).reshape(-1, 5)
+
+
+def started(events: tuple, state_rows: int, members: int) -> dict[str, np.ndarray]:
+    """The EVENT_STATE arrays of `events` at a run's start (above): no times (NaN), no counts, no stopped states,
+    no kept states; the kept states of one member where no event keeps them (the kernel's argument type is the
+    same)."""
+    E, kept = len(events), max(e.count for e in events)
+    states = (E, kept, state_rows, members) if any(e.keep for e in events) else (E, 1, state_rows, 1)
+    return {"event_times": np.full((E, kept, members), np.nan), "event_counts": np.zeros((E, members)),
+            "stopped": np.full((state_rows, members), np.nan), "event_states": np.full(states, np.nan)}
 
 
 # ---------------------------------------------------------------- one member's crossings

@@ -18,7 +18,7 @@ from numba import njit
 from ..results import Status
 from . import kernels
 from .blocks import FAST
-from .events import EVENT_STATE, ROOT_ITERATIONS, event_states
+from .events import EVENT_STATE, ROOT_ITERATIONS, event_spec, started
 from .tuples import loaded, stored
 
 STOPPED = int(Status.STOPPED_BY_EVENT)
@@ -49,23 +49,16 @@ class ExactEvents:
         D, P = scene.kernel_rows(constants)
         values_of = kernels.event_values(scene.PHYSICS, tuple(e.source for e in events), kernels.scene_identity(scene))
         self.evaluate, self.D = evaluator(values_of, D, P), D
-        self.levels = np.array([e.level for e in events])
-        self.signs = np.array([e.sign for e in events])
-        self.stops = np.array([e.stop for e in events])
-        self.kept = np.array([e.count for e in events])
-        members = self.rate.shape[1]
-        self.status = np.zeros(members)
-        self.event_times = np.empty((len(events), int(self.kept.max()), members))
-        self.event_counts = np.empty((len(events), members))
-        self.stopped = np.empty((D, members))
-        self.event_states = event_states(events, D, members)
-        self.keeps = np.array([bool(e.keep) for e in events])
+        self.events = events
+        spec = event_spec(events)
+        self.levels, self.signs, self.stops, self.kept, self.keeps = spec[:, 0], spec[:, 1], spec[:, 2] > 0, \
+            spec[:, 3].astype(np.int64), spec[:, 4] > 0
         self.reset()
 
     def reset(self) -> None:
         """Back to the run's start."""
-        self.status[:], self.event_times[:], self.event_counts[:] = 0.0, np.nan, 0.0
-        self.stopped[:], self.event_states[:] = np.nan, np.nan
+        self.status = np.zeros(self.rate.shape[1])
+        self.__dict__.update(started(self.events, self.D, self.rate.shape[1]))
 
     def state(self) -> dict[str, np.ndarray]:
         """Copies of what a later segment continues from (as launch.Launch.state)."""

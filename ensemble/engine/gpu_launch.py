@@ -6,7 +6,7 @@ import numpy as np
 
 from ..methods import Method
 from ..results import DEFAULT_BLOWUP_FACTOR, Outcome, Status
-from .events import EVENT_STATE, event_states
+from .events import EVENT_STATE, event_spec, started
 from .gpu import THREADS, GpuKernel, member_kernel, require_gpu
 from .gpu import work_rows as member_work_rows
 from .gpu_device import PRECISIONS
@@ -62,12 +62,11 @@ class GpuLaunch:
         self.state_rows = state0.shape[0]
         chosen = layout(scene, method, constants, tuple(e.source for e in self.events))
         self.kernel = kernel(scene, method, constants, precision, chosen)
-        self.no_events = () if scene.SITES else tuple(cuda.to_device(np.zeros(shape)) for shape in (
+        if self.events:
+            self.event_spec = cuda.to_device(event_spec(self.events))
+        self.no_events = () if scene.SITES or self.events else tuple(cuda.to_device(np.zeros(shape)) for shape in (
             (0, 5), (0, 1, 1), (0, 1), (self.state_rows, 1), (0, 1, self.state_rows, 1)))  # a member kernel's
         # event arguments where it has none
-        if self.events:
-            self.event_spec = cuda.to_device(np.array([(e.level, e.sign, float(e.stop), e.count, float(bool(e.keep)))
-                                                       for e in self.events]))
         self.limit = cuda.to_device(blowup_limits(state0, blowup_factor).astype(self.real))
         self.state0 = cuda.to_device(np.ascontiguousarray(state0, dtype=self.real))
         self.rate = cuda.to_device(np.ascontiguousarray(rate, dtype=self.real))
@@ -124,12 +123,7 @@ class GpuLaunch:
 
     def _event_start(self) -> dict[str, np.ndarray]:
         """The events' arrays at a run's start (ensemble.engine.events; none without events)."""
-        if not self.events:
-            return {}
-        E, n, kept = len(self.events), self.members, max(e.count for e in self.events)
-        return {"event_times": np.full((E, kept, n), np.nan), "event_counts": np.zeros((E, n)),
-                "stopped": np.full((self.state_rows, n), np.nan),
-                "event_states": np.full(event_states(self.events, self.state_rows, n).shape, np.nan)}
+        return started(self.events, self.state_rows, self.members) if self.events else {}
 
     def _buffer(self, key, make):
         """A buffer kept for later segments and runs of this launch: allocating pinned memory costs about as much

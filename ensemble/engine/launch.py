@@ -41,7 +41,7 @@ from ..scenes.contract import SceneError
 from ..tuning import applied
 from . import kernels
 from .blocks import flush_subnormals, restore_float_mode
-from .events import EVENT_STATE, event_states
+from .events import EVENT_STATE, event_spec, started
 from .exact_events import ExactEvents
 from .inputs import adaptive_control, blowup_limits, fixed_counts
 
@@ -135,13 +135,8 @@ class Launch:
         self.progress = np.zeros(blocks, dtype=np.int64)
         self.counts = np.zeros((3, padded)) if method.adaptive else None  # fixed steps are counted afterwards
         if self.events:
-            kept = max(event.count for event in self.events)
-            self.event_spec = np.array([(e.level, e.sign, float(e.stop), e.count, float(bool(e.keep)))
-                                        for e in self.events])
-            self.event_times = np.empty((len(self.events), kept, padded))
-            self.event_counts = np.empty((len(self.events), padded))
-            self.stopped = np.empty((self.state_rows, padded))
-            self.event_states = event_states(self.events, self.state_rows, padded)
+            self.event_spec = event_spec(self.events)
+            self.__dict__.update(started(self.events, self.state_rows, padded))
 
     def segments(self, threads: int | None = None, watch=None, resume: tuple[int, dict] | None = None):
         """Run the kernel (or evaluate the closed form) from the start, on `threads` threads (default
@@ -167,9 +162,8 @@ class Launch:
             head = (self.state0, self.rate, float(self.dt), int(self.steps_per_save), self.limit)
             tail = (self.status, self.failure_time, self.progress, self.works)
         if self.events:
-            self.event_times[:], self.event_counts[:] = np.nan, 0.0
-            self.stopped[:], self.event_states[:] = np.nan, np.nan
-            tail += ((self.event_spec, self.event_times, self.event_counts, self.stopped, self.event_states),)
+            self.__dict__.update(started(self.events, self.state_rows, self.status.size))
+            tail += ((self.event_spec, *(getattr(self, name) for name in EVENT_STATE)),)
         for name, value in (resume[1] if resume else {}).items():
             getattr(self, name)[:] = value
         for first in range(first_sample, self.n_save, self.segment):
