@@ -3,11 +3,16 @@ ENSEMBLE_TEST_GPU=1 (set on a machine with a GPU to test them there)."""
 from __future__ import annotations
 
 import os
+import sys
 
 import pytest
 
 if os.environ.get("ENSEMBLE_TEST_GPU") != "1":
     os.environ.setdefault("NUMBA_ENABLE_CUDASIM", "1")
+    # The simulator runs a block's CUDA threads as Python threads, which hand the GIL to each other at every
+    # barrier while its own thread polls them: at Python's 5 ms switch interval a simulated dopri5 run of 600
+    # steps took 6 to 30 s, at 0.1 ms 1.6 to 2.3 s.
+    sys.setswitchinterval(1e-4)
 
 if "ENSEMBLE_TUNING_FILE" not in os.environ:  # runs under test keep the engine's defaults and say nothing of tuning
     import tempfile

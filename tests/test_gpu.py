@@ -36,11 +36,11 @@ BODY = dict(scene="body", dt=0.01, t_end=0.2, save_dt=0.05, members=3, seed=3,
             parameters="lambda1 = 1.0\nlambda2 = 2.0\nlambda3 = 3.0\nc = 0.05\nspin0 = 2.0\nspin_axis = 2\n"
                        "tilt0 = { uniform = [0.01, 0.1] }\nazimuth0 = 0.5")
 CHAIN = dict(scene="chain", dt=0.02, t_end=0.2, save_dt=0.1, members=3, seed=3,
-             parameters="n = 3\nboundary = \"fixed\"\nm = 1.0\nk = { uniform = [0.5, 1.5] }\n"
-                        "x0 = { normal = [0.0, 0.1] }")
+             parameters="n = 4\nboundary = \"fixed\"\nm = 1.0\nk = { uniform = [0.5, 1.5] }\n"
+                        "x0 = { normal = [0.0, 0.1] }")  # test_chain's length: its CPU kernels
 RING = {**CHAIN, "parameters": CHAIN["parameters"].replace('"fixed"', '"periodic"')}
 FPUT = {**CHAIN, "scene": str(Path(__file__).parents[1] / "examples" / "fput.py"),  # a user's field of sites, of
-        "parameters": CHAIN["parameters"].replace("n = 3", "n = 8")}  # test_user_sites's length: its kernels
+        "parameters": CHAIN["parameters"].replace("n = 4", "n = 8")}  # test_user_sites's length: its kernels
 USER = dict(scene=str(EXAMPLE), dt=0.02, t_end=0.4, save_dt=0.1, members=3, seed=3,
             parameters="omega0 = 1.0\ngamma = 0.1\nF = 0.5\nOmega = { uniform = [0.5, 1.5] }\nx0 = 0.2")
 
@@ -158,10 +158,10 @@ def test_a_tops_stopping_event_on_the_gpu_is_the_cpus(method):
     steps, the state kept at the stop and the NaN samples after it as on the CPU."""
     from ensemble.results import Event
 
-    values = {"lambda1": np.full(3, 1e-3), "lambda3": np.full(3, 0.5e-3), "c": np.full(3, 1e-4),
-              "spin0": np.full(3, 60.0), "tilt0": np.array([0.3, 0.45, 0.55]), "azimuth0": np.zeros(3)}
-    tip = Event("tip", "tilt", -1, ("function", "value_tilt", -1), 0.6, "up", 1, True)
-    settings = dict(n_save=41, save_dt=0.5, dt=2e-2, rtol=1e-8, atol=1e-10, events=(tip,))
+    values = {"lambda1": np.full(3, 1e-3), "lambda3": np.full(3, 0.5e-3), "c": np.full(3, 2e-4),
+              "spin0": np.full(3, 60.0), "tilt0": np.array([0.4, 0.5, 0.55]), "azimuth0": np.zeros(3)}
+    tip = Event("tip", "tilt", -1, ("function", "value_tilt", -1), 0.6, "up", 1, True)  # at 2.4, 1.1, 0.55 s
+    settings = dict(n_save=11, save_dt=0.5, dt=2e-2, rtol=1e-8, atol=1e-10, events=(tip,))
     top = resolve("top")
     cpu = launch.integrate(top, METHODS[method], values, {}, **settings)
     gpu = launch.integrate(top, METHODS[method], values, {}, **settings, device="cuda")
