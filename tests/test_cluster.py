@@ -26,7 +26,7 @@ save_dt = 0.1
 members = 30
 seed = 3
 [parameters]
-n = 5
+n = 4
 boundary = "fixed"
 m = { loguniform = [0.5, 2.0] }
 k = 1.0

@@ -30,7 +30,7 @@ save_dt = 0.5
 members = 3
 seed = 11
 [parameters]
-n = 5
+n = 4
 boundary = "free"
 m = { uniform = [0.5, 2.0] }
 k = { uniform = [0.5, 2.0] }

@@ -17,7 +17,7 @@ from ensemble.scenes import SCENES
 from ensemble.spec import load
 
 from .conftest import top_runfile
-from .test_chain import chain_runfile
+from .test_chain import LONG, chain_runfile
 from .test_resume import same_bits
 
 TOPS = top_runfile(members=20, t_end=0.5, save_dt=0.05, method=None) + (
@@ -217,15 +217,15 @@ def test_a_tuned_block_is_kept_only_when_clearly_faster_and_gives_the_same_bits(
 
 
 def test_a_tuned_field_of_sites_layout_gives_the_same_bits(fresh, tmp_path, write_runfile):
-    """A 1024-mass chain (verlet, in tiles by the rule on every host: at 300 masses the rule left an AMD Zen 3's
-    blocks of 4 untiled) and a 16-mass ring (yoshida4): tuned to sweep one piece at a time and to blocks of 32 where
-    rows fit the L1 cache, the same bits."""
+    """A 1029-mass chain (verlet, in tiles by the rule on every host, as test_chain's long chains: at 300 masses the
+    rule left an AMD Zen 3's blocks of 4 untiled) and a 16-mass ring (yoshida4): tuned to sweep one piece at a time
+    and to blocks of 32 where rows fit the L1 cache, the same bits."""
     disorder = {"m": "{ loguniform = [0.5, 2.0] }", "x0": "{ normal = [0.0, 0.1] }"}
-    chains = chain_runfile({"n": 1024, **disorder}, members=9, t_end=0.4, save_dt=0.2, dt=0.01)
+    chains = chain_runfile({"n": LONG, **disorder}, members=9, t_end=0.4, save_dt=0.2, dt=0.01)
     rings = chain_runfile({"n": 16, "boundary": '"periodic"', **disorder}, members=9, t_end=0.4, save_dt=0.2,
                           dt=0.01, method='"yoshida4"')
     tuned = tuning.Tuning(sites_block=32, fused_sweeps=False)
-    for name, text, n, boundary in (("chains", chains, 1024, "fixed"), ("rings", rings, 16, "periodic")):
+    for name, text, n, boundary in (("chains", chains, LONG, "fixed"), ("rings", rings, 16, "periodic")):
         spec = load(write_runfile(text, name=f"{name}.toml"))
         method = METHODS[spec.method]
         rule = launch.layout(SCENES["chain"], method, {"n": n, "boundary": boundary})
