@@ -40,7 +40,7 @@ PARAMETERS = {"a": Parameter("s-1", "rate"), "x0": Parameter("m", "start")}
 def rhs(t, x, a):
     return (-RATE * a * x,)
 '''
-RUN = '''scene = "decay.py"
+RUN = '''scene = "{scene}"
 method = "{method}"
 dt = 0.01
 t_end = 1.0
@@ -64,10 +64,19 @@ def _scene(folder: Path, rate: float, helper: bool = False) -> Path:
     return path
 
 
-def _runfile(folder: Path, method: str, members: int = 5) -> Path:
+def _runfile(folder: Path, method: str, members: int = 5, scene: str = "decay.py") -> Path:
     path = folder / f"{method}.toml"
-    path.write_text(RUN.format(method=method, members=members))
+    path.write_text(RUN.format(method=method, members=members, scene=scene))
     return path
+
+
+@pytest.fixture(scope="module")
+def decay(tmp_path_factory) -> str:
+    """decay.py at rate 1, with a fit(ds) that does what the environment's DECAY_FIT says: for the tests that do not
+    edit it, which then share its kernels."""
+    path = tmp_path_factory.mktemp("decay") / "decay.py"
+    path.write_text("RATE = 1.0\nNAME = 'decay'\n" + DECAY + FIT_BY_ENVIRONMENT)
+    return str(path)
 
 
 def _x_end(ds: xr.Dataset) -> np.ndarray:
@@ -164,8 +173,7 @@ def test_a_non_finite_right_hand_side_fails_its_member(tmp_path, returned, metho
     fixed step's member blows up; dopri5 rejects every trial step whose error is not a number, until its step
     underflows."""
     (tmp_path / "decay.py").write_text(DECAY.replace("(-RATE * a * x,)", f"({returned},)"))
-    ds = ensemble.run(RUN.format(method=method, members=3).replace('"decay.py"', repr(str(tmp_path / "decay.py"))),
-                      progress=False)
+    ds = ensemble.run(RUN.format(method=method, members=3, scene=tmp_path / "decay.py"), progress=False)
     failed = Status.STEP_SIZE_UNDERFLOW if method == "dopri5" else Status.BLEW_UP
     assert np.all(ds.status.values == int(failed)), ds.status.values
     assert np.all(np.isnan(ds.x.isel(t=-1).values))
@@ -183,13 +191,12 @@ def test_a_resume_after_the_scene_was_edited_is_refused(tmp_path, monkeypatch, c
     assert len(list(folder_of(out).glob("members-*.nc"))) == 2 and not out.exists()
 
 
-def test_a_resume_writes_the_run_files_parameters_and_attributes_again(tmp_path, monkeypatch):
+def test_a_resume_writes_the_run_files_parameters_and_attributes_again(tmp_path, monkeypatch, decay):
     """Edits of OUT.nc.tmp outside the samples (a parameter, global attributes, a unit) do not reach the result:
     it is bitwise the uninterrupted run's."""
     from .test_resume import same_bits
 
-    _scene(tmp_path, 1.0)
-    runfile = _runfile(tmp_path, "rk4", members=40)
+    runfile = _runfile(tmp_path, "rk4", members=40, scene=decay)
     whole, out = tmp_path / "whole.nc", tmp_path / "out.nc"
     runner.run(load(runfile), whole, progress=False)
     _interrupted(load(runfile), out, after=2, monkeypatch=monkeypatch)
@@ -212,13 +219,12 @@ def test_a_scene_that_exits_at_import_is_one_line(tmp_path, capsys):
     assert not list(tmp_path.glob("out.nc*"))
 
 
-def test_the_kernels_identity_is_in_the_result(tmp_path):
+def test_the_kernels_identity_is_in_the_result(tmp_path, decay):
     from ensemble.scenes.contract import identity
     from ensemble.scenes.contract import load as load_scene
 
-    _scene(tmp_path, 1.0)
-    ds = ensemble.run(str(_runfile(tmp_path, "rk4")), progress=False)
-    assert ds.attrs["scene_sources_sha256"] == identity(load_scene(str(tmp_path / "decay.py")))
+    ds = ensemble.run(str(_runfile(tmp_path, "rk4", scene=decay)), progress=False)
+    assert ds.attrs["scene_sources_sha256"] == identity(load_scene(decay))
     assert len(ds.attrs["engine_sha256"]) == 64 and "fastmath ['contract']" in ds.attrs["compile_target"]
     assert math.isfinite(float(ds.x.isel(t=-1).max()))
 
@@ -287,12 +293,11 @@ def test_a_kernel_that_does_not_compile_leaves_no_folder_and_says_one_line(tmp_p
 
 
 @pytest.fixture(scope="module")
-def fitted_decay(tmp_path_factory):
-    """A result of decay.py whose fit(ds) does what the environment's DECAY_FIT says (one kernel compiled)."""
+def fitted_decay(tmp_path_factory, decay):
+    """A result of the shared decay.py, whose fit(ds) does what the environment's DECAY_FIT says."""
     folder = tmp_path_factory.mktemp("fit")
-    (folder / "decay.py").write_text("RATE = 1.0\nNAME = 'decay'\n" + DECAY + FIT_BY_ENVIRONMENT)
     out = folder / "out.nc"
-    assert cli.main(["run", str(_runfile(folder, "rk4", members=2)), "-o", str(out), "--quiet"]) == 0
+    assert cli.main(["run", str(_runfile(folder, "rk4", members=2, scene=decay)), "-o", str(out), "--quiet"]) == 0
     return out
 
 
@@ -444,15 +449,14 @@ def test_a_numba_cache_that_cannot_be_written_is_one_line(tmp_path, monkeypatch,
     np.testing.assert_allclose(_x_end(ds), _expected(ds, 0.75, "rk4"), rtol=1e-9)
 
 
-def test_saved_times_are_written_in_pieces_to_the_same_bits(tmp_path, monkeypatch):
+def test_saved_times_are_written_in_pieces_to_the_same_bits(monkeypatch, decay):
     """A member may save 10^8 samples: the t coordinate is written TIMES_AT_ONCE at a time (a one-member run
     saving 2e7 samples peaked at 527 MB where it now takes 231, against 218 MB for 100 samples)."""
     from ensemble import store
 
     monkeypatch.setattr(store, "TIMES_AT_ONCE", 7)
-    _scene(tmp_path, 1.0)
-    ds = ensemble.run(RUN.format(method="rk4", members=2).replace("save_dt = 0.5", "save_dt = 0.05")
-                      .replace('"decay.py"', repr(str(tmp_path / "decay.py"))), progress=False)
+    ds = ensemble.run(RUN.format(method="rk4", members=2, scene=decay).replace("save_dt = 0.5", "save_dt = 0.05"),
+                      progress=False)
     assert ds.sizes["t"] == 21 and ds.t.values.tobytes() == (np.arange(21) * 0.05).tobytes()
 
 
