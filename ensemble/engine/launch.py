@@ -135,8 +135,7 @@ class Launch:
         self.progress = np.zeros(blocks, dtype=np.int64)
         self.counts = np.zeros((3, padded)) if method.adaptive else None  # fixed steps are counted afterwards
         if self.events:
-            self.event_spec = event_spec(self.events)
-            self.__dict__.update(started(self.events, self.state_rows, padded))
+            self.event_spec = event_spec(self.events)  # its arrays are made at each run's start (segments)
 
     def segments(self, threads: int | None = None, watch=None, resume: tuple[int, dict] | None = None):
         """Run the kernel (or evaluate the closed form) from the start, on `threads` threads (default
