@@ -131,54 +131,41 @@ def test_a_run_in_segments_gives_the_bits_of_one_call(method):
 PENDULUM = Path(__file__).parents[1] / "examples" / "pendulum.py"
 
 
-@pytest.mark.parametrize("method, dt", [("rk4", 0.05), ("yoshida4", 0.05), ("dopri5", None)])
-def test_events_on_the_gpu_are_the_cpus(method, dt):
+@pytest.mark.parametrize("method, dt, stop", [("rk4", 0.05, False), ("yoshida4", 0.05, False),
+                                              ("dopri5", None, False), ("dopri5", None, True)])
+def test_events_on_the_gpu_are_the_cpus(method, dt, stop):
     """ensemble.engine.events on the GPU (gpu_kernels.event_watch): pendulums' zero crossings with their state
     kept, and the bob falling through the axle's height (the scene's event function), as the CPU's to 1e-12; a
-    run in segments gives the bits of one call."""
+    run in segments gives the bits of one call. With `stop` the bob's fall stops the two pendulums that swing
+    above the axle (the same kernel: a run's stops are its arrays): status, steps and the state kept at the stop
+    as on the CPU, the others run to the end."""
     from .test_events import EVENTS, OMEGA0, THETA0
 
     values = {"omega0": np.full(4, OMEGA0), "theta0": THETA0, "theta_dot0": np.zeros(4)}
-    settings = dict(n_save=31, save_dt=0.1, dt=dt, rtol=1e-7, atol=1e-9, events=EVENTS)
+    events = (EVENTS[0], EVENTS[1]._replace(stop=stop))
+    settings = dict(n_save=31, save_dt=0.1, dt=dt, rtol=1e-7, atol=1e-9, events=events)
     scene = resolve(str(PENDULUM))
     cpu = launch.integrate(scene, METHODS[method], values, {}, **settings)
     gpu = launch.integrate(scene, METHODS[method], values, {}, **settings, device="cuda")
+    assert list(cpu.status) == [Status.OK] * 2 + [Status.STOPPED_BY_EVENT if stop else Status.OK] * 2
+    assert np.array_equal(cpu.status, gpu.status) and np.array_equal(cpu.counts, gpu.counts)
     assert np.array_equal(cpu.event_counts, gpu.event_counts) and cpu.event_counts[1, 2] > 0
     for name in ("event_times", "event_states", "samples"):
         mine, theirs = getattr(gpu, name), getattr(cpu, name)
         assert np.array_equal(np.isnan(mine), np.isnan(theirs)) and np.nanmax(np.abs(mine - theirs)) < 1e-12, name
+    if stop:  # the stopped states' rates change by at most omega0^2 rad/s^2 times the stop times' rounding
+        moved = OMEGA0**2 * np.nanmax(np.abs(gpu.event_times - cpu.event_times)) + 1e-12
+        assert np.nanmax(np.abs(gpu.stopped - cpu.stopped)) <= moved
     parts = launch.new_launch(scene, METHODS[method], values, {}, **settings, device="cuda", segment=7)
     parts.run()
     assert parts.outcome().event_times.tobytes() == gpu.event_times.tobytes()
-
-
-def test_a_pendulums_stopping_event_with_dopri5_on_the_gpu_is_the_cpus():
-    """The bob falling through the axle's height stops the pendulums that swing above it (dopri5, the test_events
-    kernel: a run's stops are its arrays, not its kernel's): status, steps, event times, the state kept at the stop
-    and the NaN samples after it as on the CPU; the others run to the end."""
-    from .test_events import EVENTS, OMEGA0, THETA0
-
-    values = {"omega0": np.full(4, OMEGA0), "theta0": THETA0, "theta_dot0": np.zeros(4)}
-    events = (EVENTS[0], EVENTS[1]._replace(stop=True))
-    settings = dict(n_save=31, save_dt=0.1, rtol=1e-7, atol=1e-9, events=events)
-    scene = resolve(str(PENDULUM))
-    cpu = launch.integrate(scene, METHODS["dopri5"], values, {}, **settings)
-    gpu = launch.integrate(scene, METHODS["dopri5"], values, {}, **settings, device="cuda")
-    assert list(cpu.status) == [Status.OK] * 2 + [Status.STOPPED_BY_EVENT] * 2
-    assert np.array_equal(cpu.status, gpu.status) and np.array_equal(cpu.counts, gpu.counts)
-    for name in ("event_times", "event_states", "samples"):
-        mine, theirs = getattr(gpu, name), getattr(cpu, name)
-        assert np.array_equal(np.isnan(mine), np.isnan(theirs)) and np.nanmax(np.abs(mine - theirs)) < 1e-12, name
-    # the stopped states' rates change by at most omega0^2 rad/s^2 times the stop times' rounding
-    moved = OMEGA0**2 * np.nanmax(np.abs(gpu.event_times - cpu.event_times)) + 1e-12
-    assert np.nanmax(np.abs(gpu.stopped - cpu.stopped)) <= moved
 
 
 @pytest.mark.parametrize("method", ["rk4", "split4"])
 def test_a_tops_stopping_event_on_the_gpu_is_the_cpus(method):
     """A prolate top's tilt rising through 0.6 rad (the top's compiled observable) stops each member there: status,
     steps, the state kept at the stop and the NaN samples after it as on the CPU (the kernels of test_events'
-    stopping tops; dopri5's stops on the pendulum above)."""
+    stopping tops; dopri5's stops are tested on the pendulum above)."""
     from ensemble.results import Event
 
     values = {"lambda1": np.full(3, 1e-3), "lambda3": np.full(3, 0.5e-3), "c": np.full(3, 2e-4),

@@ -40,6 +40,13 @@ PARAMETERS = {"a": Parameter("s-1", "rate"), "x0": Parameter("m", "start")}
 def rhs(t, x, a):
     return (-RATE * a * x,)
 '''
+FIT_BY_ENVIRONMENT = '''
+def fit(ds):
+    import os
+    if os.environ["DECAY_FIT"] == "raise":
+        raise ValueError("my fit broke")
+    return {"rate": 1.0}
+'''
 RUN = '''scene = "{scene}"
 method = "{method}"
 dt = 0.01
@@ -299,15 +306,6 @@ def fitted_decay(tmp_path_factory, decay):
     out = folder / "out.nc"
     assert cli.main(["run", str(_runfile(folder, "rk4", members=2, scene=decay)), "-o", str(out), "--quiet"]) == 0
     return out
-
-
-FIT_BY_ENVIRONMENT = '''
-def fit(ds):
-    import os
-    if os.environ["DECAY_FIT"] == "raise":
-        raise ValueError("my fit broke")
-    return {"rate": 1.0}
-'''
 
 
 @pytest.mark.parametrize("fit, expected", [
