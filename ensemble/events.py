@@ -14,8 +14,9 @@ or not), tip_<variable>(member, tip, ...) for each kept variable (as scipy's sol
 event stops its members, each saved variable's value at the stop, <variable>_at_stop.
 
 A scene says what its events can watch in EVENT_VALUES: name -> ("state", first row) for a state variable (a
-vector's components follow), or ("function", name of a function in its physics, f(t, *state, *parameters) -> a
-value or a vector's values).
+vector's components follow; the first row may be the name of a constant that gives it, as a chain's v), or
+("function", name of a function in its physics, f(t, *state, *parameters) -> a value or a vector's values). A
+field of sites' events watch its state alone.
 """
 from __future__ import annotations
 
@@ -37,8 +38,7 @@ def parse(table: dict, scene, constants: dict, taken: set[str]) -> tuple[Event, 
     sizes for `constants`); `taken`: the result's other names, which an event's variables must not clash with.
     SpecError names the first bad key."""
     events = []
-    if expect("events", table, dict) and scene.SITES:
-        raise SpecError("events", f"scene {scene.NAME!r} is a field of sites, whose kernels have no events yet")
+    expect("events", table, dict)
     for name, entry in table.items():
         key = f"events.{name}"
         entry = expect(key, entry, dict)
@@ -102,7 +102,10 @@ def _source(key: str, of: str, index: int | None, scene, constants: dict) -> tup
         raise SpecError(f"{key}.index", f"{of!r} is a single value: leave index out")
     index = -1 if index is None else index
     kind, where = known[of]
-    return index, (("state", where + max(index, 0)) if kind == "state" else ("function", where, index))
+    if kind == "state":
+        first = constants[where] if isinstance(where, str) else where
+        return index, ("state", first + max(index, 0))
+    return index, ("function", where, index)
 
 
 def variables(events: tuple[Event, ...], scene, save: tuple[str, ...]) -> dict[str, tuple]:

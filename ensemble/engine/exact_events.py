@@ -39,6 +39,14 @@ def evaluator(values, D: int, P: int):
     return evaluate
 
 
+def components(rows: tuple, D: int):
+    """evaluate (as evaluator's) for events that are state components `rows` alone: picked with NumPy, nothing
+    compiled (a field of sites' state is too long for a tuple)."""
+    def evaluate(t, y, p, out):
+        out.reshape(len(rows), -1)[:] = y.reshape(D, -1)[list(rows)]
+    return evaluate
+
+
 class ExactEvents:
     """A closed-form run's events (results.Event), its members described by `values`, on a grid of `step` (s),
     `steps` of it between saved samples. `watch` goes through each segment of samples in turn."""
@@ -47,8 +55,12 @@ class ExactEvents:
         self.scene, self.values, self.constants, self.step, self.steps = scene, values, constants, step, steps
         self.rate = np.ascontiguousarray(scene.inputs(values, constants)[1])
         D, P = scene.kernel_rows(constants)
-        values_of = kernels.event_values(scene.PHYSICS, tuple(e.source for e in events), kernels.scene_identity(scene))
-        self.evaluate, self.D = evaluator(values_of, D, P), D
+        sources = tuple(e.source for e in events)
+        if all(source[0] == "state" for source in sources):
+            self.evaluate = components(tuple(source[1] for source in sources), D)
+        else:
+            self.evaluate = evaluator(kernels.event_values(scene.PHYSICS, sources, kernels.scene_identity(scene)), D, P)
+        self.D = D
         self.events = events
         spec = event_spec(events)
         self.levels, self.signs, self.stops, self.kept, self.keeps = spec[:, 0], spec[:, 1], spec[:, 2] > 0, \

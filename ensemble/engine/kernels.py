@@ -120,9 +120,9 @@ def layout(scene, method: Method, constants: dict, block: int | None = None, tun
     B = block_size(scene, constants, method, block, tuning)
     if scene.SITES:
         n, periodic = constants["n"], constants["boundary"] == "periodic"
-        tiled = method.splitting is not None and sites.tiles(n, B, tuning)
-        return Layout(B, sites.work_rows(method, n, periodic, tiled), tiled,
-                      sites.ring_halo(method) if tiled and periodic else 0)
+        tiled = method.splitting is not None and not events and sites.tiles(n, B, tuning)
+        return Layout(B, sites.work_rows(method, n, periodic, tiled, len(events)), tiled,
+                      sites.ring_halo(method) if tiled and periodic else 0, events=tuple(events))
     D, P = scene.kernel_rows(constants)
     rows = _member_rows(scene.PHYSICS, tuple(scene.PIECES), method, D, P)
     return Layout(B, rows + event_rows(D, len(events), method.adaptive), events=tuple(events))
@@ -146,8 +146,10 @@ def kernel(scene, method: Method, constants: dict, chosen: Layout | None = None)
 @cache
 def _sites_generated(name: str, where: str, sources: str, method: Method, n: int, periodic: bool,
                      chosen: Layout) -> Kernel:
-    body, rows = sites.source(name, where, sources, method, n, periodic, chosen.block, chosen.tiled, chosen.halo)
-    return Kernel(load_source(body, f"{name}_{method.name}_{n}").kernel, rows)
+    body, rows = sites.source(name, where, sources, method, n, periodic, chosen.block, chosen.tiled, chosen.halo,
+                              chosen.events)
+    label = f"{name}_{method.name}_{n}" + ("_events" if chosen.events else "")
+    return Kernel(load_source(body, label).kernel, rows)
 
 
 def _member_rows(where: str, pieces: tuple[str, ...], method: Method, D: int, P: int) -> int:

@@ -21,8 +21,8 @@ ensemble.engine.kernels imports it from a file that Numba keys its disk cache on
 Work rows (B members each, row r of member j at r B + j): X (n + 2: ghost, sites 1..n, ghost), V (n), then CL and
 CR (n each: the couplings); a tiled ring's rows hold its n sites between two halos (ring_halo; see
 sites_kernels.splitting_kernel). Runge-Kutta adds the stage state ZX (n + 2), ZV (n) and slopes KX, KV (stages x n
-each); an adaptive pair then its control rows (blocks.CONTROL_ROWS). Forces come from neighbours only: O(n) per
-step.
+each); an adaptive pair then its control rows (blocks.CONTROL_ROWS); a kernel with events then their rows
+(event_rows). Forces come from neighbours only: O(n) per step.
 """
 from __future__ import annotations
 
@@ -134,15 +134,33 @@ def ring_halo(method: Method) -> int:
     return max(int(np.sum(kinds[c:c + TILE_PIECES] == KICK)) for c in range(0, len(kinds), TILE_PIECES))
 
 
-def work_rows(method: Method, n: int, periodic: bool, tiled: bool) -> int:
+def work_rows(method: Method, n: int, periodic: bool, tiled: bool, events: int = 0) -> int:
     """Rows of a kernel's work array (B floats each) for `method` over n sites (a ring if periodic), in tiles or
     not: a Runge-Kutta kernel's rows end with its stages' slopes, an adaptive one's with its control rows, a
-    splitting's with the neighbours' rows CL and CR (its halos on a tiled ring)."""
+    splitting's with the neighbours' rows CL and CR (its halos on a tiled ring); then those of its `events`
+    (event_rows)."""
     halo = ring_halo(method) if tiled and periodic else 0
     rows = stage_rows(n + 2 * halo, method.tableau.stages if method.tableau is not None else 1)
     if method.tableau is None:
-        return rows[2]
-    return rows[-1] + (CONTROL_ROWS if method.adaptive else 0)
+        return rows[2] + event_rows(method, n, events)
+    return rows[-1] + (CONTROL_ROWS if method.adaptive else 0) + event_rows(method, n, events)
+
+
+def event_rows(method: Method, n: int, events: int) -> int:
+    """Work rows of a kernel's events (sites_kernels's G, BEFORE, OLD): their values at a step's ends (2 per
+    event) and, for fixed steps, the state at the step's start (2n + 1 rows, a ghost among them)."""
+    if not events:
+        return 0
+    return 2 * events + (0 if method.adaptive else 2 * n + 1)
+
+
+def event_work_row(source: tuple, n: int) -> int:
+    """The work row of an event's value (results.Event.source, ("state", r): x of site r + 1, or v of site
+    r - n + 1 from r = n), in an untiled kernel's rows (X + 1 + r; V + r - n)."""
+    kind, r = source[:2]
+    if kind != "state":
+        raise ValueError(f"a field of sites' events watch its state, not {source!r}")
+    return r + 1 if r < n else r + 2
 
 
 def stage_rows(n: int, stages: int) -> tuple[int, ...]:
@@ -326,23 +344,27 @@ bindings, the code of ensemble.engine.sites_kernels, unchanged.
 # physics: {physics_hash}
 # helpers: {helpers_hash}
 {imports}
-from ensemble.engine.kernels import physics_functions
+from ensemble.engine.kernels import event_values, physics_functions
 
 acceleration, = physics_functions({where!r}, ("acceleration",), {physics_hash!r})
+VALUES = event_values({where!r}, {event_sources!r}, {physics_hash!r})  # each event's value on a member's (x; v)
 
 N, HALO, B, PERIODIC = {n}, {halo}, {B}, {periodic}  # sites, halo sites beyond each end of a row, members, a ring
 M = N + 2 * HALO  # sites in a row
 S = {S}  # stages
 X, V, ZX, ZV, KX, KV, C0 = {rows}  # first rows (see ensemble.engine.sites); C0: an adaptive pair's control
+FAMILY = {family!r}
+E, EVENT_ROWS, FIRST_EVENT = {E}, {event_rows}, {first_event}  # events: each one's work row, the events' first row
 {bindings}
 '''
 
 
 def source(scene_name: str, where: str, physics_hash: str, method: Method, n: int, periodic: bool, B: int,
-           tiled: bool, halo: int) -> tuple[str, int]:
+           tiled: bool, halo: int, events: tuple = ()) -> tuple[str, int]:
     """The kernel file's source for `method` over n sites (a ring if periodic) in blocks of B members, in tiles or
-    not (`tiles`), a ring's rows holding `halo` sites beyond each end (`ring_halo`), and its work rows; `where`
-    names the scene's physics module (its `acceleration`), physics_hash the identity of its sources
+    not (`tiles`), a ring's rows holding `halo` sites beyond each end (`ring_halo`), with `events` (each one's
+    results.Event.source; a kernel with events is never tiled), and its work rows; `where` names the scene's
+    physics module (its `acceleration`), physics_hash the identity of its sources
     (ensemble.scenes.contract.identity)."""
     S = method.tableau.stages if method.tableau is not None else 1
     rows = stage_rows(n + 2 * halo, S)
@@ -360,8 +382,11 @@ def source(scene_name: str, where: str, physics_hash: str, method: Method, n: in
         bindings = (f"SEQUENCE, FRACTIONS = {method.splitting.numbers}, {method.splitting.fractions}  # piece "
                     f"numbers (KICK or drift), fractions of the step\nTILED = {tiled}")
     imports, code = copied_code(KERNELS_FILE)
+    first_event = work_rows(method, n, periodic, tiled)
     head = HEADER.format(family=family, scene=scene_name, method=method.name, n=n,
                          ring=" (a ring)" if periodic else "", physics_hash=physics_hash, helpers_hash=SITES_HELPERS,
-                         imports=imports, where=where, halo=halo, B=B, periodic=periodic, S=S, rows=rows,
-                         bindings=bindings)
-    return f"{head}\n\n{code}\n\nkernel = {family}_kernel\n", work_rows(method, n, periodic, tiled)
+                         imports=imports, where=where, event_sources=events, halo=halo, B=B, periodic=periodic, S=S,
+                         rows=rows, E=len(events), event_rows=tuple(event_work_row(e, n) for e in events),
+                         first_event=first_event, bindings=bindings)
+    kernel = f"{family}_events_kernel" if events else f"{family}_kernel"
+    return f"{head}\n\n{code}\n\nkernel = {kernel}\n", work_rows(method, n, periodic, tiled, len(events))

@@ -1,12 +1,14 @@
 """The field-of-sites kernels (ensemble.engine.sites): a splitting's, an explicit Runge-Kutta tableau's and an
-embedded adaptive pair's loops over a block's members and the sites of each.
+embedded adaptive pair's loops over a block's members and the sites of each, each family's loops written once
+(`<family>_frame`) for its kernels without and with events (`<family>_kernel`, `<family>_events_kernel`: see the
+events section).
 
 A kernel's file is this module's imports, a header that binds the names of the EXAMPLE section below to the
 scene's `acceleration`, the sizes, the work rows and the method's coefficients, then the code from the CODE line
 on, copied unchanged (sites.source); Numba compiles it with those names as constants. As a module, the names are
 bound to an example: blocks of 4 members of 4 sites between walls, joined by unit springs, and Bogacki and
-Shampine's 3(2) pair (its third-order weights as a 4-stage Runge-Kutta method) and Strang's kick-drift-kick,
-so that a test can call each kernel directly.
+Shampine's 3(2) pair (its third-order weights as a 4-stage Runge-Kutta method) and Strang's kick-drift-kick, an
+event on site 1's x, so that a test can call each kernel directly.
 """
 import math
 
@@ -15,10 +17,13 @@ from numba import njit
 
 from ensemble.engine.blocks import (
     ATOL,
+    CONTROL_ROWS,
     ERR,
     FAST,
+    REJECTED_LAST,
     RTOL,
     STEP,
+    TIME,
     H,
     block_done,
     cache_line_array,
@@ -26,10 +31,20 @@ from ensemble.engine.blocks import (
     copy_into,
     counts_out,
     first_step,
+    select,
     start_control,
     trial_steps,
 )
 from ensemble.engine.control import control_step
+from ensemble.engine.events import (
+    STOPPED,
+    any_crossed,
+    component,
+    crossed,
+    levels_and_directions,
+    locator,
+    values_chain,
+)
 from ensemble.engine.sites import (
     KICK,
     TILE_PIECES,
@@ -45,6 +60,7 @@ from ensemble.engine.sites import (
     stage_rows,
     stage_sums,
 )
+from ensemble.engine.tuples import loaded
 
 # ---------------------------------------------------------------- EXAMPLE: what a kernel file's header binds
 
@@ -65,6 +81,9 @@ ERROR = (2 / 9 - 7 / 24, 1 / 3 - 1 / 4, 4 / 9 - 1 / 3, -1 / 8)  # b - b_hat: h s
 ALPHA, BETA, SAFETY, MIN_FACTOR, MAX_FACTOR = 0.7 / 3 - 0.75 * 0.04, 0.04, 0.9, 0.2, 10.0
 SEQUENCE, FRACTIONS = (0, 1, 0), (0.5, 1.0, 0.5)  # piece numbers (KICK or drift), fractions of the step
 TILED = False
+FAMILY = "runge_kutta"  # the method's family: which step its events are located on (LOCATED)
+E, EVENT_ROWS, FIRST_EVENT = 1, (X + 1,), C0 + CONTROL_ROWS  # events: each one's work row, the events' first row
+VALUES = values_chain((component(0),))  # each event's value on a member's state (x; v): here site 1's x
 
 # ---------------------------------------------------------------- CODE: copied into every kernel's file
 
@@ -90,10 +109,10 @@ def slopes(work, zx, zv, kx, kv, n, B):
 
 
 @njit(inline="always", **FAST)
-def stage(work, s, a, h, step_row):
-    """Runge-Kutta stage s: its state Z = Y + sum_r h a[s, r] K_r into rows ZX, ZV, then its slopes into KX_s,
-    KV_s. The step is h, or each member's own from row step_row when step_row >= 0 (adaptive kernels); a is the
-    flat stages x stages tableau, zero from column s."""
+def stage(work, s, a, h, step_row, B):
+    """Runge-Kutta stage s of a block of B members: its state Z = Y + sum_r h a[s, r] K_r into rows ZX, ZV, then
+    its slopes into KX_s, KV_s. The step is h, or each member's own from row step_row when step_row >= 0
+    (adaptive kernels); a is the flat stages x stages tableau, zero from column s."""
     for i in range(N):
         for j in range(B):
             hj = work[step_row * B + j] if step_row >= 0 else h
@@ -117,6 +136,18 @@ def kick(work, tau, lo, hi, n, B):
         w[(n + 2) * B + q] += tau * site_acceleration(w, 0, 0, q, n, B)
 
 
+@njit(inline="always", **FAST)
+def pieces(work, kinds, taus, first, end):
+    """Pieces first .. end - 1 of a splitting's schedule (kinds, taus: splitting_schedule) over a block's sites,
+    one piece at a time."""
+    for p in range(first, end):
+        if kinds[p] == KICK:
+            kick(work, taus[p], 0, N, N, B)
+        else:
+            drift(work, taus[p], 0, N, N, B)
+            set_ghosts(work, X, N, B, PERIODIC)
+
+
 # A long chain's rows outgrow the L1 cache (tiles), so its splitting kernel runs TILE_PIECES pieces (kicks and
 # drifts) at once over tiles of TILE_ROWS sites, each piece one site behind the piece before it where kick and drift
 # alternate (a wavefront): every site still sees its neighbours as the one-piece-at-a-time order has them, so
@@ -127,19 +158,24 @@ def kick(work, tau, lo, hi, n, B):
 # their sites' values (site i, member j at i B + j), indexed from 0 in a view of the work array: from a variable
 # start, Numba's negative-index wraparound stays in the loop and LLVM does not vectorize it. As two loops (sites,
 # then a block's B members, unrolled), LLVM on AVX-512 vectorized the loop over sites, with gathers: a tenth of the
-# speed.
-@njit(nogil=True, cache=True, **FAST)
-def splitting_kernel(state0, rate, h, steps_per_save, limit, samples, status, failure_time, progress, works, start,
-                     first_block, end_block):
-    """state0 (blocks, 2n, B), rate (blocks, 2n, B), limit (M,) -> samples (members, count, 2n),
-    status (M,), failure_time (M,) (s; set only where a member fails); M = blocks x B."""
-    kinds, taus, lags = splitting_schedule(SEQUENCE, FRACTIONS, h, steps_per_save, TILE_PIECES)
+# speed. With events (E > 0) a save interval's steps run one at a time, each whole (a step's last half kick is not
+# merged into the next one's first), so that every member's state at each step's end is there to watch.
+@njit(inline="always", **FAST)
+def splitting_frame(state0, rate, h, steps_per_save, limit, samples, status, failure_time, progress, works, start,
+                    first_block, end_block, begin, remember, watch, events):
+    """The splitting kernels' loops (`splitting_kernel`); begin, remember, watch: the events' (events_begin,
+    events_remember, events_watch) or no_begin, no_remember, no_watch; events their arrays or ()."""
+    stepwise = E > 0
+    kinds, taus, lags = splitting_schedule(SEQUENCE, FRACTIONS, h, 1 if stepwise else steps_per_save, TILE_PIECES)
     count = len(kinds)
     work = cache_line_array(works.shape[1])
     for block in range(first_block, end_block):
+        context = (events, status, failure_time, block * B)
         if not fixed_start(work, works, state0, rate, block, samples, limit, status, failure_time, progress, start,
                            N, HALO, B, PERIODIC):
             continue
+        if start == 0:
+            begin(work, B, context)
         for save in range(max(start, 1), start + samples.shape[1]):
             if TILED:
                 for c0 in range(0, count, TILE_PIECES):
@@ -153,15 +189,61 @@ def splitting_kernel(state0, rate, h, steps_per_save, limit, samples, status, fa
                                 kick(work, taus[p], lo, hi, M, B)
                             else:
                                 drift(work, taus[p], lo, hi, M, B)
+            elif stepwise:
+                for n in range(steps_per_save):
+                    remember(work, B)
+                    pieces(work, kinds, taus, 0, count)
+                    watch(work, B, ((save - 1) * steps_per_save + n) * h, h, context)
             else:
-                for p in range(count):
-                    if kinds[p] == KICK:
-                        kick(work, taus[p], 0, N, N, B)
-                    else:
-                        drift(work, taus[p], 0, N, N, B)
-                        set_ghosts(work, X, N, B, PERIODIC)
+                pieces(work, kinds, taus, 0, count)
             if saved(work, samples, save - start, block, limit, status, failure_time, progress,
                      save * steps_per_save * h, -1, N, HALO, B):
+                break
+        copy_into(works[block], work)
+
+
+@njit(nogil=True, cache=True, **FAST)
+def splitting_kernel(state0, rate, h, steps_per_save, limit, samples, status, failure_time, progress, works, start,
+                     first_block, end_block):
+    """state0 (blocks, 2n, B), rate (blocks, 2n, B), limit (M,) -> samples (members, count, 2n),
+    status (M,), failure_time (M,) (s; set only where a member fails); M = blocks x B."""
+    splitting_frame(state0, rate, h, steps_per_save, limit, samples, status, failure_time, progress, works, start,
+                    first_block, end_block, no_begin, no_remember, no_watch, ())
+
+
+@njit(nogil=True, cache=True, **FAST)
+def splitting_events_kernel(state0, rate, h, steps_per_save, limit, samples, status, failure_time, progress, works,
+                            event_arrays, start, first_block, end_block):
+    """splitting_kernel with events (ensemble.engine.events: event_arrays is a kernel call's events tuple)."""
+    splitting_frame(state0, rate, h, steps_per_save, limit, samples, status, failure_time, progress, works, start,
+                    first_block, end_block, events_begin, events_remember, events_watch, event_arrays)
+
+
+@njit(inline="always", **FAST)
+def runge_kutta_frame(state0, rate, h, steps_per_save, limit, samples, status, failure_time, progress, works,
+                      start, first_block, end_block, begin, remember, watch, events):
+    """The Runge-Kutta kernels' loops, for the tableau A (flat S x S), WEIGHTS; the rest as splitting_frame."""
+    work = cache_line_array(works.shape[1])
+    for block in range(first_block, end_block):
+        context = (events, status, failure_time, block * B)
+        if not fixed_start(work, works, state0, rate, block, samples, limit, status, failure_time, progress, start,
+                           N, 0, B, PERIODIC):
+            continue
+        if start == 0:
+            begin(work, B, context)
+        for save in range(max(start, 1), start + samples.shape[1]):
+            for n in range(steps_per_save):
+                remember(work, B)
+                for s in range(S):
+                    stage(work, s, A, h, -1, B)
+                for i in range(N):
+                    for j in range(B):
+                        dx, dv = stage_sums(work, WEIGHTS, S, KX, KV, i, j, N, B)
+                        work[(X + 1 + i) * B + j] += h * dx
+                        work[(V + i) * B + j] += h * dv
+                watch(work, B, ((save - 1) * steps_per_save + n) * h, h, context)
+            if saved(work, samples, save - start, block, limit, status, failure_time, progress,
+                     save * steps_per_save * h, -1, N, 0, B):
                 break
         copy_into(works[block], work)
 
@@ -170,24 +252,16 @@ def splitting_kernel(state0, rate, h, steps_per_save, limit, samples, status, fa
 def runge_kutta_kernel(state0, rate, h, steps_per_save, limit, samples, status, failure_time, progress, works,
                        start, first_block, end_block):
     """As splitting_kernel, for the tableau A (flat S x S), WEIGHTS."""
-    work = cache_line_array(works.shape[1])
-    for block in range(first_block, end_block):
-        if not fixed_start(work, works, state0, rate, block, samples, limit, status, failure_time, progress, start,
-                           N, 0, B, PERIODIC):
-            continue
-        for save in range(max(start, 1), start + samples.shape[1]):
-            for _ in range(steps_per_save):
-                for s in range(S):
-                    stage(work, s, A, h, -1)
-                for i in range(N):
-                    for j in range(B):
-                        dx, dv = stage_sums(work, WEIGHTS, S, KX, KV, i, j, N, B)
-                        work[(X + 1 + i) * B + j] += h * dx
-                        work[(V + i) * B + j] += h * dv
-            if saved(work, samples, save - start, block, limit, status, failure_time, progress,
-                     save * steps_per_save * h, -1, N, 0, B):
-                break
-        copy_into(works[block], work)
+    runge_kutta_frame(state0, rate, h, steps_per_save, limit, samples, status, failure_time, progress, works, start,
+                      first_block, end_block, no_begin, no_remember, no_watch, ())
+
+
+@njit(nogil=True, cache=True, **FAST)
+def runge_kutta_events_kernel(state0, rate, h, steps_per_save, limit, samples, status, failure_time, progress,
+                              works, event_arrays, start, first_block, end_block):
+    """runge_kutta_kernel with events (as splitting_events_kernel)."""
+    runge_kutta_frame(state0, rate, h, steps_per_save, limit, samples, status, failure_time, progress, works, start,
+                      first_block, end_block, events_begin, events_remember, events_watch, event_arrays)
 
 
 @njit(inline="always", **FAST)
@@ -229,15 +303,15 @@ def error_norms(work):
 
 # As for a member of D values (ensemble.engine.frames.adaptive), every member of a block takes its own trial step at
 # once, clipped to land on the next saved time.
-@njit(nogil=True, cache=True, **FAST)
-def adaptive_kernel(state0, rate, control, save_dt, limit, samples, counts, status, failure_time, progress, works,
-                    start, first_block, end_block):
-    """state0, rate (blocks, 2n, B); control (3, M): first step (s; <= 0: estimate it), rtol, atol;
-    limit (M,) -> samples (members, count, 2n), counts (3, M): accepted, rejected, right-hand-side evaluations;
-    status (M,) and failure_time (M,; s, set only where a member fails)."""
+@njit(inline="always", **FAST)
+def adaptive_frame(state0, rate, control, save_dt, limit, samples, counts, status, failure_time, progress, works,
+                   start, first_block, end_block, begin, watch, events):
+    """The adaptive kernels' loops (`adaptive_kernel`); begin, watch: the events' (events_begin,
+    events_adaptive_watch) or nothing, events their arrays or ()."""
     work = cache_line_array(works.shape[1])
     for block in range(first_block, end_block):
         j0 = block * B
+        context = (events, status, failure_time, j0)
         copy_into(work, works[block])
         if start == 0:
             load_block(work, state0, rate, block, samples, N, 0, B, PERIODIC)
@@ -245,16 +319,18 @@ def adaptive_kernel(state0, rate, control, save_dt, limit, samples, counts, stat
             first_steps(work, control, j0, save_dt)
             # a non-finite start
             check_members(work, X + 1, 2 * N + 1, B, j0, limit, status, failure_time, 0.0, C0 + H)
+            begin(work, B, context)
         elif block_done(samples, status, progress, block, B):
             continue
         for save in range(max(start, 1), start + samples.shape[1]):
             target = save * save_dt
             while trial_steps(work, C0, B, target):
                 for s in range(1, S):  # FSAL: stage 0 is the last step's final stage
-                    stage(work, s, A, 0.0, C0 + STEP)
+                    stage(work, s, A, 0.0, C0 + STEP, B)
                 error_norms(work)  # FSAL: the last stage state ZX, ZV is the new state
                 control_step(work, C0, B, target, j0, status, failure_time, S - 1, ALPHA, BETA, SAFETY, MIN_FACTOR,
                              MAX_FACTOR)
+                watch(work, B, context)
                 accept(work, X, V, ZX, ZV, KX, KV, C0, S, N, B)
                 set_ghosts(work, X, N, B, PERIODIC)
             if saved(work, samples, save - start, block, limit, status, failure_time, progress, target, C0 + H, N, 0,
@@ -262,3 +338,205 @@ def adaptive_kernel(state0, rate, control, save_dt, limit, samples, counts, stat
                 break
         counts_out(work, C0, B, counts, j0)
         copy_into(works[block], work)
+
+
+@njit(nogil=True, cache=True, **FAST)
+def adaptive_kernel(state0, rate, control, save_dt, limit, samples, counts, status, failure_time, progress, works,
+                    start, first_block, end_block):
+    """state0, rate (blocks, 2n, B); control (3, M): first step (s; <= 0: estimate it), rtol, atol;
+    limit (M,) -> samples (members, count, 2n), counts (3, M): accepted, rejected, right-hand-side evaluations;
+    status (M,) and failure_time (M,; s, set only where a member fails)."""
+    adaptive_frame(state0, rate, control, save_dt, limit, samples, counts, status, failure_time, progress, works,
+                   start, first_block, end_block, no_begin, no_adaptive_watch, ())
+
+
+@njit(nogil=True, cache=True, **FAST)
+def adaptive_events_kernel(state0, rate, control, save_dt, limit, samples, counts, status, failure_time, progress,
+                           works, event_arrays, start, first_block, end_block):
+    """adaptive_kernel with events (as splitting_events_kernel)."""
+    adaptive_frame(state0, rate, control, save_dt, limit, samples, counts, status, failure_time, progress, works,
+                   start, first_block, end_block, events_begin, events_adaptive_watch, event_arrays)
+
+
+# ---------------------------------------------------------------- events
+# A member's events watch sites' values (ensemble.engine.events): EVENT_ROWS holds each one's work row (X + 1 + k
+# for site k + 1's x, V + k for its v). The rows from FIRST_EVENT: G (E: the values at the step's end), BEFORE (E:
+# at its start; an adaptive kernel's values after its trial step) and, for fixed steps, OLD (2N + 1: the rows
+# X + 1 .. V + N - 1 at the step's start). A crossing is located on the method's own step of one member
+# (`advance`: the kernel's arithmetic on a block of one member, from its state at the step's start), as a member
+# family's is; its states go to the event arrays as (x; v), 2N values.
+G, BEFORE, OLD = FIRST_EVENT, FIRST_EVENT + E, FIRST_EVENT + 2 * E
+LIKE_G = (0.0,) * E
+
+
+@njit(inline="always", **FAST)
+def no_begin(work, B, context):
+    """A kernel without events: nothing at its start."""
+
+
+@njit(inline="always", **FAST)
+def no_remember(work, B):
+    """A kernel without events: nothing kept before a step."""
+
+
+@njit(inline="always", **FAST)
+def no_watch(work, B, t, h, context):
+    """A kernel without events: nothing after a fixed step."""
+
+
+@njit(inline="always", **FAST)
+def no_adaptive_watch(work, B, context):
+    """A kernel without events: nothing after an adaptive step's control."""
+
+
+@njit(inline="always", **FAST)
+def member_state(work, first, j, B):
+    """Member j's state (x; v) (2N,) from a block of B: site i's x at row first + i, its v at row first + N + 1 + i
+    (the layout of rows X + 1 .. V + N - 1, a ghost between)."""
+    y = np.empty(2 * N)
+    for i in range(N):
+        y[i] = work[(first + i) * B + j]
+        y[N + i] = work[(first + N + 1 + i) * B + j]
+    return y
+
+
+@njit(inline="always", **FAST)
+def member_couplings(work, j):
+    """Member j's couplings (left; right) (2N,), from rows CL and CR."""
+    p = np.empty(2 * N)
+    for i in range(2 * N):
+        p[i] = work[(2 * N + 2 + i) * B + j]
+    return p
+
+
+@njit(inline="always", **FAST)
+def one_member(y, p):
+    """A block of one member with state y (x; v) and couplings p (left; right), in a kernel's rows."""
+    one = np.zeros(C0)
+    for i in range(N):
+        one[X + 1 + i] = y[i]
+        one[V + i] = y[N + i]
+    for i in range(2 * N):
+        one[2 * N + 2 + i] = p[i]
+    set_ghosts(one, X, N, 1, PERIODIC)
+    return one
+
+
+@njit(**FAST)
+def splitting_advance(t0, h, y0, p):
+    """A member's splitting step of h (s) from state y0 (2N,), couplings p: its new state (x; v)."""
+    one = one_member(y0, p)
+    for e in range(len(SEQUENCE)):
+        if SEQUENCE[e] == KICK:
+            kick(one, h * FRACTIONS[e], 0, N, N, 1)
+        else:
+            drift(one, h * FRACTIONS[e], 0, N, N, 1)
+            set_ghosts(one, X, N, 1, PERIODIC)
+    return member_state(one, X + 1, 0, 1)
+
+
+@njit(**FAST)
+def runge_kutta_advance(t0, h, y0, p):
+    """As splitting_advance, a step of the tableau A, WEIGHTS."""
+    one = one_member(y0, p)
+    for s in range(S):
+        stage(one, s, A, h, -1, 1)
+    for i in range(N):
+        dx, dv = stage_sums(one, WEIGHTS, S, KX, KV, i, 0, N, 1)
+        one[X + 1 + i] += h * dx
+        one[V + i] += h * dv
+    return member_state(one, X + 1, 0, 1)
+
+
+@njit(**FAST)
+def adaptive_advance(t0, h, y0, p):
+    """As splitting_advance, the pair's trial step of h (its last stage state: FSAL)."""
+    one = one_member(y0, p)
+    slopes(one, X, V, KX, KV, N, 1)
+    for s in range(1, S):
+        stage(one, s, A, h, -1, 1)
+    return member_state(one, ZX + 1, 0, 1)
+
+
+@njit(inline="always", **FAST)
+def stopped_at(work, first, j, status, failure_time, j0, when):
+    """Member j stops at an event at `when` (s): status STOPPED, failure_time (the launch counts its steps up to it)
+    and its sites' rows from `first` (x at first + i, v at first + N + 1 + i) NaN."""
+    status[j0 + j] = STOPPED
+    failure_time[j0 + j] = when
+    for i in range(N):
+        work[(first + i) * B + j] = np.nan
+        work[(first + N + 1 + i) * B + j] = np.nan
+
+
+@njit(inline="always", **FAST)
+def events_begin(work, B, context):
+    """The block's events' values at t = 0 into rows G."""
+    for e in range(E):
+        for j in range(B):
+            work[(G + e) * B + j] = work[EVENT_ROWS[e] * B + j]
+
+
+@njit(inline="always", **FAST)
+def events_remember(work, B):
+    """The block's state at a step's start (rows X + 1 .. V + N - 1) into rows OLD."""
+    for q in range((2 * N + 1) * B):
+        work[OLD * B + q] = work[(X + 1) * B + q]
+
+
+@njit(inline="always", **FAST)
+def events_watch(work, B, t, h, context):
+    """After a fixed step of h (s) from t (s): each member's events' values at its end against those at its start,
+    and where one crossed, the member's events located on its step from rows OLD (LOCATED: ensemble.engine.events
+    .located); a member stopped by one has its state NaN. context: (event arrays, status, failure_time, j0)."""
+    arrays, status, failure_time, j0 = context
+    levels, directions = levels_and_directions(arrays[0], LIKE_G)
+    hits = 0
+    for j in range(B):
+        for e in range(E):
+            before, after = work[(G + e) * B + j], work[EVENT_ROWS[e] * B + j]
+            work[(BEFORE + e) * B + j] = before
+            work[(G + e) * B + j] = after
+            hits += crossed(before, after, levels[e], directions[e])
+    if hits == 0:
+        return
+    for j in range(B):
+        before, after = loaded(work, BEFORE, B, j, LIKE_G), loaded(work, G, B, j, LIKE_G)
+        if any_crossed(before, after, levels, directions):
+            when = LOCATED(arrays, j0 + j, t, h, member_state(work, OLD, j, B), member_couplings(work, j), before,
+                           after)
+            if when == when:
+                stopped_at(work, X + 1, j, status, failure_time, j0, when)
+
+
+@njit(inline="always", **FAST)
+def events_adaptive_watch(work, B, context):
+    """After an adaptive pair's step control, before `accept`: as events_watch, the trial states (rows ZX, ZV)
+    against the states (rows X, V) for each member whose step was accepted; a member stopped by an event has its
+    trial state NaN and takes no more steps."""
+    arrays, status, failure_time, j0 = context
+    levels, directions = levels_and_directions(arrays[0], LIKE_G)
+    hits = 0
+    for j in range(B):
+        accepted = (work[(C0 + REJECTED_LAST) * B + j] == 0.0) & (work[(C0 + ERR) * B + j] >= 0.0)
+        for e in range(E):
+            before, after = work[(G + e) * B + j], work[(EVENT_ROWS[e] + ZX - X) * B + j]
+            work[(BEFORE + e) * B + j] = select(accepted, after, before)
+            hits += accepted & crossed(before, after, levels[e], directions[e])
+    if hits:
+        for j in range(B):
+            before, after = loaded(work, G, B, j, LIKE_G), loaded(work, BEFORE, B, j, LIKE_G)
+            if any_crossed(before, after, levels, directions):
+                t1, h = work[(C0 + TIME) * B + j], work[(C0 + STEP) * B + j]
+                when = LOCATED(arrays, j0 + j, t1 - h, h, member_state(work, X + 1, j, B), member_couplings(work, j),
+                               before, after)
+                if when == when:
+                    stopped_at(work, ZX + 1, j, status, failure_time, j0, when)
+                    work[(C0 + H) * B + j] = 0.0  # no further steps
+    for e in range(E):
+        for j in range(B):
+            work[(G + e) * B + j] = work[(BEFORE + e) * B + j]
+
+
+LOCATED = locator(VALUES, {"splitting": splitting_advance, "runge_kutta": runge_kutta_advance,
+                           "adaptive": adaptive_advance}[FAMILY])  # events.located for this kernel

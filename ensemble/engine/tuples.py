@@ -99,8 +99,16 @@ loaded = intrinsic(loaded_typing)
 
 def stored_typing(typingctx, work, first, B, j, values):
     """values (a tuple, or a tuple of tuples, of the array's type) into member j's work rows from first on:
-    straight stores, as `loaded`."""
+    straight stores, as `loaded`. values may also be a 1-d array (a field of sites' state: too many values for a
+    tuple), stored by a loop."""
     _contiguous(typingctx, work)
+    if isinstance(values, types.Array):
+        def put(work, first, B, j, values):
+            flat = work.reshape(work.size)
+            for c in range(values.shape[0]):
+                flat[(first + c) * B + j] = values[c]
+        return types.none(work, first, B, j, values), lambda context, builder, signature, arguments: (
+            context.compile_internal(builder, put, signature, arguments))
 
     def codegen(context, builder, signature, arguments):
         flat = _values(builder, arguments[4], values)

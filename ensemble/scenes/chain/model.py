@@ -40,6 +40,7 @@ OBSERVABLES: dict[str, tuple[tuple[str, ...], str, str]] = {
     "v": (("member", "t", "site"), "m s-1", "velocity"),
     "energy": (("member", "t"), "J", "total energy 1/2 v.M.v + 1/2 x.K.x"),
 }
+EVENT_VALUES = {"x": ("state", 0), "v": ("state", "n")}  # ensemble.events: v's first row is the constant n
 
 
 def spring_count(n: int, boundary: str) -> int:
