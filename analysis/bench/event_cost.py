@@ -2,11 +2,14 @@
 
     python analysis/bench/event_cost.py [--repeats 5] [--members 32768] [--methods rk4 split4 dopri5]
                                         [--device cuda]   (on a GPU: give it 10^6 members or more)
+    python analysis/bench/event_cost.py --sites 16 [--methods verlet rk4 dopri5]   (chains of 16 masses)
 
 Aerobie tops (spin 60 rad/s, tilts drawn in 0.02..0.2 rad) integrate 0.5 s with each method: without events,
 with an event on a state component (omega[2] rising to 1e6 rad/s) and with one on an observable (the tilt
-rising to 1.5 rad), none of which occurs. Prints each kernel's member-steps/s on all threads (median of the
-repeats, the three kernels alternated) and the median of the repeats' ratios to the kernel without events.
+rising to 1.5 rad), none of which occurs. With --sites n, chains of n unit masses between walls (unit springs,
+x0 drawn in -0.1..0.1 m), without events and with one on mass 1's x rising to 1e6 m. Prints each kernel's
+member-steps/s on all threads (median of the repeats, the kernels alternated) and the median of the repeats'
+ratios to the kernel without events.
 """
 from __future__ import annotations
 
@@ -34,10 +37,20 @@ def tops(members: int) -> dict[str, np.ndarray]:
             "azimuth0": rng.uniform(0.0, 2 * np.pi, members)}
 
 
-def rate(method: str, values: dict, events: tuple, t_end: float = 0.5, device: str = "cpu") -> float:
-    """Member-steps per second of one launch saving only the end."""
+CHAIN_WATCHED = {"none": (), "x[0]": (Event("far", "x", 0, ("state", 0), 1e6, "up"),)}
+
+
+def chains(members: int, n: int) -> dict[str, np.ndarray]:
+    rng = np.random.default_rng(1)
+    return {"m": np.ones((members, n)), "k": np.ones((members, n + 1)), "x0": rng.uniform(-0.1, 0.1, (members, n)),
+            "v0": np.zeros((members, n))}
+
+
+def rate(method: str, values: dict, events: tuple, t_end: float = 0.5, device: str = "cpu", sites: int = 0) -> float:
+    """Member-steps per second of one launch saving only the end (of tops, or of chains of `sites` masses)."""
+    scene, constants = (resolve("chain"), {"n": sites, "boundary": "fixed"}) if sites else (resolve("top"), {})
     start = time.perf_counter()
-    outcome = launch.integrate(resolve("top"), METHODS[method], values, {}, n_save=2, save_dt=t_end, dt=1e-3,
+    outcome = launch.integrate(scene, METHODS[method], values, constants, n_save=2, save_dt=t_end, dt=1e-3,
                                rtol=1e-8, atol=1e-10, events=events, device=device)
     return outcome.counts[0].sum() / (time.perf_counter() - start)
 
@@ -48,20 +61,22 @@ def main() -> None:
     parser.add_argument("--members", type=int, default=1 << 15)
     parser.add_argument("--methods", nargs="+", default=["rk4", "split4", "dopri5"])
     parser.add_argument("--device", choices=("cpu", "cuda"), default="cpu")
+    parser.add_argument("--sites", type=int, default=0, help="chains of this many masses instead of tops")
     args = parser.parse_args()
     print(host())
     if args.device == "cuda":
         from ensemble.engine.gpu import require_gpu
 
         print(f"device: {require_gpu()}")
-    values = tops(args.members)
+    values = chains(args.members, args.sites) if args.sites else tops(args.members)
+    watched = CHAIN_WATCHED if args.sites else WATCHED
     for method in args.methods:
-        for events in WATCHED.values():  # compiled (or loaded) before the clock
-            rate(method, {name: v[:128] for name, v in values.items()}, events, 0.01, args.device)
-        rates = {label: [] for label in WATCHED}
+        for events in watched.values():  # compiled (or loaded) before the clock
+            rate(method, {name: v[:128] for name, v in values.items()}, events, 0.01, args.device, args.sites)
+        rates = {label: [] for label in watched}
         for _ in range(args.repeats):
-            for label, events in WATCHED.items():
-                rates[label].append(rate(method, values, events, device=args.device))
+            for label, events in watched.items():
+                rates[label].append(rate(method, values, events, device=args.device, sites=args.sites))
         for label, measured in rates.items():
             ratio = statistics.median(r / base for r, base in zip(measured, rates["none"]))
             print(f"{method:7s} {label:9s} {statistics.median(measured):.3e} member-steps/s   x {ratio:.3f}")
