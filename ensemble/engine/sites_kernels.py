@@ -137,15 +137,28 @@ def kick(work, tau, lo, hi, n, B):
 
 
 @njit(inline="always", **FAST)
+def piece(work, kind, tau, B):
+    """One piece of a splitting (KICK or drift, of tau s) over every site of a block of B members."""
+    if kind == KICK:
+        kick(work, tau, 0, N, N, B)
+    else:
+        drift(work, tau, 0, N, N, B)
+        set_ghosts(work, X, N, B, PERIODIC)
+
+
+@njit(inline="always", **FAST)
 def pieces(work, kinds, taus, first, end):
     """Pieces first .. end - 1 of a splitting's schedule (kinds, taus: splitting_schedule) over a block's sites,
     one piece at a time."""
     for p in range(first, end):
-        if kinds[p] == KICK:
-            kick(work, taus[p], 0, N, N, B)
-        else:
-            drift(work, taus[p], 0, N, N, B)
-            set_ghosts(work, X, N, B, PERIODIC)
+        piece(work, kinds[p], taus[p], B)
+
+
+@njit(inline="always", **FAST)
+def merged():
+    """Whether a splitting's step ends with the piece the next begins with (verlet: a half kick): a save
+    interval's schedule merges the two (splitting_schedule)."""
+    return len(SEQUENCE) > 1 and SEQUENCE[0] == SEQUENCE[len(SEQUENCE) - 1]
 
 
 # A long chain's rows outgrow the L1 cache (tiles), so its splitting kernel runs TILE_PIECES pieces (kicks and
@@ -158,15 +171,17 @@ def pieces(work, kinds, taus, first, end):
 # their sites' values (site i, member j at i B + j), indexed from 0 in a view of the work array: from a variable
 # start, Numba's negative-index wraparound stays in the loop and LLVM does not vectorize it. As two loops (sites,
 # then a block's B members, unrolled), LLVM on AVX-512 vectorized the loop over sites, with gathers: a tenth of the
-# speed. With events (E > 0) a save interval's steps run one at a time, each whole (a step's last half kick is not
-# merged into the next one's first), so that every member's state at each step's end is there to watch.
+# speed. With events (E > 0) the kernel is not tiled, and watches after each step's pieces of the same schedule
+# (`merged` pieces included), so its samples are those of the kernel without events.
 @njit(inline="always", **FAST)
 def splitting_frame(state0, rate, h, steps_per_save, limit, samples, status, failure_time, progress, works, start,
-                    first_block, end_block, begin, remember, watch, events):
-    """The splitting kernels' loops (`splitting_kernel`); begin, remember, watch: the events' (events_begin,
-    events_remember, events_watch) or no_begin, no_remember, no_watch; events their arrays or ()."""
-    stepwise = E > 0
-    kinds, taus, lags = splitting_schedule(SEQUENCE, FRACTIONS, h, 1 if stepwise else steps_per_save, TILE_PIECES)
+                    first_block, end_block, begin, remember, watch, locate, events):
+    """The splitting kernels' loops (`splitting_kernel`); begin, remember, watch, locate: the events'
+    (events_begin, events_remember, splitting_watch, splitting_locate) or no_begin, no_remember, no_watch,
+    no_locate;
+    events their arrays or (). A step in which an event crossed leaves the loop of steps, to locate it: a call
+    in that loop, even one never made, cost a chain's verlet a third of its rate."""
+    kinds, taus, lags = splitting_schedule(SEQUENCE, FRACTIONS, h, steps_per_save, TILE_PIECES)
     count = len(kinds)
     work = cache_line_array(works.shape[1])
     for block in range(first_block, end_block):
@@ -189,11 +204,20 @@ def splitting_frame(state0, rate, h, steps_per_save, limit, samples, status, fai
                                 kick(work, taus[p], lo, hi, M, B)
                             else:
                                 drift(work, taus[p], lo, hi, M, B)
-            elif stepwise:
-                for n in range(steps_per_save):
-                    remember(work, B)
-                    pieces(work, kinds, taus, 0, count)
-                    watch(work, B, ((save - 1) * steps_per_save + n) * h, h, context)
+            elif E > 0:
+                per_step = len(SEQUENCE) - 1 if merged() else len(SEQUENCE)  # pieces from one step's to the next's
+                n = 0
+                while n < steps_per_save:
+                    hits = 0
+                    while hits == 0 and n < steps_per_save:  # steps until an event crosses: no call in this loop
+                        first = n * per_step
+                        end = count if n == steps_per_save - 1 else first + per_step
+                        remember(work, B, n)
+                        pieces(work, kinds, taus, first, end)
+                        hits = watch(work, B, h, context, end == count)
+                        n += 1
+                    if hits:
+                        locate(work, context, n - 1, ((save - 1) * steps_per_save + n - 1) * h, h, kinds, taus)
             else:
                 pieces(work, kinds, taus, 0, count)
             if saved(work, samples, save - start, block, limit, status, failure_time, progress,
@@ -208,7 +232,7 @@ def splitting_kernel(state0, rate, h, steps_per_save, limit, samples, status, fa
     """state0 (blocks, 2n, B), rate (blocks, 2n, B), limit (M,) -> samples (members, count, 2n),
     status (M,), failure_time (M,) (s; set only where a member fails); M = blocks x B."""
     splitting_frame(state0, rate, h, steps_per_save, limit, samples, status, failure_time, progress, works, start,
-                    first_block, end_block, no_begin, no_remember, no_watch, ())
+                    first_block, end_block, no_begin, no_remember, no_watch, no_locate, ())
 
 
 @njit(nogil=True, cache=True, **FAST)
@@ -216,12 +240,25 @@ def splitting_events_kernel(state0, rate, h, steps_per_save, limit, samples, sta
                             event_arrays, start, first_block, end_block):
     """splitting_kernel with events (ensemble.engine.events: event_arrays is a kernel call's events tuple)."""
     splitting_frame(state0, rate, h, steps_per_save, limit, samples, status, failure_time, progress, works, start,
-                    first_block, end_block, events_begin, events_remember, events_watch, event_arrays)
+                    first_block, end_block, events_begin, events_remember, splitting_watch, splitting_locate,
+                    event_arrays)
+
+
+@njit(inline="always", **FAST)
+def runge_kutta_step(work, h):
+    """A block's Runge-Kutta step of h (s): the tableau A (flat S x S), WEIGHTS."""
+    for s in range(S):
+        stage(work, s, A, h, -1, B)
+    for i in range(N):
+        for j in range(B):
+            dx, dv = stage_sums(work, WEIGHTS, S, KX, KV, i, j, N, B)
+            work[(X + 1 + i) * B + j] += h * dx
+            work[(V + i) * B + j] += h * dv
 
 
 @njit(inline="always", **FAST)
 def runge_kutta_frame(state0, rate, h, steps_per_save, limit, samples, status, failure_time, progress, works,
-                      start, first_block, end_block, begin, remember, watch, events):
+                      start, first_block, end_block, begin, remember, watch, locate, events):
     """The Runge-Kutta kernels' loops, for the tableau A (flat S x S), WEIGHTS; the rest as splitting_frame."""
     work = cache_line_array(works.shape[1])
     for block in range(first_block, end_block):
@@ -232,16 +269,20 @@ def runge_kutta_frame(state0, rate, h, steps_per_save, limit, samples, status, f
         if start == 0:
             begin(work, B, context)
         for save in range(max(start, 1), start + samples.shape[1]):
-            for n in range(steps_per_save):
-                remember(work, B)
-                for s in range(S):
-                    stage(work, s, A, h, -1, B)
-                for i in range(N):
-                    for j in range(B):
-                        dx, dv = stage_sums(work, WEIGHTS, S, KX, KV, i, j, N, B)
-                        work[(X + 1 + i) * B + j] += h * dx
-                        work[(V + i) * B + j] += h * dv
-                watch(work, B, ((save - 1) * steps_per_save + n) * h, h, context)
+            if E > 0:
+                n = 0
+                while n < steps_per_save:
+                    hits = 0
+                    while hits == 0 and n < steps_per_save:  # as splitting_frame's
+                        remember(work, B, n)
+                        runge_kutta_step(work, h)
+                        hits = watch(work, B, h, context, True)
+                        n += 1
+                    if hits:
+                        locate(work, context, n - 1, ((save - 1) * steps_per_save + n - 1) * h, h, (), ())
+            else:
+                for _ in range(steps_per_save):
+                    runge_kutta_step(work, h)
             if saved(work, samples, save - start, block, limit, status, failure_time, progress,
                      save * steps_per_save * h, -1, N, 0, B):
                 break
@@ -253,7 +294,7 @@ def runge_kutta_kernel(state0, rate, h, steps_per_save, limit, samples, status, 
                        start, first_block, end_block):
     """As splitting_kernel, for the tableau A (flat S x S), WEIGHTS."""
     runge_kutta_frame(state0, rate, h, steps_per_save, limit, samples, status, failure_time, progress, works, start,
-                      first_block, end_block, no_begin, no_remember, no_watch, ())
+                      first_block, end_block, no_begin, no_remember, no_watch, no_locate, ())
 
 
 @njit(nogil=True, cache=True, **FAST)
@@ -261,7 +302,8 @@ def runge_kutta_events_kernel(state0, rate, h, steps_per_save, limit, samples, s
                               works, event_arrays, start, first_block, end_block):
     """runge_kutta_kernel with events (as splitting_events_kernel)."""
     runge_kutta_frame(state0, rate, h, steps_per_save, limit, samples, status, failure_time, progress, works, start,
-                      first_block, end_block, events_begin, events_remember, events_watch, event_arrays)
+                      first_block, end_block, events_begin, events_remember, runge_kutta_watch, runge_kutta_locate,
+                      event_arrays)
 
 
 @njit(inline="always", **FAST)
@@ -307,7 +349,7 @@ def error_norms(work):
 def adaptive_frame(state0, rate, control, save_dt, limit, samples, counts, status, failure_time, progress, works,
                    start, first_block, end_block, begin, watch, events):
     """The adaptive kernels' loops (`adaptive_kernel`); begin, watch: the events' (events_begin,
-    events_adaptive_watch) or nothing, events their arrays or ()."""
+    events_adaptive_watch) or no_begin twice, events their arrays or ()."""
     work = cache_line_array(works.shape[1])
     for block in range(first_block, end_block):
         j0 = block * B
@@ -347,7 +389,7 @@ def adaptive_kernel(state0, rate, control, save_dt, limit, samples, counts, stat
     limit (M,) -> samples (members, count, 2n), counts (3, M): accepted, rejected, right-hand-side evaluations;
     status (M,) and failure_time (M,; s, set only where a member fails)."""
     adaptive_frame(state0, rate, control, save_dt, limit, samples, counts, status, failure_time, progress, works,
-                   start, first_block, end_block, no_begin, no_adaptive_watch, ())
+                   start, first_block, end_block, no_begin, no_begin, ())
 
 
 @njit(nogil=True, cache=True, **FAST)
@@ -361,32 +403,37 @@ def adaptive_events_kernel(state0, rate, control, save_dt, limit, samples, count
 # ---------------------------------------------------------------- events
 # A member's events watch sites' values (ensemble.engine.events): EVENT_ROWS holds each one's work row (X + 1 + k
 # for site k + 1's x, V + k for its v). The rows from FIRST_EVENT: G (E: the values at the step's end), BEFORE (E:
-# at its start; an adaptive kernel's values after its trial step) and, for fixed steps, OLD (2N + 1: the rows
-# X + 1 .. V + N - 1 at the step's start). A crossing is located on the method's own step of one member
-# (`advance`: the kernel's arithmetic on a block of one member, from its state at the step's start), as a member
-# family's is; its states go to the event arrays as (x; v), 2N values.
-G, BEFORE, OLD = FIRST_EVENT, FIRST_EVENT + E, FIRST_EVENT + 2 * E
+# at its start; an adaptive kernel's values after its trial step) and, for fixed steps, CHECK (2N + 1: the rows
+# X + 1 .. V + N - 1 as they were at a save interval's step n, n a multiple of CHECK_STEPS). A crossing is located
+# on the method's own step of one member (`advance`: the kernel's arithmetic on a block of one member) from its
+# state at the step's start, as a member family's is: an adaptive pair's is still in rows X, V; a fixed step's is
+# replayed on a block of one from CHECK (at most CHECK_STEPS - 1 steps), so that a step keeps no copy of the
+# block's state (a copy at every step cost a chain's verlet a third of its rate). Its states go to the event
+# arrays as (x; v), 2N values.
+G, BEFORE, CHECK = FIRST_EVENT, FIRST_EVENT + E, FIRST_EVENT + 2 * E
+CHECK_STEPS = 32
 LIKE_G = (0.0,) * E
 
 
 @njit(inline="always", **FAST)
 def no_begin(work, B, context):
-    """A kernel without events: nothing at its start."""
+    """A kernel without events: nothing at its start (nor after an adaptive step's control)."""
 
 
 @njit(inline="always", **FAST)
-def no_remember(work, B):
+def no_remember(work, B, n):
     """A kernel without events: nothing kept before a step."""
 
 
 @njit(inline="always", **FAST)
-def no_watch(work, B, t, h, context):
-    """A kernel without events: nothing after a fixed step."""
+def no_watch(work, B, h, context, whole):
+    """A kernel without events: no event crossed in a fixed step."""
+    return 0
 
 
 @njit(inline="always", **FAST)
-def no_adaptive_watch(work, B, context):
-    """A kernel without events: nothing after an adaptive step's control."""
+def no_locate(work, context, n, t, h, kinds, taus):
+    """A kernel without events: nothing to locate."""
 
 
 @njit(inline="always", **FAST)
@@ -427,11 +474,7 @@ def splitting_advance(t0, h, y0, p):
     """A member's splitting step of h (s) from state y0 (2N,), couplings p: its new state (x; v)."""
     one = one_member(y0, p)
     for e in range(len(SEQUENCE)):
-        if SEQUENCE[e] == KICK:
-            kick(one, h * FRACTIONS[e], 0, N, N, 1)
-        else:
-            drift(one, h * FRACTIONS[e], 0, N, N, 1)
-            set_ghosts(one, X, N, 1, PERIODIC)
+        piece(one, SEQUENCE[e], h * FRACTIONS[e], 1)
     return member_state(one, X + 1, 0, 1)
 
 
@@ -478,40 +521,134 @@ def events_begin(work, B, context):
 
 
 @njit(inline="always", **FAST)
-def events_remember(work, B):
-    """The block's state at a step's start (rows X + 1 .. V + N - 1) into rows OLD."""
-    for q in range((2 * N + 1) * B):
-        work[OLD * B + q] = work[(X + 1) * B + q]
+def events_remember(work, B, n):
+    """Before step n of a save interval: every CHECK_STEPS steps, the block's state (rows X + 1 .. V + N - 1) into
+    rows CHECK."""
+    if n % CHECK_STEPS == 0:
+        for q in range((2 * N + 1) * B):
+            work[CHECK * B + q] = work[(X + 1) * B + q]
 
 
 @njit(inline="always", **FAST)
-def events_watch(work, B, t, h, context):
-    """After a fixed step of h (s) from t (s): each member's events' values at its end against those at its start,
-    and where one crossed, the member's events located on its step from rows OLD (LOCATED: ensemble.engine.events
-    .located); a member stopped by one has its state NaN. context: (event arrays, status, failure_time, j0)."""
-    arrays, status, failure_time, j0 = context
-    levels, directions = levels_and_directions(arrays[0], LIKE_G)
+def crossings(work, B, h, whole, context, value):
+    """After a fixed step of h (s) (whole: whether the state is whole at its end): each member's events' values at
+    the step's end (value(work, row, j, h, whole)) into rows G, those at its start into rows BEFORE; how many
+    crossed. context: (event arrays, status, failure_time, j0)."""
+    levels, directions = levels_and_directions(context[0][0], LIKE_G)
     hits = 0
-    for j in range(B):
-        for e in range(E):
-            before, after = work[(G + e) * B + j], work[EVENT_ROWS[e] * B + j]
+    for e in range(E):  # a loop over a block's members inside: LLVM vectorizes it
+        row, level, direction = EVENT_ROWS[e], levels[e], directions[e]
+        for j in range(B):
+            before, after = work[(G + e) * B + j], value(work, row, j, h, whole)
             work[(BEFORE + e) * B + j] = before
             work[(G + e) * B + j] = after
-            hits += crossed(before, after, levels[e], directions[e])
-    if hits == 0:
-        return
+            hits += crossed(before, after, level, direction)
+    return hits
+
+
+@njit(inline="always", **FAST)
+def located_members(work, context, n, t, h, kinds, taus, start):
+    """After a save interval's step n of h (s) from t (s) in which an event crossed: each such member's events
+    located on its step from its state at the step's start (start(work, j, n, h, kinds, taus); LOCATED:
+    ensemble.engine.events.located); a member stopped by one has its state NaN."""
+    arrays, status, failure_time, j0 = context
+    levels, directions = levels_and_directions(arrays[0], LIKE_G)
     for j in range(B):
         before, after = loaded(work, BEFORE, B, j, LIKE_G), loaded(work, G, B, j, LIKE_G)
         if any_crossed(before, after, levels, directions):
-            when = LOCATED(arrays, j0 + j, t, h, member_state(work, OLD, j, B), member_couplings(work, j), before,
-                           after)
+            when = LOCATED(arrays, j0 + j, t, h, start(work, j, n, h, kinds, taus), member_couplings(work, j),
+                           before, after)
             if when == when:
                 stopped_at(work, X + 1, j, status, failure_time, j0, when)
 
 
 @njit(inline="always", **FAST)
+def row_value(work, row, j, h, whole):
+    """A member's value in a row, as it stands."""
+    return work[row * B + j]
+
+
+@njit(inline="always", **FAST)
+def runge_kutta_start(work, j, n, h, kinds, taus):
+    """Member j's state at the start of step n of its save interval: its steps of h (s) from its last CHECK,
+    replayed on a block of one."""
+    y, p = member_state(work, CHECK, j, B), member_couplings(work, j)
+    for _ in range(n % CHECK_STEPS):
+        y = runge_kutta_advance(0.0, h, y, p)
+    return y
+
+
+@njit(**FAST)
+def runge_kutta_located(work, context, n, t, h):
+    located_members(work, context, n, t, h, (), (), runge_kutta_start)
+
+
+@njit(inline="always", **FAST)
+def runge_kutta_watch(work, B, h, context, whole):
+    """After a Runge-Kutta step of h (s): how many of the block's members' events crossed (`crossings`)."""
+    return crossings(work, B, h, whole, context, row_value)
+
+
+@njit(inline="always", **FAST)
+def runge_kutta_locate(work, context, n, t, h, kinds, taus):
+    """After a Runge-Kutta step n of a save interval, of h (s) from t (s), in which an event crossed: located."""
+    runge_kutta_located(work, context, n, t, h)
+
+
+@njit(inline="always", **FAST)
+def splitting_value(work, row, j, h, whole):
+    """A member's value in a row at the end of a step of h (s) (whole: whether the state is whole there): where
+    the schedule merged the step's last piece into the next step's first, the value that piece would give it
+    alone (a kick's v + tau a, a drift's x + tau v; tau the last piece's)."""
+    value = work[row * B + j]
+    if whole:
+        return value
+    tau = h * FRACTIONS[len(FRACTIONS) - 1]
+    if SEQUENCE[0] == KICK:
+        if row >= V:
+            return value + tau * site_acceleration(work, X, row - V, j, N, B)
+        return value
+    if row < V:
+        return value + tau * work[(row - X - 1 + V) * B + j]
+    return value
+
+
+@njit(inline="always", **FAST)
+def splitting_start(work, j, n, h, kinds, taus):
+    """Member j's state at the start of step n of its save interval: the schedule's pieces (kinds, taus) from its
+    last CHECK replayed on a block of one, then, where the schedule merged the last step's last piece into this
+    one's first, that piece alone (of the step of h, s)."""
+    per_step = len(SEQUENCE) - 1 if merged() else len(SEQUENCE)
+    one = one_member(member_state(work, CHECK, j, B), member_couplings(work, j))
+    for p in range((n - n % CHECK_STEPS) * per_step, n * per_step):
+        piece(one, kinds[p], taus[p], 1)
+    if merged() and n > 0:
+        piece(one, SEQUENCE[0], h * FRACTIONS[len(FRACTIONS) - 1], 1)
+    return member_state(one, X + 1, 0, 1)
+
+
+@njit(**FAST)
+def splitting_located(work, context, n, t, h, kinds, taus):
+    located_members(work, context, n, t, h, kinds, taus, splitting_start)
+
+
+@njit(inline="always", **FAST)
+def splitting_watch(work, B, h, context, whole):
+    """After a splitting's step of h (s) (whole: whether its last piece was its own, not merged into the next
+    step's first): how many of the block's members' events crossed (`crossings`)."""
+    return crossings(work, B, h, whole, context, splitting_value)
+
+
+@njit(inline="always", **FAST)
+def splitting_locate(work, context, n, t, h, kinds, taus):
+    """After a splitting's step n of a save interval (its pieces of the schedule kinds, taus), of h (s) from t
+    (s), in which an event crossed: located."""
+    splitting_located(work, context, n, t, h, kinds, taus)
+
+
+@njit(inline="always", **FAST)
 def events_adaptive_watch(work, B, context):
-    """After an adaptive pair's step control, before `accept`: as events_watch, the trial states (rows ZX, ZV)
+    """After an adaptive pair's step control, before `accept`: as fixed_watch, the trial states (rows ZX, ZV)
     against the states (rows X, V) for each member whose step was accepted; a member stopped by an event has its
     trial state NaN and takes no more steps."""
     arrays, status, failure_time, j0 = context
