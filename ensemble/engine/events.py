@@ -1,8 +1,8 @@
 """Events: the times at which a function of a member's state crosses a level, each located within its step, and
 members that stop at one. Written once for the member families on both devices: the CPU's frames
 (ensemble.engine.frames) call the watchers here around a family's steps, and a GPU thread (gpu_kernels.event_watch)
-calls `crossed` and `located` as device functions; a CPU kernel without events calls NO_BEGIN, NO_REMEMBER and
-NO_WATCH (NO_ADAPTIVE_WATCH), which are nothing.
+calls `crossed` and `located` as device functions; a CPU kernel without events calls NO_BEGIN, NO_REMEMBER
+(NO_ADAPTIVE_WATCH), which are nothing, and NO_STEPS, a loop of steps alone.
 
 An event's value is a function value(t, y, p) -> float of a member's time (s), state and parameters (tuples):
 a state component, a scene's observable, or a scene's own event function (`component`, `function_value`). A kernel
@@ -236,8 +236,28 @@ def NO_REMEMBER(work, B, j, y):
 
 
 @njit(inline="always", **FAST)
-def NO_WATCH(like_y, like_p, work, B, t, h, context):
-    """A fixed-step kernel without events: nothing after a step."""
+def NO_STEPS(members_step, like_y, like_p, work, B, i, h, steps_per_save, remember, context):
+    """A fixed-step kernel without events: save interval i's steps_per_save steps of h (s) of a block of B
+    members, members_step(like_y, like_p, work, B, h, t, remember) taking each one step from t (s)."""
+    for n in range(steps_per_save):
+        members_step(like_y, like_p, work, B, h, ((i - 1) * steps_per_save + n) * h, remember)
+
+
+@njit(inline="always", **FAST)
+def watched_steps(members_step, like_y, like_p, work, B, i, h, steps_per_save, remember, watch, locate, context):
+    """NO_STEPS with events: after each step, watch counts the members whose events crossed, and where any did,
+    the loop of steps stops for `locate` to find them, then goes on (a call in that loop, even one never made,
+    cost a chain's verlet a third of its rate, and a top's rk4 a tenth)."""
+    n = 0
+    while n < steps_per_save:
+        hits = 0
+        while hits == 0 and n < steps_per_save:
+            t = ((i - 1) * steps_per_save + n) * h
+            members_step(like_y, like_p, work, B, h, t, remember)
+            hits = watch(like_y, like_p, work, B, t, h, context)
+            n += 1
+        if hits:
+            locate(like_y, like_p, work, B, ((i - 1) * steps_per_save + n - 1) * h, h, context)
 
 
 @njit(inline="always", **FAST)
@@ -259,7 +279,7 @@ def beginning(values, first: int):
 
 
 def fixed_watcher(values, advance, to_user, first: int, E: int):
-    """(begin, remember, watch) for a fixed-step kernel (ensemble.engine.frames.fixed_step) whose E events' rows
+    """(begin, remember, steps) for a fixed-step kernel (ensemble.engine.frames.fixed_step) whose E events' rows
     start at `first`: their values at the step's end and start (E rows each) and the state at the step's start
     (D rows). The levels and directions are read from `spec` once per step, before the members' loop (read in it,
     beside stores to the work array that LLVM could not prove apart, they cost a tenth of the top's rk4 rate).
@@ -267,10 +287,12 @@ def fixed_watcher(values, advance, to_user, first: int, E: int):
     begin(like_y, like_p, work, B, context) at t = 0. In a family's loop over a block's members, remember(work,
     B, j, y) keeps a member's state before its step (y, in the family's coordinates). After that loop,
     watch(like_y, like_p, work, B, t, h, context) evaluates every member's events at its new state (to_user: a
-    splitting's from_pieces to the scene's coordinates, or None) in a loop of its own, and where one crossed
-    (counted in an integer: a float sum, which LLVM may not reorder, kept the loop from vectorizing) locates that
-    member's events on advance(t0, h, y0, p), the family's step in the scene's coordinates
-    (runge_kutta.advance_of, splitting.advance_of); the member stops at the first that stops it. Every row is
+    splitting's from_pieces to the scene's coordinates, or None) in a loop of its own and counts those that
+    crossed (in an integer: a float sum, which LLVM may not reorder, kept the loop from vectorizing); where any
+    did, locate(like_y, like_p, work, B, t, h, context) (`watched_steps` calls both; steps is NO_STEPS with
+    them) locates each such member's events on
+    advance(t0, h, y0, p), the family's step in the scene's coordinates (runge_kutta.advance_of,
+    splitting.advance_of); the member stops at the first that stops it. Every row is
     stored whole: a store of a value selected against what the row held became a masked store (vmaskmovpd, slow
     on AMD Zen 3), and rows chosen at run time kept LLVM from proving a block's members apart. In the members'
     loop of the step itself the events cost more: a top's tilt, a call there, kept the step from vectorizing.
@@ -296,8 +318,13 @@ def fixed_watcher(values, advance, to_user, first: int, E: int):
             stored(work, G, B, j, after)
             stored(work, BEFORE, B, j, before)
             hits += any_crossed(before, after, levels, directions)
-        if hits == 0:
-            return
+        return hits
+
+    @njit(inline="always", **FAST)
+    def locate(like_y, like_p, work, B, t, h, context):
+        arrays, status, failure_time, j0 = context
+        D = len(like_y)
+        levels, directions = levels_and_directions(arrays[0], like_g)
         for j in range(B):
             before, after = loaded(work, BEFORE, B, j, like_g), loaded(work, G, B, j, like_g)
             if any_crossed(before, after, levels, directions):
@@ -305,7 +332,11 @@ def fixed_watcher(values, advance, to_user, first: int, E: int):
                 when = located(arrays, j0 + j, t, h, user_state(to_user, y, p), p, before, after)
                 if when == when:
                     _stop(work, 0, D, B, j, status, failure_time, j0, when)
-    return begin, remember, watch
+
+    @njit(inline="always", **FAST)
+    def steps(members_step, like_y, like_p, work, B, i, h, steps_per_save, remember, context):
+        watched_steps(members_step, like_y, like_p, work, B, i, h, steps_per_save, remember, watch, locate, context)
+    return begin, remember, steps
 
 
 def adaptive_watcher(values, advance, first: int, E: int):

@@ -29,14 +29,14 @@ from .tuples import converted, loaded, stored
 
 @njit(inline="always", **FAST)
 def fixed_step(interval, like_y, like_p, B, state0, rate, h, steps_per_save, limit, samples, status, failure_time,
-               progress, works, start, first_block, end_block, begin, remember, watch, events):
+               progress, works, start, first_block, end_block, begin, remember, steps, events):
     """Blocks first_block .. end_block - 1 from sample `start` on (0: from state0 and rate; later: from where the
     last call left works) through samples.shape[1] save intervals of steps_per_save steps of h (s) each.
 
-    interval(like_y, like_p, work, B, i, h, steps_per_save, remember, watch, context) takes a block's work array
+    interval(like_y, like_p, work, B, i, h, steps_per_save, remember, steps, context) takes a block's work array
     through save interval i (a family's members_interval: ensemble.engine.runge_kutta, .splitting), its events
-    watched by remember and watch; like_y and like_p are tuples of D and P values (their lengths matter). begin,
-    remember, watch: ensemble.engine.events's (NO_BEGIN, NO_REMEMBER, NO_WATCH for a kernel without events),
+    watched by remember and steps; like_y and like_p are tuples of D and P values (their lengths matter). begin,
+    remember, steps: ensemble.engine.events's (NO_BEGIN, NO_REMEMBER, NO_STEPS for a kernel without events),
     events its arrays (or ()), context (events, status, failure_time, j0)."""
     D, P = len(like_y), len(like_p)
     work = cache_line_array(works.shape[1])
@@ -51,7 +51,7 @@ def fixed_step(interval, like_y, like_p, B, state0, rate, h, steps_per_save, lim
         elif block_done(samples, status, progress, block, B):
             continue
         for i in range(max(start, 1), start + samples.shape[1]):
-            interval(like_y, like_p, work, B, i, h, steps_per_save, remember, watch, context)
+            interval(like_y, like_p, work, B, i, h, steps_per_save, remember, steps, context)
             if state_saved(work, samples, i - start, block, limit, status, failure_time, progress,
                            i * steps_per_save * h, -1, D, B):
                 break

@@ -229,7 +229,7 @@ from ensemble.engine.tuples import unrolled
 LIKE_Y, LIKE_P = (0.0,) * {D}, (0.0,) * {P}  # a member's state and parameters: their lengths matter
 B = {B}  # members per block
 '''
-NO_EVENTS = '''BEGIN, REMEMBER, WATCH = events.NO_BEGIN, events.NO_REMEMBER, events.NO_WATCH
+NO_EVENTS = '''BEGIN, REMEMBER, STEPS = events.NO_BEGIN, events.NO_REMEMBER, events.NO_STEPS
 '''
 NO_ADAPTIVE_EVENTS = '''BEGIN, WATCH = events.NO_BEGIN, events.NO_ADAPTIVE_WATCH
 '''
@@ -241,7 +241,7 @@ FIXED_STEP = '''
 def kernel(state0, rate, h, steps_per_save, limit, samples, status, failure_time, progress, works, start,
            first_block, end_block):
     fixed_step(INTERVAL, LIKE_Y, LIKE_P, B, state0, rate, h, steps_per_save, limit, samples, status, failure_time,
-               progress, works, start, first_block, end_block, BEGIN, REMEMBER, WATCH, ())
+               progress, works, start, first_block, end_block, BEGIN, REMEMBER, STEPS, ())
 '''
 FIXED_STEP_EVENTS = '''
 
@@ -249,14 +249,14 @@ FIXED_STEP_EVENTS = '''
 def kernel(state0, rate, h, steps_per_save, limit, samples, status, failure_time, progress, works, event_arrays,
            start, first_block, end_block):
     fixed_step(INTERVAL, LIKE_Y, LIKE_P, B, state0, rate, h, steps_per_save, limit, samples, status, failure_time,
-               progress, works, start, first_block, end_block, BEGIN, REMEMBER, WATCH, event_arrays)
+               progress, works, start, first_block, end_block, BEGIN, REMEMBER, STEPS, event_arrays)
 '''
 RUNGE_KUTTA = '''rhs, = called_functions({where!r}, ("rhs",), {physics_hash!r})
 TABLEAU = {tableau!r}  # the stages' Butcher rows (c_s, a_s0, .., a_s,S-1), and b
 INTERVAL = runge_kutta.members_interval(rhs, TABLEAU, unrolled({S}))  # the stages written out
 '''
 RUNGE_KUTTA_EVENTS = EVENT_VALUES + '''ADVANCE = runge_kutta.advance_of(rhs, TABLEAU, unrolled({S}))
-BEGIN, REMEMBER, WATCH = events.fixed_watcher(VALUES, ADVANCE, None, {first_event_row}, {E})
+BEGIN, REMEMBER, STEPS = events.fixed_watcher(VALUES, ADVANCE, None, {first_event_row}, {E})
 '''
 SPLITTING = '''PIECES, FACTORS, TO_PIECES, FROM_PIECES = splitting_functions({where!r}, {pieces!r}, {physics_hash!r})
 SEQUENCE = {sequence!r}  # the method's entries: piece number, fraction of the step
@@ -264,7 +264,7 @@ LIKE_FACTORS = {like_factors!r}  # each entry's factors (their count matters)
 INTERVAL = splitting.interval_of(PIECES, FACTORS, TO_PIECES, FROM_PIECES, SEQUENCE, LIKE_FACTORS)
 '''
 SPLITTING_EVENTS = EVENT_VALUES + '''ADVANCE = splitting.advance_of(PIECES, FACTORS, TO_PIECES, FROM_PIECES, SEQUENCE)
-BEGIN, REMEMBER, WATCH = events.fixed_watcher(VALUES, ADVANCE, FROM_PIECES, {first_event_row}, {E})
+BEGIN, REMEMBER, STEPS = events.fixed_watcher(VALUES, ADVANCE, FROM_PIECES, {first_event_row}, {E})
 '''
 ADAPTIVE = '''rhs, = called_functions({where!r}, ("rhs",), {physics_hash!r})
 TABLEAU = {tableau!r}  # the stages' Butcher rows (c_s, a_s0, .., a_s,S-1), and b - b_hat

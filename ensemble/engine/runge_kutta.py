@@ -38,22 +38,24 @@ def _stage_slopes(s, slopes, rhs, context):
 
 
 def members_interval(rhs, tableau, stage_loop):
-    """interval(like_y, like_p, work, B, i, h, steps_per_save, remember, watch, context) for frames.fixed_step:
-    save interval i (its steps_per_save steps of h, s) of a block of B members, each member's whole step at a
-    time, its events watched by remember and watch (ensemble.engine.events.fixed_watcher): state in work rows
-    0 .. D - 1, parameters in D .. D + P - 1 (like_y, like_p: tuples of D and P). stage_loop: tuples.unrolled(S)."""
+    """interval(like_y, like_p, work, B, i, h, steps_per_save, remember, steps, context) for
+    frames.fixed_step: save interval i (its steps_per_save steps of h, s) of a block of B members, each member's
+    whole step at a time, its events watched by remember and steps (ensemble.engine.events.NO_STEPS, or
+    fixed_watcher's): state in work rows 0 .. D - 1, parameters in D .. D + P - 1 (like_y, like_p: tuples of D
+    and P). stage_loop: tuples.unrolled(S)."""
     stages, b = tableau
 
     @njit(inline="always", **FAST)
-    def interval(like_y, like_p, work, B, i, h, steps_per_save, remember, watch, context):
+    def members_step(like_y, like_p, work, B, h, t, remember):
         D = len(like_y)
-        for n in range(steps_per_save):
-            t = ((i - 1) * steps_per_save + n) * h
-            for j in range(B):
-                y, p = loaded(work, 0, B, j, like_y), loaded(work, D, B, j, like_p)
-                remember(work, B, j, y)
-                stored(work, 0, B, j, step(rhs, t, h, y, p, stages, b, stage_loop))
-            watch(like_y, like_p, work, B, t, h, context)
+        for j in range(B):
+            y, p = loaded(work, 0, B, j, like_y), loaded(work, D, B, j, like_p)
+            remember(work, B, j, y)
+            stored(work, 0, B, j, step(rhs, t, h, y, p, stages, b, stage_loop))
+
+    @njit(inline="always", **FAST)
+    def interval(like_y, like_p, work, B, i, h, steps_per_save, remember, steps, context):
+        steps(members_step, like_y, like_p, work, B, i, h, steps_per_save, remember, context)
     return interval
 
 

@@ -60,27 +60,32 @@ def sequence_factors(entries: tuple, compiled=_inlined):
 
 
 def members_interval(step, factors, like_factors, entered=None, left=None):
-    """interval(like_y, like_p, work, B, i, h, steps_per_save, remember, watch, context) for frames.fixed_step:
-    save interval i (its steps_per_save steps of h, s) of a block of B members, a step of all its members at a
-    time, its events watched by remember and watch (ensemble.engine.events.fixed_watcher). Work rows: state
+    """interval(like_y, like_p, work, B, i, h, steps_per_save, remember, steps, context) for
+    frames.fixed_step: save interval i (its steps_per_save steps of h, s) of a block of B members, a step of all
+    its members at a time, its events watched by remember and steps (ensemble.engine.events.NO_STEPS, or
+    fixed_watcher's).
+    Work rows: state
     (D), parameters (P), then each entry's factors (shaped like like_factors). step, factors: sequence_step and
     sequence_factors of the method's sequence; entered, left: a scene's to_pieces and from_pieces (both or
     neither), applied to each member before and after the interval's steps."""
     @njit(inline="always", **FAST)
-    def steps(like_y, like_p, work, B, i, h, steps_per_save, remember, watch, context):
+    def members_step(like_y, like_p, work, B, h, t, remember):
+        D, P = len(like_y), len(like_p)
+        for j in range(B):
+            y, p = loaded(work, 0, B, j, like_y), loaded(work, D, B, j, like_p)
+            remember(work, B, j, y)
+            stored(work, 0, B, j, converted(step(h, y, p, loaded(work, D + P, B, j, like_factors)), y))
+
+    @njit(inline="always", **FAST)
+    def factored_steps(like_y, like_p, work, B, i, h, steps_per_save, remember, steps, context):
         D, P = len(like_y), len(like_p)
         for j in range(B):
             stored(work, D + P, B, j, factors(h, loaded(work, D, B, j, like_p)))
-        for n in range(steps_per_save):
-            for j in range(B):
-                y, p = loaded(work, 0, B, j, like_y), loaded(work, D, B, j, like_p)
-                remember(work, B, j, y)
-                stored(work, 0, B, j, converted(step(h, y, p, loaded(work, D + P, B, j, like_factors)), y))
-            watch(like_y, like_p, work, B, ((i - 1) * steps_per_save + n) * h, h, context)
+        steps(members_step, like_y, like_p, work, B, i, h, steps_per_save, remember, context)
     if entered is None:
         @njit(inline="always", **FAST)
-        def interval(like_y, like_p, work, B, i, h, steps_per_save, remember, watch, context):
-            steps(like_y, like_p, work, B, i, h, steps_per_save, remember, watch, context)
+        def interval(like_y, like_p, work, B, i, h, steps_per_save, remember, steps, context):
+            factored_steps(like_y, like_p, work, B, i, h, steps_per_save, remember, steps, context)
         return interval
 
     @njit(inline="always", **FAST)
@@ -90,9 +95,9 @@ def members_interval(step, factors, like_factors, entered=None, left=None):
             stored(work, 0, B, j, converted(change(*y, *p), y))
 
     @njit(inline="always", **FAST)
-    def interval_changed(like_y, like_p, work, B, i, h, steps_per_save, remember, watch, context):
+    def interval_changed(like_y, like_p, work, B, i, h, steps_per_save, remember, steps, context):
         changed(entered, like_y, like_p, work, B)
-        steps(like_y, like_p, work, B, i, h, steps_per_save, remember, watch, context)
+        factored_steps(like_y, like_p, work, B, i, h, steps_per_save, remember, steps, context)
         changed(left, like_y, like_p, work, B)
     return interval_changed
 
