@@ -289,10 +289,9 @@ def fixed_watcher(values, advance, to_user, first: int, E: int):
     watch(like_y, like_p, work, B, t, h, context) evaluates every member's events at its new state (to_user: a
     splitting's from_pieces to the scene's coordinates, or None) in a loop of its own and counts those that
     crossed (in an integer: a float sum, which LLVM may not reorder, kept the loop from vectorizing); where any
-    did, locate(like_y, like_p, work, B, t, h, context) (`watched_steps` calls both; steps is NO_STEPS with
-    them) locates each such member's events on
-    advance(t0, h, y0, p), the family's step in the scene's coordinates (runge_kutta.advance_of,
-    splitting.advance_of); the member stops at the first that stops it. Every row is
+    did, locate(like_y, like_p, work, B, t, h, context) locates each such member's events on advance(t0, h, y0,
+    p), the family's step in the scene's coordinates (runge_kutta.advance_of, splitting.advance_of); the member
+    stops at the first that stops it. steps: NO_STEPS with watch and locate (`watched_steps`). Every row is
     stored whole: a store of a value selected against what the row held became a masked store (vmaskmovpd, slow
     on AMD Zen 3), and rows chosen at run time kept LLVM from proving a block's members apart. In the members'
     loop of the step itself the events cost more: a top's tilt, a call there, kept the step from vectorizing.
@@ -331,7 +330,7 @@ def fixed_watcher(values, advance, to_user, first: int, E: int):
                 y, p = loaded(work, OLD, B, j, like_y), loaded(work, D, B, j, like_p)
                 when = located(arrays, j0 + j, t, h, user_state(to_user, y, p), p, before, after)
                 if when == when:
-                    _stop(work, 0, D, B, j, status, failure_time, j0, when)
+                    stop_member(work, 0, D, B, j, status, failure_time, j0, when)
 
     @njit(inline="always", **FAST)
     def steps(members_step, like_y, like_p, work, B, i, h, steps_per_save, remember, context):
@@ -369,7 +368,7 @@ def adaptive_watcher(values, advance, first: int, E: int):
                     t1, h = work[(C0 + TIME) * B + j], work[(C0 + STEP) * B + j]
                     when = located(arrays, j0 + j, t1 - h, h, y0, p, before, after)
                     if when == when:
-                        _stop(work, NEW, D, B, j, status, failure_time, j0, when)
+                        stop_member(work, NEW, D, B, j, status, failure_time, j0, when)
                         work[(C0 + H) * B + j] = 0.0  # no further steps
         for j in range(B):
             stored(work, G, B, j, loaded(work, GNEW, B, j, like_g))
@@ -377,7 +376,7 @@ def adaptive_watcher(values, advance, first: int, E: int):
 
 
 @njit(inline="always", **FAST)
-def _stop(work, row, D, B, j, status, failure_time, j0, when):
+def stop_member(work, row, D, B, j, status, failure_time, j0, when):
     """Member j stops at an event at time `when` (s): status STOPPED, its state rows from `row` NaN, the time in
     failure_time (the launch counts its steps up to it, then clears it: a stop is not a failure)."""
     status[j0 + j] = STOPPED

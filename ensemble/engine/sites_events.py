@@ -14,12 +14,12 @@ from numba import njit
 
 from ensemble.engine.blocks import CONTROL_ROWS, ERR, FAST, REJECTED_LAST, STEP, TIME, H, select
 from ensemble.engine.events import (
-    STOPPED,
     any_crossed,
     component,
     crossed,
     levels_and_directions,
     locator,
+    stop_member,
     values_chain,
 )
 from ensemble.engine.sites import KICK, set_ghosts, stage_sums
@@ -136,17 +136,6 @@ def adaptive_advance(t0, h, y0, p):
 
 
 @njit(inline="always", **FAST)
-def stopped_at(work, first, j, status, failure_time, j0, when):
-    """Member j stops at an event at `when` (s): status STOPPED, failure_time (the launch counts its steps up to it)
-    and its sites' rows from `first` (x at first + i, v at first + N + 1 + i) NaN."""
-    status[j0 + j] = STOPPED
-    failure_time[j0 + j] = when
-    for i in range(N):
-        work[(first + i) * B + j] = np.nan
-        work[(first + N + 1 + i) * B + j] = np.nan
-
-
-@njit(inline="always", **FAST)
 def events_begin(work, B, context):
     """The block's events' values at t = 0 into rows G."""
     for e in range(E):
@@ -192,8 +181,8 @@ def located_members(work, context, n, t, h, kinds, taus, start):
         if any_crossed(before, after, levels, directions):
             when = LOCATED(arrays, j0 + j, t, h, start(work, j, n, h, kinds, taus), member_couplings(work, j),
                            before, after)
-            if when == when:
-                stopped_at(work, X + 1, j, status, failure_time, j0, when)
+            if when == when:  # its sites' rows and the ghost between x and v NaN: this member's alone
+                stop_member(work, X + 1, 2 * N + 1, B, j, status, failure_time, j0, when)
 
 
 @njit(inline="always", **FAST)
@@ -212,11 +201,6 @@ def runge_kutta_start(work, j, n, h, kinds, taus):
     return y
 
 
-@njit(**FAST)
-def runge_kutta_located(work, context, n, t, h):
-    located_members(work, context, n, t, h, (), (), runge_kutta_start)
-
-
 @njit(inline="always", **FAST)
 def runge_kutta_watch(work, B, h, context, whole):
     """After a Runge-Kutta step of h (s): how many of the block's members' events crossed (`crossings`)."""
@@ -226,7 +210,7 @@ def runge_kutta_watch(work, B, h, context, whole):
 @njit(inline="always", **FAST)
 def runge_kutta_locate(work, context, n, t, h, kinds, taus):
     """After a Runge-Kutta step n of a save interval, of h (s) from t (s), in which an event crossed: located."""
-    runge_kutta_located(work, context, n, t, h)
+    located_members(work, context, n, t, h, kinds, taus, runge_kutta_start)
 
 
 @njit(inline="always", **FAST)
@@ -261,11 +245,6 @@ def splitting_start(work, j, n, h, kinds, taus):
     return member_state(one, X + 1, 0, 1)
 
 
-@njit(**FAST)
-def splitting_located(work, context, n, t, h, kinds, taus):
-    located_members(work, context, n, t, h, kinds, taus, splitting_start)
-
-
 @njit(inline="always", **FAST)
 def splitting_watch(work, B, h, context, whole):
     """After a splitting's step of h (s) (whole: whether its last piece was its own, not merged into the next
@@ -277,7 +256,7 @@ def splitting_watch(work, B, h, context, whole):
 def splitting_locate(work, context, n, t, h, kinds, taus):
     """After a splitting's step n of a save interval (its pieces of the schedule kinds, taus), of h (s) from t
     (s), in which an event crossed: located."""
-    splitting_located(work, context, n, t, h, kinds, taus)
+    located_members(work, context, n, t, h, kinds, taus, splitting_start)
 
 
 @njit(inline="always", **FAST)
@@ -302,7 +281,7 @@ def events_adaptive_watch(work, B, context):
                 when = LOCATED(arrays, j0 + j, t1 - h, h, member_state(work, X + 1, j, B), member_couplings(work, j),
                                before, after)
                 if when == when:
-                    stopped_at(work, ZX + 1, j, status, failure_time, j0, when)
+                    stop_member(work, ZX + 1, 2 * N + 1, B, j, status, failure_time, j0, when)
                     work[(C0 + H) * B + j] = 0.0  # no further steps
     for e in range(E):
         for j in range(B):

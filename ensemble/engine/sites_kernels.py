@@ -139,6 +139,35 @@ def pieces(work, kinds, taus, first, end):
 
 
 @njit(inline="always", **FAST)
+def watched_steps(step, work, save, h, steps_per_save, kinds, taus, context, remember, watch, locate):
+    """A save interval's steps with events (as ensemble.engine.events.watched_steps for a member family):
+    step(work, n, h, kinds, taus, steps_per_save) takes the block through step n of h (s) and says whether its
+    state is whole at the end; after each, watch counts the members whose events crossed, and where any did, the
+    loop of steps stops for `locate` to find them, then goes on (a call in that loop, even one never made, cost a
+    chain's verlet a third of its rate). remember(work, B, n) before each step."""
+    n = 0
+    while n < steps_per_save:
+        hits = 0
+        while hits == 0 and n < steps_per_save:
+            remember(work, B, n)
+            hits = watch(work, B, h, context, step(work, n, h, kinds, taus, steps_per_save))
+            n += 1
+        if hits:
+            locate(work, context, n - 1, ((save - 1) * steps_per_save + n - 1) * h, h, kinds, taus)
+
+
+@njit(inline="always", **FAST)
+def splitting_step(work, n, h, kinds, taus, steps_per_save):
+    """Step n of a save interval's schedule (kinds, taus: splitting_schedule, merged pieces and all): its pieces
+    from its first to the next step's first; whether its last piece was its own (the interval's last step)."""
+    per_step = len(SEQUENCE) - 1 if merged() else len(SEQUENCE)  # pieces from one step's first to the next's
+    first = n * per_step
+    end = len(kinds) if n == steps_per_save - 1 else first + per_step
+    pieces(work, kinds, taus, first, end)
+    return end == len(kinds) or not merged()
+
+
+@njit(inline="always", **FAST)
 def merged():
     """Whether a splitting's step ends with the piece the next begins with (verlet: a half kick): a save
     interval's schedule merges the two (splitting_schedule)."""
@@ -189,19 +218,8 @@ def splitting_frame(state0, rate, h, steps_per_save, limit, samples, status, fai
                             else:
                                 drift(work, taus[p], lo, hi, M, B)
             elif E > 0:
-                per_step = len(SEQUENCE) - 1 if merged() else len(SEQUENCE)  # pieces from one step's to the next's
-                n = 0
-                while n < steps_per_save:
-                    hits = 0
-                    while hits == 0 and n < steps_per_save:  # steps until an event crosses: no call in this loop
-                        first = n * per_step
-                        end = count if n == steps_per_save - 1 else first + per_step
-                        remember(work, B, n)
-                        pieces(work, kinds, taus, first, end)
-                        hits = watch(work, B, h, context, end == count)
-                        n += 1
-                    if hits:
-                        locate(work, context, n - 1, ((save - 1) * steps_per_save + n - 1) * h, h, kinds, taus)
+                watched_steps(splitting_step, work, save, h, steps_per_save, kinds, taus, context, remember, watch,
+                              locate)
             else:
                 pieces(work, kinds, taus, 0, count)
             if saved(work, samples, save - start, block, limit, status, failure_time, progress,
@@ -232,6 +250,13 @@ def runge_kutta_step(work, h):
 
 
 @njit(inline="always", **FAST)
+def runge_kutta_stepped(work, n, h, kinds, taus, steps_per_save):
+    """watched_steps's step for a tableau: runge_kutta_step; its state is whole."""
+    runge_kutta_step(work, h)
+    return True
+
+
+@njit(inline="always", **FAST)
 def runge_kutta_frame(state0, rate, h, steps_per_save, limit, samples, status, failure_time, progress, works,
                       start, first_block, end_block, begin, remember, watch, locate, events):
     """The Runge-Kutta kernels' loops, for the tableau A (flat S x S), WEIGHTS; the rest as splitting_frame."""
@@ -245,16 +270,8 @@ def runge_kutta_frame(state0, rate, h, steps_per_save, limit, samples, status, f
             begin(work, B, context)
         for save in range(max(start, 1), start + samples.shape[1]):
             if E > 0:
-                n = 0
-                while n < steps_per_save:
-                    hits = 0
-                    while hits == 0 and n < steps_per_save:  # as splitting_frame's
-                        remember(work, B, n)
-                        runge_kutta_step(work, h)
-                        hits = watch(work, B, h, context, True)
-                        n += 1
-                    if hits:
-                        locate(work, context, n - 1, ((save - 1) * steps_per_save + n - 1) * h, h, (), ())
+                watched_steps(runge_kutta_stepped, work, save, h, steps_per_save, (), (), context, remember, watch,
+                              locate)
             else:
                 for _ in range(steps_per_save):
                     runge_kutta_step(work, h)
