@@ -88,6 +88,14 @@ def test_a_users_field_of_sites_runs_from_its_run_file(tmp_path):
     assert ds.attrs["scene"] == "fput" and Path(ds.attrs["scene_source"]).resolve() == FPUT
     assert ds.x.dims == ("member", "t", "site") and ds.v.dims == ("member", "t", "site") and "energy" not in ds
     assert np.all(ds.status == 0) and np.isfinite(ds.x).all()
+    # its masses' x and v are watched as the chain's: the first mass through 0, and the same samples
+    events = '[events.cross]\nof = "x"\nindex = 0\ncount = 4\nkeep = ["v"]\n[parameters]'
+    (tmp_path / "fput.toml").write_text((tmp_path / "fput.toml").read_text().replace("[parameters]", events, 1))
+    done = run(tmp_path / "fput.toml", tmp_path / "events.nc")
+    assert done.returncode == 0, done.stderr
+    watched = xr.load_dataset(tmp_path / "events.nc")
+    assert np.all(watched.cross_count > 0) and watched.cross_v.dims == ("member", "cross", "site")
+    np.testing.assert_array_equal(watched.x, ds.x)
 
 
 BROKEN = {

@@ -310,6 +310,7 @@ class UserSitesScene:
     PIECES, EVALUATING_PIECES = chain.PIECES, chain.EVALUATING_PIECES
     PARAMETERS = chain.PARAMETERS
     OBSERVABLES = {name: about for name, about in chain.OBSERVABLES.items() if name != "energy"}
+    EVENT_VALUES = chain.EVENT_VALUES  # its sites' x and v (ensemble.engine.sites_events)
 
     def __init__(self, module: ModuleType, where: str):
         self.module, self.PHYSICS = module, where
