@@ -35,9 +35,10 @@ def run(spec, output=None, *, chunk: int | None = None, progress: bool = True, f
     """Integrate every member of a run and return its dataset.
 
     spec: a run file's path (a Path, or a str ending in .toml), run-file TOML text, or the same as a dict.
-    output: the NetCDF file to write (its folder is made). None writes a temporary file: a result of at most
-    IN_MEMORY_BYTES comes back in memory and the file is deleted; a larger one is opened lazily from the file,
-    which is deleted when Python exits. chunk, force, resume and device are `ensemble run`'s options.
+    output: the NetCDF file (or Zarr store, OUT.zarr) to write (its folder is made). None writes a temporary
+    file: a result of at most IN_MEMORY_BYTES comes back in memory and the file is deleted; a larger one is opened
+    lazily from the file, which is deleted when Python exits. chunk, force, resume and device are `ensemble
+    run`'s options.
     values: parameters given member by member, name -> an array over the run's members (or over a sweep
     point's, each point taking the same), one value or one row (per site or spring) a member: start states you
     computed, say. They replace what the run file says; the result's `parameters_given` attribute names them.
@@ -76,8 +77,8 @@ def run(spec, output=None, *, chunk: int | None = None, progress: bool = True, f
             if e.exit_status == EXIT_BAD_INPUT:  # nothing run or written: nor a folder made for it
                 preflight.remove_empty(made)
             raise
-        if folder is None:
-            return xr.open_dataset(out, engine="netcdf4")
+        if folder is None:  # the user's output: a NetCDF file or a Zarr store
+            return open(out)  # ensemble.open (below), not the builtin
         if out.stat().st_size <= IN_MEMORY_BYTES:
             return xr.load_dataset(out, engine="netcdf4")
         atexit.register(shutil.rmtree, folder, ignore_errors=True)
@@ -122,6 +123,7 @@ def open(paths) -> xr.Dataset:  # noqa: A001 (ensemble.open, as xarray.open_data
     """Results of `ensemble run`: one file (a str or Path), opened lazily; several (a list, or a glob pattern
     such as "results/sweep_*.nc"), loaded and combined over `member` (ensemble.combine.open_results)."""
     from .combine import open_results
+    from .zarr_store import xarray_engine
 
     if isinstance(paths, (str, Path)):
         found = sorted(glob.glob(str(paths))) if glob.has_magic(str(paths)) else [paths]
@@ -132,7 +134,7 @@ def open(paths) -> xr.Dataset:  # noqa: A001 (ensemble.open, as xarray.open_data
     if len(found) > 1:
         return open_results(found)
     try:
-        ds = xr.open_dataset(found[0], engine="netcdf4")
+        ds = xr.open_dataset(found[0], engine=xarray_engine(found[0]))
     except (OSError, ValueError) as e:
         raise NotAResult(f"{found[0]}: {str(e).splitlines()[0]}") from None
     problem = not_a_result(ds)

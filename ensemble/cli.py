@@ -55,6 +55,13 @@ def _parser() -> argparse.ArgumentParser:
                                            "members per block, loop order, a chain's sweeps) and keep the winners "
                                            "for every later run; see docs/speed.md.")
     tune.add_argument("--dry-run", action="store_true", help="measure and print, but keep nothing")
+    convert = commands.add_parser("convert", help="write a Zarr result as one NetCDF file",
+                                  description="Write the Zarr store a run wrote (-o OUT.zarr) as one NetCDF file: the "
+                                              "same variables, attributes and bits, in the layout `ensemble run` "
+                                              "writes.")
+    convert.add_argument("source", type=Path, help="a Zarr store written by `ensemble run` (OUT.zarr)")
+    convert.add_argument("target", type=Path, help="the NetCDF file to write (OUT.nc)")
+    convert.add_argument("--force", action="store_true", help="replace an existing target")
     _analysis_parsers(commands)
     _inertia_parser(commands)
     return parser
@@ -274,6 +281,25 @@ def _stopped(error: BaseException, runfile: Path, out: Path, resume: str, spec) 
     return EXIT_FAILED
 
 
+def _convert(args) -> int:
+    from .preflight import is_result
+    from .zarr_store import convert, is_zarr
+
+    if not is_zarr(args.source) or not args.source.is_dir():
+        return _error(f"{args.source}: not a Zarr store (a folder named OUT.zarr, written by `ensemble run`)")
+    if args.target.suffix != ".nc":
+        return _error(f"{args.target}: the target is a NetCDF file, named OUT.nc")
+    if args.target.exists() and not (args.force and is_result(args.target)):
+        return _error(f"{args.target}: exists" + ("; use --force to replace it" if is_result(args.target) else
+                                                   " and is not a result written by ensemble; not replacing it"))
+    try:
+        convert(args.source, args.target)
+    except EnsembleError as e:
+        return _error(str(e))
+    print(f"wrote {args.target} from {args.source}")
+    return EXIT_OK
+
+
 def _tune(args) -> int:
     from . import tuner, tuning
 
@@ -384,6 +410,8 @@ def main(argv: list[str] | None = None) -> int:
         return _inertia(args)
     if args.command == "tune":
         return _tune(args)
+    if args.command == "convert":
+        return _convert(args)
     if args.command in ("fit", "stability", "work-precision"):
         from . import report
 

@@ -2,10 +2,13 @@
 
 A task carries the run's spec, without its members table, and a member range:
 the worker builds those members' parameters itself (spec.members_table draws
-any range directly), integrates them and returns their arrays. Workers never
-write files: the client is the single writer. It keeps each finished chunk
-as a part (ensemble.parts) and holds at most IN_FLIGHT_PER_THREAD tasks per
-worker thread, so its memory stays flat however long the sweep.
+any range directly), integrates them and returns their arrays, which the
+client, the single writer of a NetCDF result, keeps as a part
+(ensemble.parts). Into a Zarr store the worker writes them itself and returns
+only a receipt (runner.zarr_task, ensemble.zarr_store); the workers must see
+the store where the client does (check_sees). The client holds at most
+IN_FLIGHT_PER_THREAD tasks per worker thread, so its memory stays flat however
+long the sweep.
 
 Threads: a task's kernel runs on NUMBA_NUM_THREADS (default: the worker's
 cores) divided by the worker's Dask threads, at least one, so that the two
@@ -16,9 +19,11 @@ from __future__ import annotations
 
 import logging
 import os
+import secrets
 import signal
 from dataclasses import dataclass
 from importlib.metadata import version
+from pathlib import Path
 
 import numpy as np
 
@@ -92,6 +97,29 @@ def _check_versions(client, where: str) -> None:
             raise ClusterError(f"{where}: worker {worker} has {differ}; install the same versions on every worker")
 
 
+def _reads(path: str, token: str) -> bool:
+    """On a worker: whether the probe file at `path` holds `token`."""
+    try:
+        return Path(path).read_text() == token
+    except OSError:
+        return False
+
+
+def check_sees(client, folder: Path, what: str) -> None:
+    """Refuse (ClusterError) a cluster with a worker that does not see `folder` as this process does: each reads
+    a probe file written there with a token of this call's."""
+    token = secrets.token_hex(16)
+    probe = folder.resolve() / f"probe-{token}"
+    probe.write_text(token)
+    try:
+        blind = sorted(worker for worker, sees in client.run(_reads, str(probe), token).items() if not sees)
+    finally:
+        probe.unlink(missing_ok=True)
+    if blind:
+        raise ClusterError(f"{what}: worker {blind[0]} cannot read {folder.resolve()}; give an output on a path every "
+                           f"worker shares")
+
+
 class Collected:
     """A chunk's saved variables in memory: the sink compute_chunk streams its samples to on a worker."""
 
@@ -149,10 +177,12 @@ def compute_on(client, spec: Spec, todo: list[tuple[int, int]], parts, tally, ba
                 following = jobs.next()
             else:
                 following = jobs.finished(job, result)
-                if job.writer is not None and job.writer.done:
+                if _receipt(result):  # a Zarr store's range, written by the worker
+                    tally.merge(result["receipt"]["counts"])
+                elif job.writer is not None and job.writer.done:
                     tally.add(job.writer.records)
-                    bar.n = parts.members_done()
-                    bar.refresh()
+                bar.n = parts.members_done()
+                bar.refresh()
             future.release()
             if following is not None:
                 running.add(following)
@@ -197,6 +227,9 @@ class _Jobs:
 
     def finished(self, job: _Job, result):
         """Keep what a task returned; the task to run next (the range's next segment, or the next range's)."""
+        if _receipt(result):  # the worker wrote the range into a Zarr store (runner.zarr_task)
+            self.parts.keep(result["receipt"])
+            return self.next()
         if self.segment is not None and "records" not in result:
             _keep_segment(job, result)
             return self.submit(job)
@@ -208,6 +241,11 @@ class _Jobs:
         for job in self.running.values():
             if job.writer is not None:
                 job.writer.abandon()
+
+
+def _receipt(result) -> bool:
+    """Whether a task returned a receipt (runner.zarr_task) rather than its members' arrays."""
+    return isinstance(result, dict) and "receipt" in result
 
 
 def _keep_segment(job: _Job, found: dict) -> None:

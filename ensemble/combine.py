@@ -73,8 +73,10 @@ def open_results(paths) -> xr.Dataset:
 
 
 def _loaded(path: Path) -> xr.Dataset:
+    from .zarr_store import xarray_engine
+
     try:
-        return xr.load_dataset(path, engine="netcdf4")
+        return xr.load_dataset(path, engine=xarray_engine(path))
     except (OSError, ValueError, RuntimeError) as e:
         said = str(e).splitlines()[0] if str(e) else repr(e)
         raise CombineError(f"{path}: cannot be read as a result ({said})") from None

@@ -44,16 +44,15 @@ import json
 import os
 import re
 import zipfile
-import zlib
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from importlib.metadata import version
 from pathlib import Path
 
 import netCDF4
-import numba
 import numpy as np
 
+from .checksums import file_crc32, sample_sum, write_atomically
 from .errors import EnsembleError
 from .events import dimensions as event_dimensions
 from .spec import Spec, members_table
@@ -93,6 +92,59 @@ class PartsError(EnsembleError):
     """The parts folder cannot be used as asked: one line for the user (exit status 2)."""
 
 
+def open_folder(folder: Path, spec: Spec, resume: bool) -> dict[str, str]:
+    """Open the folder where a run keeps what it finished (parts, or a Zarr store's receipts), making it with the
+    run's manifest if it is new; returns the run's fingerprint. PartsError if the folder holds what is not a
+    run's, an unfinished run without `resume`, or another run's work (its manifest's fingerprint differs)."""
+    ours = fingerprint(spec)
+    manifest = folder / MANIFEST
+    if folder.exists() and not manifest.exists() and any(folder.iterdir()):
+        raise PartsError(f"{folder} exists and holds files that are not a run's parts (no {MANIFEST}); move them "
+                         f"or choose another output")
+    if folder.exists() and not resume:
+        raise PartsError(f"{folder} holds the parts of an unfinished run; add --resume to finish it or --force to "
+                         f"start over")
+    if folder.exists() and manifest.exists():
+        try:
+            found = json.loads(manifest.read_text())
+        except (OSError, ValueError) as e:
+            raise PartsError(f"{manifest}: cannot be read ({e}); use --force to start over") from None
+        if found != ours:
+            changed = [key for key in ours if found.get(key) != ours[key]]
+            verb = "differs" if len(changed) == 1 else "differ"
+            raise PartsError(f"{folder} was made by another run ({', '.join(changed)} {verb}); --resume continues "
+                             f"only the same run file, scene and versions; use --force to start over")
+    else:
+        folder.mkdir(parents=True, exist_ok=True)
+        write_atomically(manifest, json.dumps(ours, indent=1).encode())
+    return ours
+
+
+def remove_folder(folder: Path, ours) -> None:
+    """Delete the files of a run's folder (its manifest, and those whose name `ours` accepts), then the folder
+    once nothing else is in it; in a folder without the manifest nothing is deleted."""
+    if (folder / MANIFEST).is_file():
+        for path in folder.iterdir():
+            if (path.name == MANIFEST or ours(path.name)) and path.is_file():
+                path.unlink()
+    if folder.is_dir():
+        try:
+            folder.rmdir()
+        except OSError:  # something of someone else's is in it
+            pass
+
+
+def gaps(done, members: int) -> list[tuple[int, int]]:
+    """The member ranges [start, stop) of 0 .. members - 1 that none of `done` (each with .start and .stop, in
+    order, without overlaps) holds, in order."""
+    found, at = [], 0
+    for item in done:
+        if item.start > at:
+            found.append((at, item.start))
+        at = item.stop
+    return found + ([(at, members)] if at < members else [])
+
+
 @dataclass(frozen=True)
 class Part:
     """A finished part: members start .. stop - 1 in the file `path`."""
@@ -130,27 +182,7 @@ class Parts:
         self.folder = folder_of(out)
         self.spec = spec
         self.dropped: list[str] = []  # what a resume found broken and deleted, one phrase each
-        self.fingerprint = fingerprint(spec)
-        manifest = self.folder / MANIFEST
-        if self.folder.exists() and not manifest.exists() and any(self.folder.iterdir()):
-            raise PartsError(f"{self.folder} exists and holds files that are not a run's parts (no {MANIFEST}); "
-                             f"move them or choose another output")
-        if self.folder.exists() and not resume:
-            raise PartsError(f"{self.folder} holds the parts of an unfinished run; add --resume to finish it or "
-                             f"--force to start over")
-        if self.folder.exists() and manifest.exists():
-            try:
-                found = json.loads(manifest.read_text())
-            except (OSError, ValueError) as e:
-                raise PartsError(f"{manifest}: cannot be read ({e}); use --force to start over") from None
-            if found != self.fingerprint:
-                changed = [key for key in self.fingerprint if found.get(key) != self.fingerprint[key]]
-                verb = "differs" if len(changed) == 1 else "differ"
-                raise PartsError(f"{self.folder} was made by another run ({', '.join(changed)} {verb}); --resume "
-                                 f"continues only the same run file, scene and versions; use --force to start over")
-        else:
-            self.folder.mkdir(parents=True, exist_ok=True)
-            _write_atomically(manifest, json.dumps(self.fingerprint, indent=1).encode())
+        self.fingerprint = open_folder(self.folder, spec, resume)
         self.parts = self._verified()
         segments = self._segment_files()
         problem = self._result_problem(temporary_path(out)) if self.parts or segments else None
@@ -204,18 +236,8 @@ class Parts:
         """Delete the parts of `out` and its unfinished result, OUT.tmp: only the files a run writes in the parts
         folder (its manifest, parts and their .tmp files), and the folder once nothing else is in it. In a folder
         without our manifest nothing is deleted."""
-        folder = folder_of(out)
-        if (folder / MANIFEST).is_file():
-            for path in folder.iterdir():
-                ours = path.name == MANIFEST or PART_NAME.fullmatch(path.name) or SEGMENT_NAME.fullmatch(
-                    path.name) or (path.name.startswith(("members-", "segment-")) and path.name.endswith(".tmp"))
-                if ours and path.is_file():
-                    path.unlink()
-        if folder.is_dir():
-            try:
-                folder.rmdir()
-            except OSError:  # something of someone else's is in it
-                pass
+        remove_folder(folder_of(out), lambda name: PART_NAME.fullmatch(name) or SEGMENT_NAME.fullmatch(name) or (
+            name.startswith(("members-", "segment-")) and name.endswith(".tmp")))
         temporary_path(out).unlink(missing_ok=True)
 
     def _result_problem(self, path: Path) -> str | None:
@@ -242,7 +264,7 @@ class Parts:
         for path in sorted(self.folder.glob("members-*")):
             match = PART_NAME.fullmatch(path.name)
             start, stop = (int(match[1]), int(match[2])) if match else (0, 0)
-            if not match or _checksum(path) != match[3] or not 0 <= start < stop <= self.spec.n_members:
+            if not match or file_crc32(path) != match[3] or not 0 <= start < stop <= self.spec.n_members:
                 path.unlink()
                 self.dropped.append(f"{path.name} ({'checksum differs' if match else 'not a part'})")
             elif parts and start < parts[-1].stop:
@@ -295,7 +317,7 @@ class Parts:
             segment = Segment.of(path)
             if segment and any(p.start <= segment.start < p.stop for p in self.parts):
                 path.unlink()
-            elif not segment or _checksum(path) != SEGMENT_NAME.fullmatch(path.name)[5]:
+            elif not segment or file_crc32(path) != SEGMENT_NAME.fullmatch(path.name)[5]:
                 path.unlink()
                 self.dropped.append(f"{path.name} ({'checksum differs' if segment else 'not a segment'})")
             else:
@@ -332,12 +354,7 @@ class Parts:
 
     def missing(self) -> list[tuple[int, int]]:
         """The member ranges [start, stop) that no finished part holds, in order (see settle)."""
-        gaps, at = [], 0
-        for part in self.parts:
-            if part.start > at:
-                gaps.append((at, part.start))
-            at = part.stop
-        return gaps + ([(at, self.spec.n_members)] if at < self.spec.n_members else [])
+        return gaps(self.parts, self.spec.n_members)
 
     def continuing(self) -> list[tuple[int, int, int]]:
         """(first member, stop member, samples done) of each member range that continues from its segments."""
@@ -442,7 +459,7 @@ class PartWriter:
         self.done = True
 
     def _seal(self) -> Part:
-        path = self.parts.folder / f"members-{self.start:012d}-{self.stop:012d}-{_checksum(self.temporary)}.nc"
+        path = self.parts.folder / f"members-{self.start:012d}-{self.stop:012d}-{file_crc32(self.temporary)}.nc"
         os.replace(self.temporary, path)
         for log in self.logs:  # the part holds their members now
             log.discard()
@@ -520,7 +537,7 @@ class SegmentLog:
         with open(temporary, "wb") as file:
             np.savez(file, **state, **{k: v for k, v in record.items() if k != "noise"},
                      noise=np.array(json.dumps(record["noise"])), inside=np.array(json.dumps(inside)))
-        path = self.writer.parts.folder / f"{name}-{_checksum(temporary)}.npz"
+        path = self.writer.parts.folder / f"{name}-{file_crc32(temporary)}.npz"
         os.replace(temporary, path)
         self.paths.append(path)
 
@@ -541,46 +558,3 @@ def _segment_inside(path: Path) -> dict:
         return json.loads(str(_load(path)["inside"]))
     except (OSError, ValueError, KeyError, zipfile.BadZipFile):
         return {}
-
-
-def sample_sum(values: np.ndarray, member: int, first: int) -> int:
-    """A checksum of saved samples that does not depend on how they were cut into writes: the sum (mod 2^64) over
-    every value of a 64-bit mix (splitmix64's) of its bits and its place (its member, then its index among that
-    member's values). values: (members, samples, ...) of members member, member + 1, ... from sample `first`.
-    A changed value, or a value moved to another place, changes the sum (but for a 2^-64 chance)."""
-    values = np.ascontiguousarray(values, dtype=np.float64)
-    members = values.shape[0]
-    per_sample = values[0, 0].size if values.size else 1
-    return int(_mixed_sum(values.reshape(members, -1).view(np.uint64), member, first * per_sample))
-
-
-@numba.njit(cache=True, nogil=True)
-def _mixed_sum(bits, member, offset):  # (members, values) uint64; the inner loop vectorizes: no temporaries
-    total = np.uint64(0)
-    for i in range(bits.shape[0]):
-        base = np.uint64(member + i) * np.uint64(0xD6E8FEB86659FD93) + np.uint64(offset)  # odd: members apart
-        for n in range(bits.shape[1]):
-            x = bits[i, n] ^ ((base + np.uint64(n)) * np.uint64(0x9E3779B97F4A7C15))
-            x = (x ^ (x >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
-            x = (x ^ (x >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
-            total += x ^ (x >> np.uint64(31))
-    return total
-
-
-def _checksum(path: Path) -> str:
-    """The CRC-32 of a file's bytes, 8 hex digits."""
-    crc = 0
-    with open(path, "rb") as file:
-        for block in iter(lambda: file.read(2**20), b""):
-            crc = zlib.crc32(block, crc)
-    return f"{crc:08x}"
-
-
-def _write_atomically(path: Path, data: bytes) -> None:
-    temporary = path.with_name(path.name + ".tmp")
-    with open(temporary, "wb") as file:
-        file.write(data)
-        file.flush()
-        os.fsync(file.fileno())
-    os.replace(temporary, path)
-    fsync_path(path.parent)

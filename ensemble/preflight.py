@@ -86,12 +86,14 @@ def refusal(spec, out: Path, runfile: Path | None, *, chunk: int | None, force: 
     problem = memory_problem(spec)
     if problem:
         return f"{runfile or 'the run'}: {problem}"
-    if resume:
-        from .parts import Parts
+    from .parts import Parts
+    from .runner import segment_samples
+    from .zarr_store import Receipts, is_zarr, zarr_problem
 
-        if Parts.left_complete(out, spec):
-            return None  # the run finished and was stopped before removing its parts: the resume removes them
-    problem = output_problem(out, runfile, force) or space_problem(out, spec, resume)
+    if resume and (Receipts if is_zarr(out) else Parts).left_complete(out, spec):
+        return None  # the run finished and was stopped before removing its parts: the resume removes them
+    problem = zarr_problem(spec, segment_samples(spec)) if is_zarr(out) else None
+    problem = problem or output_problem(out, runfile, force) or space_problem(out, spec, resume)
     return f"{out}: {problem}" if problem else None
 
 
@@ -121,8 +123,8 @@ def output_problem(out: Path, runfile: Path | None, force: bool) -> str | None:
     problem = scratch_problem(out, runfile)
     if problem:
         return problem
-    if out.is_dir():
-        return "is a folder; give the output file's name"
+    if out.is_dir() and not is_result(out):
+        return "is a folder; give the output file's name (or a Zarr store's, OUT.zarr)"
     if out.exists() and not force:
         return "exists; use --force to replace it"
     if out.exists() and not is_result(out):
@@ -180,9 +182,18 @@ def space_problem(out: Path, spec, resume: bool = False) -> str | None:
 
 
 def is_result(path: Path) -> bool:
-    """A NetCDF file whose `source` attribute says ensemble wrote it."""
+    """A NetCDF file or Zarr store whose `source` attribute says ensemble wrote it."""
+    import json
+
     import netCDF4
 
+    from .zarr_store import is_zarr
+
+    if is_zarr(path):
+        try:
+            return str(json.loads((path / "zarr.json").read_text())["attributes"]["source"]).startswith("ensemble")
+        except (OSError, ValueError, KeyError, TypeError):
+            return False
     try:
         with netCDF4.Dataset(path) as nc:
             return str(getattr(nc, "source", "")).startswith("ensemble")
@@ -219,7 +230,7 @@ def left_behind(out: Path, resume: str) -> str:
     from .store import temporary_path
 
     folder = folder_of(out)
-    finished = len(list(folder.glob("members-*.nc"))) if folder.exists() else 0
+    finished = len([*folder.glob("members-*.nc"), *folder.glob("receipt-*.json")]) if folder.exists() else 0
     going = Parts.segments_left(out) if folder.exists() else []
     if not finished and not going:
         return "no chunk had finished; nothing was kept"

@@ -185,8 +185,10 @@ def load_result(path: Path, fit_function):
     """(dataset, fit_function(dataset)) of a result file; None after one line on stderr for bad input: a file
     that is not NetCDF or not a result of `ensemble run`, a result without members, or one that lacks a variable
     its scene's results have (a `scene` attribute that does not say what the file holds)."""
+    from .zarr_store import xarray_engine
+
     try:
-        ds = xr.load_dataset(path, engine="netcdf4")
+        ds = xr.load_dataset(path, engine=xarray_engine(path))
         problem = not_a_result(ds)
         if problem:
             raise ValueError(problem)

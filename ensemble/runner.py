@@ -10,7 +10,8 @@ import tempfile
 import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field, replace
+from dataclasses import replace
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -18,6 +19,7 @@ import numpy as np
 from . import interrupts, tuning
 from .bars import BAR, Bar
 from .engine import launch
+from .errors import EnsembleError
 from .interrupts import HeldInterrupts, LateInterrupt
 from .methods import METHODS, Method
 from .parts import Parts
@@ -25,6 +27,8 @@ from .records import Record, kernel_seconds_per_step, measured_growth
 from .results import Outcome, Status
 from .spec import Spec, members_table
 from .store import Writer
+from .summary import ANNOUNCE_AFTER, Summary, Tally
+from .zarr_store import Receipts, ZarrWriter, is_zarr, shard_members, zarr_problem
 
 CHUNK_BYTES = 32 * 2**20  # saved data held in memory per chunk
 CHUNK_MEMBER_STEPS = 2e9  # work per chunk: about two seconds at this project's kernel speeds
@@ -37,44 +41,6 @@ GPU_CHUNK_BYTES, GPU_CHUNK_MEMBER_STEPS = 2**30, 2e11
 def chunk_budget(spec: Spec) -> tuple[int, float]:
     """(bytes of saved data, member-steps of work) per chunk on the run's device."""
     return (GPU_CHUNK_BYTES, GPU_CHUNK_MEMBER_STEPS) if spec.device == "cuda" else (CHUNK_BYTES, CHUNK_MEMBER_STEPS)
-
-
-@dataclass(frozen=True)
-class Summary:
-    members: int
-    member_steps: int
-    seconds: float
-    steps_each: int | None = None  # when every member took the same number of steps
-    blew_up: int = 0  # failed members (status BLEW_UP)
-    underflowed: int = 0  # failed members (status STEP_SIZE_UNDERFLOW)
-    stopped: int = 0  # members stopped at an event (status STOPPED_BY_EVENT): not failures
-    closed_form: bool = False  # every member was evaluated in closed form (no steps)
-    preparing: float = 0.0  # seconds spent compiling or loading kernels before the run, not in `seconds`
-    resumed: int = 0  # members of the result computed by an earlier, interrupted run (not counted above)
-    complete_already: bool = False  # an earlier run made the result whole and was stopped before removing its parts
-
-    def __str__(self) -> str:
-        failed = self.blew_up + self.underflowed
-        failures = (f"; {failed} of {_members(self.members + self.resumed)} failed ({self.blew_up} blew up, "
-                    f"{self.underflowed} step size underflow)" if failed else "")
-        failures += f"; {self.stopped} stopped at events" if self.stopped else ""
-        if self.complete_already:
-            return (f"complete already ({_members(self.resumed)}): the run that made it was stopped before removing "
-                    f"its parts, which are removed now")
-        if not self.members:
-            return f"{_members(self.resumed)} from an earlier run's parts, assembled in {self.seconds:.3g} s" + failures
-        if self.closed_form:
-            return f"{_members(self.members)} (closed form) in {self.seconds:.3g} s" + failures
-        rate = self.member_steps / self.seconds if self.seconds > 0 else float("inf")
-        steps = (f"{_members(self.members)} x {self.steps_each} steps" if self.steps_each is not None
-                 else f"{_members(self.members)}, {self.member_steps} member-steps")
-        compiling = f" (after {self.preparing:.3g} s compiling kernels)" if self.preparing > ANNOUNCE_AFTER else ""
-        resumed = f" ({self.resumed} more from the parts of an earlier run)" if self.resumed else ""
-        return f"{steps} in {self.seconds:.3g} s: {rate:.3g} member-steps/s" + compiling + resumed + failures
-
-
-def _members(count: int) -> str:
-    return f"{count} member" if count == 1 else f"{count} members"
 
 
 def _record_bytes(spec: Spec) -> tuple[int, int]:
@@ -308,20 +274,6 @@ def one_launch_ranges(spec: Spec, todo: list[tuple[int, int]]) -> list[tuple[int
     return out
 
 
-@dataclass
-class Tally:
-    """What this invocation of a run computed: members, member-steps, the distinct step counts."""
-    members: int = 0
-    member_steps: int = 0
-    step_counts: set = field(default_factory=set)
-
-    def add(self, records: dict[str, np.ndarray]) -> None:
-        steps = records["steps_accepted"] + records["steps_rejected"]
-        self.members += len(steps)
-        self.member_steps += int(steps.sum())
-        self.step_counts.update(np.unique(steps).tolist())
-
-
 def run(spec: Spec, out: str | Path, *, chunk: int | None = None, progress: bool = True, force: bool = False,
         resume: bool = False, command: str | None = None, client=None, task=None) -> Summary:
     """Integrate every member of `spec` and write the dataset to `out` (NetCDF); an existing `out` only with
@@ -358,14 +310,15 @@ FEW_MEMBERS_BLOCK = 8  # the smallest block: one AVX-512 vector of doubles, two 
 def _run(spec: Spec, out: Path, chunk: int | None, progress: bool, force: bool, resume: bool,
          command: str | None, client, task) -> Summary:
     tuning.prepare()
-    if resume and Parts.left_complete(out, spec):
-        Parts.discard(out)
+    folder = _folder_kind(spec, out)
+    if resume and folder.left_complete(out, spec):
+        folder.discard(out)
         return Summary(0, 0, 0.0, resumed=spec.n_members, complete_already=True)
     if out.exists() and not force:
         raise FileExistsError(f"{out}: exists; pass force=True to replace it")
     if force and not resume:
-        Parts.discard(out)
-    parts = Parts(out, spec, resume=resume)
+        folder.discard(out)
+    parts = folder(out, spec, resume=resume)
     if resume and progress:
         dropped = f"; dropped {', '.join(parts.dropped)}" if parts.dropped else ""
         going = "".join(f"; members {j0} to {j1 - 1} continue from sample {k} of {spec.n_save}"
@@ -376,13 +329,20 @@ def _run(spec: Spec, out: Path, chunk: int | None, progress: bool, force: bool, 
     try:
         n = spec.n_members
         chunk = chunk or (dask_chunk(spec, sum(client.nthreads().values())) if client else default_chunk(spec))
+        if is_zarr(out):  # a task's range is whole shards: those of the store a resume continues
+            chunk = shard_members(parts.store, spec) if parts.parts else chunk
+            if client is not None:  # the workers write the store: they must see it where this process does
+                from .cluster import check_sees
+
+                check_sees(client, parts.folder, str(out))
+                task = task or partial(zarr_task, store=parts.store.resolve())
         todo = [(j, min(j + chunk, stop)) for start, stop in parts.missing() for j in range(start, stop, chunk)]
         preparing = 0.0 if client or not todo else prepare_kernels(spec, announce=progress)
         _say_tuning(progress)
         repeats = spec.measure["repeats"] if spec.measure["timing"] else 0
         tally = Tally()
         began = time.perf_counter()
-        with Writer(out, spec, members_table(spec), command, reopen=bool(parts.parts or parts.segments)) as result:
+        with _writer(out, spec, command, parts, chunk) as result:
             parts.result = result
             with Bar(total=n, initial=parts.members_done(), unit="member", file=sys.stderr, disable=not progress,
                       leave=False, bar_format=BAR) as bar:
@@ -399,14 +359,45 @@ def _run(spec: Spec, out: Path, chunk: int | None, progress: bool, force: bool, 
     except BaseException:
         held.stop()
         with HeldInterrupts():  # a second Ctrl-C must not cut the cleanup short
-            if not parts.close() and not Parts.segments_left(out):  # nothing finished: nothing to resume
-                Parts.discard(out)
+            if not parts.close() and not folder.segments_left(out):  # nothing finished: nothing to resume
+                folder.discard(out)
         raise
-    Parts.discard(out)
+    folder.discard(out)
     summary = _summary(spec, tally, records, time.perf_counter() - began, preparing)
     if held.stop():
         raise LateInterrupt(summary)
     return summary
+
+
+def _folder_kind(spec: Spec, out: Path):
+    """Where a run keeps what it finished: parts (ensemble.parts) beside NetCDF, receipts beside a Zarr store."""
+    if not is_zarr(out):
+        return Parts
+    problem = zarr_problem(spec, segment_samples(spec))
+    if problem:
+        raise EnsembleError(f"{out}: {problem}")
+    return Receipts
+
+
+def _writer(out: Path, spec: Spec, command: str | None, parts, chunk: int):
+    """The result being written: NetCDF (store.Writer) or a Zarr store (zarr_store.ZarrWriter)."""
+    if is_zarr(out):
+        return ZarrWriter(out, spec, members_table(spec), command, chunk, reopen=bool(parts.parts))
+    return Writer(out, spec, members_table(spec), command, reopen=bool(parts.parts or parts.segments))
+
+
+def zarr_task(spec: Spec, start: int, stop: int, repeats: int = 0, *, store: Path) -> dict:
+    """On a Dask worker: members start .. stop - 1 of `spec` integrated and written into the Zarr store at
+    `store` (their shards); returns their receipt alone (zarr_store.Region.receipt)."""
+    from distributed import get_worker
+
+    from .zarr_store import Region
+
+    threads = max(1, launch.thread_count() // get_worker().state.nthreads)
+    region = Region(store, spec, start, stop)
+    spec = replace(spec, kernel_block=few_members_block(spec))  # as a local run would
+    region.write(start, compute_chunk(spec, start, stop, region, repeats, threads=threads))
+    return {"receipt": region.receipt()}
 
 
 def _say_tuning(progress: bool) -> None:
@@ -519,9 +510,6 @@ def _advance(bar: Bar, members: int):
         bar.refresh()
 
     return watch
-
-
-ANNOUNCE_AFTER = 1.0  # s: kernels taking longer than this to get ready are being compiled, and a line says so
 
 
 def prepare_kernels(spec: Spec, announce: bool = True) -> float:

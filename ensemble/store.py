@@ -187,33 +187,14 @@ def record_variables(spec: Spec) -> dict[str, tuple]:
     return {**out, **event_variables(spec.events, spec.model, spec.save)} if spec.events else out
 
 
-class Writer:
-    """Creates the file with every member's parameters; data arrive by member ranges.
+class Description:
+    """Writes everything a result says besides its samples and records into `nc` (a new netCDF4 Dataset):
+    attributes, dimensions, coordinates, parameters and settings, with the samples and records declared."""
 
-    Use as a context manager: on success the file is fsynced and renamed into
-    place; on an exception the temporary file is closed and left to the caller.
-    """
+    def __init__(self, nc: netCDF4.Dataset, spec: Spec):
+        self.nc, self.spec, self.scene = nc, spec, spec.model
 
-    def __init__(self, path: str | Path, spec: Spec, table: dict[str, np.ndarray], command: str | None = None,
-                 reopen: bool = False):
-        """`reopen`: continue the OUT.tmp an interrupted run of the same spec left (ensemble.parts checked it)."""
-        self.path = Path(path)
-        self.temporary = temporary_path(self.path)
-        self.scene = spec.model
-        self.spec = spec
-        self.nc = netCDF4.Dataset(self.temporary, "a" if reopen else "w", format="NETCDF4")
-        self.nc.set_fill_off()  # every value is written (NaN after a failure too): HDF5 need not pre-fill the storage
-        try:
-            if reopen:
-                self._describe_again(table, command)
-            else:
-                self._describe(table, command)
-                self._allocate()
-        except BaseException as error:
-            self.__exit__(type(error), error, None)
-            raise
-
-    def _describe(self, table: dict[str, np.ndarray], command: str | None) -> None:
+    def describe(self, table: dict[str, np.ndarray], command: str | None) -> None:
         """Everything the file says besides its samples and records: attributes, dimensions, parameters."""
         self.nc.setncatts(global_attributes(self.spec, table, command))
         self._dimensions(table)
@@ -221,28 +202,6 @@ class Writer:
         self._settings(table)
         self._records()
         self._observables()
-
-    def _describe_again(self, table: dict[str, np.ndarray], command: str | None) -> None:
-        """A resumed OUT.tmp's attributes and its variables but the samples and records, written again from the
-        run file (an edit of them since, of a parameter or a unit, must not reach the result); StoreError when
-        its variables are not the run file's."""
-        found = self.nc
-        self.nc = fresh = netCDF4.Dataset("description.nc", "w", diskless=True, persist=False)
-        try:
-            self._describe(table, command)
-            shape = {name: (v.dimensions, v.dtype) for name, v in fresh.variables.items()}
-            if {name: (v.dimensions, v.dtype) for name, v in found.variables.items()} != shape:
-                raise StoreError(f"{self.temporary}: its variables were changed since the run stopped; use --force "
-                                 f"to start over")
-            for source, target in [(fresh, found), *((fresh[n], found[n]) for n in fresh.variables)]:
-                for name in set(target.ncattrs()) - set(source.ncattrs()) - {"_FillValue"}:
-                    target.delncattr(name)
-                target.setncatts({k: source.getncattr(k) for k in source.ncattrs() if k != "_FillValue"})
-            for name in set(fresh.variables) - set(self.spec.save) - set(record_names(self.spec)):
-                found[name][:] = fresh[name][:]
-        finally:
-            fresh.close()
-            self.nc = found
 
     def _dimensions(self, table: dict[str, np.ndarray]) -> None:
         """member, t and the scene's dimensions that a saved variable or a parameter uses, with coordinates."""
@@ -318,6 +277,73 @@ class Writer:
                 var.setncattr("comment", "includes Gaussian observation noise of stddev observation_noise_stddev "
                                          "(same units), drawn per member from the run's seed")
 
+    def _coordinate(self, name, values, long_name, units="1", dims=None):
+        var = self.nc.createVariable(name, values.dtype, dims or (name,))
+        var.setncatts({"units": units, "long_name": long_name})
+        if len(values):
+            var[:] = values
+        return var
+
+
+
+def described(spec: Spec, table: dict[str, np.ndarray], command: str | None = None) -> netCDF4.Dataset:
+    """The description of the result of `spec` (Description) in a diskless netCDF4 Dataset; close it after use.
+    Its samples and records are declared, never written: it holds no more than the members table."""
+    nc = netCDF4.Dataset("description.nc", "w", diskless=True, persist=False)
+    try:
+        Description(nc, spec).describe(table, command)
+    except BaseException:
+        nc.close()
+        raise
+    return nc
+
+
+class Writer:
+    """Creates the file with every member's parameters; data arrive by member ranges.
+
+    Use as a context manager: on success the file is fsynced and renamed into
+    place; on an exception the temporary file is closed and left to the caller.
+    """
+
+    def __init__(self, path: str | Path, spec: Spec, table: dict[str, np.ndarray], command: str | None = None,
+                 reopen: bool = False):
+        """`reopen`: continue the OUT.tmp an interrupted run of the same spec left (ensemble.parts checked it)."""
+        self.path = Path(path)
+        self.temporary = temporary_path(self.path)
+        self.scene = spec.model
+        self.spec = spec
+        self.nc = netCDF4.Dataset(self.temporary, "a" if reopen else "w", format="NETCDF4")
+        self.nc.set_fill_off()  # every value is written (NaN after a failure too): HDF5 need not pre-fill the storage
+        try:
+            if reopen:
+                self._describe_again(table, command)
+            else:
+                Description(self.nc, spec).describe(table, command)
+                self._allocate()
+        except BaseException as error:
+            self.__exit__(type(error), error, None)
+            raise
+
+    def _describe_again(self, table: dict[str, np.ndarray], command: str | None) -> None:
+        """A resumed OUT.tmp's attributes and its variables but the samples and records, written again from the
+        run file (an edit of them since, of a parameter or a unit, must not reach the result); StoreError when
+        its variables are not the run file's."""
+        found = self.nc
+        fresh = described(self.spec, table, command)
+        try:
+            shape = {name: (v.dimensions, v.dtype) for name, v in fresh.variables.items()}
+            if {name: (v.dimensions, v.dtype) for name, v in found.variables.items()} != shape:
+                raise StoreError(f"{self.temporary}: its variables were changed since the run stopped; use --force "
+                                 f"to start over")
+            for source, target in [(fresh, found), *((fresh[n], found[n]) for n in fresh.variables)]:
+                for name in set(target.ncattrs()) - set(source.ncattrs()) - {"_FillValue"}:
+                    target.delncattr(name)
+                target.setncatts({k: source.getncattr(k) for k in source.ncattrs() if k != "_FillValue"})
+            for name in set(fresh.variables) - set(self.spec.save) - set(record_names(self.spec)):
+                found[name][:] = fresh[name][:]
+        finally:
+            fresh.close()
+
     def _allocate(self) -> None:
         """Give the records and saved variables their whole space now, by writing each one's last value (NaN, or
         0 for an integer; the run writes its own later): the records are written only when every member is in
@@ -326,13 +352,6 @@ class Writer:
         for name in [*record_names(self.spec), *self.spec.save]:
             variable = self.nc.variables[name]
             variable[tuple(size - 1 for size in variable.shape)] = np.nan if variable.dtype.kind == "f" else 0
-
-    def _coordinate(self, name, values, long_name, units="1", dims=None):
-        var = self.nc.createVariable(name, values.dtype, dims or (name,))
-        var.setncatts({"units": units, "long_name": long_name})
-        if len(values):
-            var[:] = values
-        return var
 
     def write_samples(self, start: int, first: int, data: dict[str, np.ndarray]) -> None:
         """Store saved variables (member, t, ...) of members start, start + 1, ... at samples first, first + 1,

@@ -75,3 +75,16 @@ def refused(text: str, folder, capsys, expected: str) -> str:
     assert len(err) == 1 and expected in err[0], err
     assert not list(folder.glob("bad.nc*"))
     return err[0]
+
+
+@pytest.fixture(scope="module")
+def client():
+    """A dask.distributed Client of a LocalCluster of two single-threaded worker processes (one per module), whose
+    scheduler gives a task up after its second worker died."""
+    import dask
+    import distributed
+
+    with dask.config.set({"distributed.scheduler.allowed-failures": 1}):
+        with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0",
+                                      env={"NUMBA_NUM_THREADS": "1"}) as local, distributed.Client(local) as c:
+            yield c

@@ -35,16 +35,6 @@ v0 = 0.0
 """
 
 
-@pytest.fixture(scope="module")
-def client():
-    import dask
-
-    with dask.config.set({"distributed.scheduler.allowed-failures": 1}):
-        with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0",
-                                      env={"NUMBA_NUM_THREADS": "1"}) as local, distributed.Client(local) as c:
-            yield c
-
-
 @pytest.mark.parametrize("text", [NOISY_TOPS, CHAIN], ids=["noisy tops", "chain"])
 def test_two_workers_give_the_bits_of_a_local_run(client, tmp_path, write_runfile, text):
     path = write_runfile(text)

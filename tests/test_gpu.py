@@ -295,6 +295,17 @@ def test_a_long_record_on_the_gpu_continues_from_its_last_segment(tmp_path, monk
     same_bits(out, whole)
 
 
+def test_a_gpu_run_writes_a_zarr_store_as_its_netcdf_file(tmp_path):
+    """Issue 54, item 7: the GPU's chunks reach a store through the same writer thread as a file: the same bits."""
+    pytest.importorskip("zarr")
+    from .test_resume import same_bits
+
+    spec = spec_of(TOP, "rk4", device="cuda")
+    runner.run(spec, tmp_path / "gpu.nc", progress=False, chunk=2)
+    runner.run(spec, tmp_path / "gpu.zarr", progress=False, chunk=2)
+    same_bits(tmp_path / "gpu.zarr", tmp_path / "gpu.nc")
+
+
 @pytest.mark.parametrize("boundary", ["fixed", "periodic"])
 def test_a_long_chain_as_a_block_of_threads_gives_the_results_of_one_thread_per_chain(monkeypatch, boundary):
     """Chains of gpu_sites.SHARED_SITES masses or more run as a block of threads each, a thread owning a few sites and

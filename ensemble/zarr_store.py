@@ -1,0 +1,401 @@
+"""Zarr output (the `zarr` extra): a result written by whoever computes it, resumable from receipts.
+
+A run of OUT.zarr writes a Zarr v3 store, OUT.zarr.tmp, with the NetCDF
+result's contract (ensemble.store.Description: names, units, CF attributes,
+flags, provenance). Its client writes the template: metadata, coordinates,
+parameters. Members then arrive by ranges of whole shards, written by the
+process that computed them (this one, or a Dask worker: never two writers in a
+shard), and each finished range leaves a receipt in OUT.zarr.parts/:
+
+    manifest.json                    the run's fingerprint (ensemble.parts.fingerprint)
+    receipt-J0-J1.json               members J0 .. J1 - 1 are in the store: the range, the run file it is of, a
+                                     checksum of each variable's values there (ensemble.checksums.sample_sum) and
+                                     the counts the run's summary needs
+
+A resume trusts a range only by its receipt, and a receipt only when the store
+still gives its checksums (a chunk of fill values is not stored, and a torn
+write may leave a chunk behind): the rest is computed again. Once every member
+is in, the metadata is consolidated and OUT.zarr.tmp renamed to OUT.zarr.
+Every chunk and shard index carries a CRC32C codec.
+"""
+from __future__ import annotations
+
+import base64
+import hashlib
+import json
+import math
+import os
+import shutil
+import struct
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .checksums import sample_sum, write_atomically
+from .errors import EnsembleError
+from .parts import MANIFEST, fingerprint, folder_of, gaps, open_folder, remove_folder
+from .results import Status
+from .spec import Spec
+from .store import TIMES_AT_ONCE, described, fsync_path, record_names, temporary_path
+
+SUFFIX = ".zarr"
+INNER_CHUNK_BYTES = 2**22  # a shard's inner chunk: what a reader fetches at once
+RECEIPT = "receipt-{:012d}-{:012d}.json"
+
+
+def is_zarr(path: str | Path) -> bool:
+    """Whether `path` names a Zarr store (OUT.zarr) rather than a NetCDF file."""
+    return Path(path).suffix == SUFFIX
+
+
+def _zarr():
+    try:
+        import zarr
+    except ImportError:
+        raise EnsembleError("a .zarr output needs zarr; install it with pip install 'ensemble[zarr]'") from None
+    return zarr
+
+
+def zarr_problem(spec: Spec, segment: int) -> str | None:
+    """Why a run of `spec` cannot write a Zarr store (None if it can): zarr is missing, or its records run in
+    segments of `segment` samples (runner.segment_samples), which a store does not take yet."""
+    try:
+        _zarr()
+    except EnsembleError as e:
+        return str(e)
+    if segment < spec.n_save:
+        return (f"a member's record runs in segments here ({segment} of its {spec.n_save} samples at a time), which "
+                f"only a NetCDF output takes yet")
+    return None
+
+
+def _largest_divisor(n: int, at_most: int) -> int:
+    """The largest divisor of n that is at most `at_most` (at least 1)."""
+    best = 1
+    for d in range(1, math.isqrt(n) + 1):
+        if n % d == 0:
+            best = max(best, *(k for k in (d, n // d) if k <= at_most))
+    return best
+
+
+def saved_layout(shape: tuple[int, ...], shard_members: int) -> tuple[tuple[int, ...], tuple[int, ...]]:
+    """(inner chunk, shard) of a saved variable (member, t, ...): a shard is `shard_members` members' whole
+    records; its inner chunks hold whole records of as many members as fit INNER_CHUNK_BYTES, or part of one's."""
+    members, samples, *rest = shape
+    shard = (min(shard_members, members), samples, *rest)
+    row = 8 * math.prod(rest)
+    if samples * row <= INNER_CHUNK_BYTES:
+        inner = (_largest_divisor(shard[0], INNER_CHUNK_BYTES // (samples * row)), samples, *rest)
+    else:
+        inner = (1, _largest_divisor(samples, max(1, INNER_CHUNK_BYTES // row)), *rest)
+    return inner, shard
+
+
+def _attribute(value):
+    """A NetCDF attribute's value as JSON."""
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    return value.item() if isinstance(value, np.generic) else value
+
+
+def _fill_attribute(value, dtype: np.dtype):
+    """A _FillValue as xarray writes it in Zarr v3 attributes: a float as the base64 of its 8 bytes."""
+    return base64.standard_b64encode(struct.pack("<d", float(value))).decode() if dtype.kind == "f" else int(value)
+
+
+def create(path: Path, spec: Spec, table: dict[str, np.ndarray], command: str | None, shard_members: int) -> None:
+    """Write the template of the result of `spec` at `path` (a new folder): every variable of
+    ensemble.store.Description, coordinates and parameters with their values; samples and records are written
+    later, by ranges of `shard_members` members."""
+    zarr = _zarr()
+    from zarr.codecs import Crc32cCodec
+
+    group = zarr.open_group(path, mode="w-", zarr_format=3)
+    nc = described(spec, table, command)
+    try:
+        group.attrs.update({name: _attribute(nc.getncattr(name)) for name in nc.ncattrs()})
+        filled_later = {*spec.save, *record_names(spec)}
+        for name, variable in nc.variables.items():
+            shape, dims = variable.shape, variable.dimensions
+            shards = None
+            if name in spec.save:
+                chunks, shards = saved_layout(shape, shard_members)
+            elif dims[:1] == ("member",):
+                chunks = (min(shard_members, shape[0]), *shape[1:])
+            elif dims == ("t",):
+                chunks = (max(1, min(shape[0], TIMES_AT_ONCE)),)
+            else:
+                chunks = tuple(max(1, size) for size in shape)
+            attributes = {k: _attribute(variable.getncattr(k)) for k in variable.ncattrs() if k != "_FillValue"}
+            fill = variable.getncattr("_FillValue") if "_FillValue" in variable.ncattrs() else None
+            if fill is not None:
+                attributes["_FillValue"] = _fill_attribute(fill, variable.dtype)
+            array = group.create_array(name, shape=shape, dtype=variable.dtype, chunks=chunks, shards=shards,
+                                       fill_value=fill if fill is not None else 0, dimension_names=dims,
+                                       attributes=attributes, compressors=(Crc32cCodec(),))
+            if name not in filled_later and all(shape):
+                array[...] = variable[...]
+    finally:
+        nc.close()
+
+
+def shard_members(path: Path, spec: Spec) -> int:
+    """Members per shard of the store at `path`: a resume continues with its ranges."""
+    zarr = _zarr()
+    array = zarr.open_group(path, mode="r")[spec.save[0] if spec.save else "status"]
+    return int((array.shards or array.chunks)[0])
+
+
+class Region:
+    """Members start .. stop - 1 written into the store at `path` by the process that computed them (a shard's
+    members, all of them: no one else writes in its shards). Same write_samples and write as ensemble.store.Writer,
+    with the run's member indices; receipt() says what was written."""
+
+    def __init__(self, path: Path, spec: Spec, start: int, stop: int):
+        zarr = _zarr()
+        self.spec, self.start, self.stop = spec, start, stop
+        self.group = zarr.open_group(path, mode="r+")
+        self.arrays: dict = {}  # by name, each opened once (its metadata read from the store)
+        self.sums: dict[str, int] = {}
+        self.records: dict[str, np.ndarray] | None = None
+
+    def array(self, name: str):
+        if name not in self.arrays:
+            self.arrays[name] = self.group[name]
+        return self.arrays[name]
+
+    def write_samples(self, start: int, first: int, data: dict[str, np.ndarray]) -> None:
+        for name, values in data.items():
+            self.array(name)[start:start + values.shape[0], first:first + values.shape[1]] = values
+            self.sums[name] = (self.sums.get(name, 0) + sample_sum(values, start, first)) % 2**64
+
+    def write(self, start: int, data: dict[str, np.ndarray]) -> None:
+        """The records of every member of the range (start is the range's)."""
+        for name, values in data.items():
+            self.array(name)[start:start + len(values)] = values
+            self.sums[name] = record_sum(values, start)
+        self.records = data
+
+    def receipt(self) -> dict:
+        """The range, its run file, each variable's checksum and the counts of what it ran (Tally.counts)."""
+        steps = self.records["steps_accepted"] + self.records["steps_rejected"]
+        status = np.bincount(self.records["status"].astype(np.int64), minlength=len(Status))
+        return {"start": self.start, "stop": self.stop, "run_file_sha256": run_file_sha256(self.spec),
+                "sums": {name: f"{value:016x}" for name, value in sorted(self.sums.items())},
+                "counts": {"members": self.stop - self.start, "member_steps": int(steps.sum()),
+                           "step_counts": np.unique(steps).tolist(), "status": status.tolist()}}
+
+
+def record_sum(values: np.ndarray, start: int) -> int:
+    """sample_sum of a record (member, ...) of members start, start + 1, ..."""
+    return sample_sum(np.asarray(values, dtype=np.float64).reshape(len(values), 1, -1), start, 0)
+
+
+def run_file_sha256(spec: Spec) -> str:
+    return hashlib.sha256(spec.text.encode()).hexdigest()
+
+
+def stored_sums(path: Path, spec: Spec, start: int, stop: int) -> dict[str, str]:
+    """The checksums of members start .. stop - 1 as the store at `path` holds them now."""
+    zarr = _zarr()
+    group = zarr.open_group(path, mode="r")
+    sums = {}
+    for name in [*spec.save, *record_names(spec)]:
+        values = group[name][start:stop]
+        sums[name] = sample_sum(values, start, 0) if name in spec.save else record_sum(values, start)
+    return {name: f"{value:016x}" for name, value in sorted(sums.items())}
+
+
+@dataclass(frozen=True)
+class Receipt:
+    start: int
+    stop: int
+    path: Path
+
+
+class Receipts:
+    """The receipts folder of a run writing OUT.zarr: the same questions as ensemble.parts.Parts asks of its
+    parts (missing, members_done, begin, settle, assemble), answered from receipts.
+
+    Receipts(out, spec, resume) opens it as Parts opens a parts folder (a manifest of another run refused); with
+    `resume`, a receipt whose range the store no longer gives its checksums is dropped, with its members."""
+
+    def __init__(self, out: Path, spec: Spec, resume: bool = False):
+        self.out, self.store, self.folder, self.spec = out, temporary_path(out), folder_of(out), spec
+        self.dropped: list[str] = []
+        self.segments: dict = {}  # a record in segments is not written to Zarr (ZarrWriter refuses it)
+        open_folder(self.folder, spec, resume)
+        self.parts = self._verified() if self.store.exists() else []
+        self.counts: list[dict] = []
+        self.result = None
+
+    def _verified(self) -> list[Receipt]:
+        """The receipts whose ranges the store still holds as they were written; the rest deleted."""
+        kept = []
+        for path in sorted(self.folder.glob("receipt-*.json")):
+            try:
+                inside = json.loads(path.read_text())
+                good = (path.name == RECEIPT.format(inside["start"], inside["stop"])
+                        and inside["run_file_sha256"] == run_file_sha256(self.spec)
+                        and inside["sums"] == stored_sums(self.store, self.spec, inside["start"], inside["stop"]))
+            except (OSError, ValueError, KeyError, TypeError):
+                good = False
+            if good:
+                kept.append(Receipt(inside["start"], inside["stop"], path))
+            else:
+                path.unlink()
+                self.dropped.append(f"{path.name} (the store no longer holds what it says)")
+        return kept
+
+    def missing(self) -> list[tuple[int, int]]:
+        return gaps(sorted(self.parts, key=lambda r: r.start), self.spec.n_members)
+
+    def continuing(self) -> list:
+        return []
+
+    def members_done(self) -> int:
+        return sum(r.stop - r.start for r in self.parts)
+
+    def begin(self, start: int, stop: int) -> RegionWriter:
+        return RegionWriter(self, start, stop)
+
+    def keep(self, receipt: dict) -> None:
+        """Save a finished range's receipt (the store holds its members)."""
+        path = self.folder / RECEIPT.format(receipt["start"], receipt["stop"])
+        write_atomically(path, json.dumps(receipt).encode(), durable=False)  # a resume checks it against the store
+        self.parts.append(Receipt(receipt["start"], receipt["stop"], path))
+        self.counts.append(receipt["counts"])
+
+    def settle(self) -> list[Receipt]:
+        return self.parts
+
+    def close(self) -> list[Receipt]:
+        return self.parts
+
+    def assemble(self) -> dict[str, np.ndarray]:
+        """The records the run's summary needs (status), read from the store: every member's are there."""
+        zarr = _zarr()
+        return {"status": np.asarray(zarr.open_group(self.store, mode="r")["status"][:])}
+
+    @staticmethod
+    def left_complete(out: Path, spec: Spec) -> bool:
+        """Whether OUT.zarr is this run's whole result with its receipts still beside it."""
+        manifest = folder_of(out) / MANIFEST
+        if not (out / "zarr.json").is_file() or temporary_path(out).exists() or not manifest.is_file():
+            return False
+        try:
+            attributes = json.loads((out / "zarr.json").read_text()).get("attributes", {})
+            return (attributes.get("spec") == spec.text and attributes.get("members_written") == spec.n_members
+                    and json.loads(manifest.read_text()) == fingerprint(spec))
+        except (OSError, ValueError):
+            return False
+
+    @staticmethod
+    def discard(out: Path) -> None:
+        """Delete the receipts of `out` and its unfinished store, OUT.zarr.tmp (only when it is a Zarr store)."""
+        remove_folder(folder_of(out), lambda name: name.startswith("receipt-"))
+        remove_store(temporary_path(out))
+
+    @staticmethod
+    def segments_left(out: Path) -> list:
+        return []
+
+
+class RegionWriter(Region):
+    """A range computed in this process: a Region whose finish() saves its receipt (Parts.begin's writer)."""
+
+    def __init__(self, receipts: Receipts, start: int, stop: int):
+        super().__init__(receipts.store, receipts.spec, start, stop)
+        self.receipts, self.done = receipts, False
+
+    def finish(self) -> None:
+        self.receipts.keep(self.receipt())
+        self.done = True
+
+    def abandon(self) -> None:
+        """Nothing to delete: without a receipt the range is computed again."""
+
+
+def remove_store(path: Path) -> None:
+    """Delete the Zarr store at `path`, if there is one (a folder with its zarr.json)."""
+    if (path / "zarr.json").is_file():
+        shutil.rmtree(path)
+
+
+class ZarrWriter:
+    """The store OUT.zarr.tmp: its template made (or, on a resume, found); on success the metadata consolidated
+    and the store renamed to OUT.zarr. Members are written by Region, not through it."""
+
+    def __init__(self, path: Path, spec: Spec, table: dict[str, np.ndarray], command: str | None, shard: int,
+                 reopen: bool = False):
+        self.path, self.temporary, self.spec = Path(path), temporary_path(Path(path)), spec
+        if not reopen:
+            remove_store(self.temporary)
+            create(self.temporary, spec, table, command, shard)
+
+    def sync(self) -> None:
+        """Each chunk is a file of its own, written whole: nothing is held back."""
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, kind, value, traceback):
+        if kind is None:
+            zarr = _zarr()
+            with warnings.catch_warnings():  # consolidated metadata is not in the v3 spec yet; xarray reads it
+                warnings.simplefilter("ignore")
+                zarr.consolidate_metadata(str(self.temporary))
+            remove_store(self.path)  # --force: the store this run replaces
+            os.replace(self.temporary, self.path)
+            fsync_path(self.path.parent)
+        return False
+
+
+def xarray_engine(path: str | Path) -> str:
+    """The xarray backend that reads a result at `path`: "zarr" for a store, else "netcdf4"."""
+    if is_zarr(path):
+        _zarr()
+        return "zarr"
+    return "netcdf4"
+
+
+def convert(source: Path, target: Path, members_at_once: int | None = None) -> None:
+    """Write the Zarr store `source` as the NetCDF file `target`: the same variables, dimensions, attributes and
+    bits, in the layout `ensemble run` writes (saved variables and records contiguous); copied by ranges of the
+    store's shards (`members_at_once`), so memory stays within a few of them. `target` appears when whole."""
+    import netCDF4
+
+    zarr = _zarr()
+    group = zarr.open_group(source, mode="r")
+    arrays = dict(group.arrays())
+    if "member" not in arrays or "spec" not in group.attrs:
+        raise EnsembleError(f"{source}: is not a result of `ensemble run` (no member variable or spec attribute)")
+    temporary = temporary_path(target)
+    with netCDF4.Dataset(temporary, "w", format="NETCDF4") as nc:
+        nc.set_fill_off()
+        nc.setncatts(dict(group.attrs))
+        for name, array in arrays.items():
+            for dim, size in zip(array.metadata.dimension_names, array.shape):
+                if dim not in nc.dimensions:
+                    nc.createDimension(dim, size)
+        for name, array in arrays.items():
+            attributes = dict(array.attrs)
+            fill = attributes.pop("_FillValue", None)
+            if isinstance(fill, str):
+                fill = struct.unpack("<d", base64.standard_b64decode(fill))[0]
+            dims = array.metadata.dimension_names
+            variable = nc.createVariable(name, np.dtype(array.dtype).newbyteorder("="), dims, fill_value=fill,
+                                         contiguous=dims[:1] == ("member",) and len(dims) > 0)
+            variable.setncatts({k: np.asarray(v, dtype=array.dtype) if k == "flag_values" else v
+                                for k, v in attributes.items()})
+        for name, array in arrays.items():
+            step = members_at_once or (array.shards or array.chunks)[0] if array.ndim else 1
+            if array.ndim == 0 or not all(array.shape):
+                continue
+            for first in range(0, array.shape[0], step):
+                nc.variables[name][first:first + step] = array[first:first + step]
+    fsync_path(temporary)
+    os.replace(temporary, target)
+    fsync_path(target.parent)

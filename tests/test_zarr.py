@@ -1,0 +1,198 @@
+"""A Zarr store as a run's output (issue 54): the NetCDF result's contract and bits; members written by the
+process that computed them, a Dask worker included, each range leaving a receipt; a resume trusts the store only
+where a receipt's checksums still hold; `ensemble convert` gives back the NetCDF file."""
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from functools import partial
+from pathlib import Path
+
+import netCDF4
+import numpy as np
+import pytest
+import xarray as xr
+
+import ensemble
+from ensemble import cli, runner, zarr_store
+from ensemble.parts import folder_of
+from ensemble.spec import load
+
+from .conftest import top_runfile
+from .test_resume import _interrupted, _killed, same_bits
+
+zarr = pytest.importorskip("zarr")
+SWEPT_TOPS = (top_runfile(members=60, t_end=2.0, save_dt=0.01, method=None) + "[observe]\nnoise = { tilt = 0.01 }\n"
+              + '[sweep]\nmethod = ["rk4", "split2"]\n')  # NOISY_TOPS's, in two launches (a range may hold both)
+
+
+def same_attributes(a: Path, b: Path) -> None:
+    """Every variable's attributes equal, values and types, and the global ones but the history."""
+    with xr.open_dataset(a) as x, xr.open_dataset(b) as y:
+        for name in x.variables:
+            assert x[name].attrs.keys() == y[name].attrs.keys(), name
+            for key, value in x[name].attrs.items():
+                np.testing.assert_array_equal(value, y[name].attrs[key], err_msg=f"{name}.{key}")
+            assert x[name].encoding.get("_FillValue") is None or np.array_equal(
+                x[name].encoding["_FillValue"], y[name].encoding.get("_FillValue"), equal_nan=True), name
+
+
+@pytest.fixture(scope="module")
+def reference(tmp_path_factory):
+    """(run file of swept noisy tops, its NetCDF result, its Zarr store in ranges of 8 members)."""
+    folder = tmp_path_factory.mktemp("zarr")
+    path = folder / "run.toml"
+    path.write_text(SWEPT_TOPS)
+    nc, store = folder / "ref.nc", folder / "ref.zarr"
+    assert cli.main(["run", str(path), "-o", str(nc), "--quiet"]) == 0
+    runner.run(load(path), store, chunk=8, progress=False)  # the command line would round 8 up to a kernel block
+    return path, nc, store
+
+
+def test_a_store_holds_the_netcdf_results_bits_and_contract(reference):
+    _, nc, store = reference
+    same_bits(store, nc)
+    same_attributes(store, nc)
+    assert not Path(f"{store}.tmp").exists() and not folder_of(store).exists()
+    group = zarr.open_consolidated(store, zarr_format=3)  # consolidated once, at the end
+    for name, array in group.arrays():
+        codecs = array.metadata.codecs
+        inner = codecs[0].codecs if type(codecs[0]).__name__ == "ShardingCodec" else codecs
+        assert any(type(c).__name__ == "Crc32cCodec" for c in inner), name
+    assert group["tilt"].shards[0] == 8 and group["status"].chunks[0] == 8  # a task's range: whole shards
+    with ensemble.open(store) as ds:
+        assert ds.sizes["member"] == 120 and ds.attrs["members_written"] == 120
+
+
+def test_fit_reads_a_store_as_it_reads_the_file(reference, capsys):
+    _, nc, store = reference
+    said = []
+    for result in (nc, store):
+        assert cli.main(["fit", str(result)]) == 0
+        said.append([line.replace(str(result), "RESULT") for line in capsys.readouterr().out.splitlines()
+                     if not line.startswith("fits:")])
+    assert said[0] == said[1] and len(said[0]) > 3
+
+
+def test_convert_gives_the_file_a_netcdf_run_writes(reference, tmp_path, capsys):
+    _, nc, store = reference
+    out = tmp_path / "converted.nc"
+    assert cli.main(["convert", str(store), str(out)]) == 0
+    same_bits(out, nc)
+    same_attributes(out, nc)
+    with netCDF4.Dataset(nc) as x, netCDF4.Dataset(out) as y:
+        for name in x.variables:
+            assert x[name].chunking() == y[name].chunking() and x[name].dtype == y[name].dtype, name
+        assert {k: type(x.getncattr(k)) for k in x.ncattrs()} == {k: type(y.getncattr(k)) for k in y.ncattrs()}
+    capsys.readouterr()
+    for argv in (["convert", str(store), str(out)], ["convert", str(nc), str(tmp_path / "x.nc")],
+                 ["convert", str(store), str(tmp_path / "x.zarr")]):
+        assert cli.main(argv) == 2
+        err = capsys.readouterr().err.strip()
+        assert "\n" not in err and err.startswith("ensemble: error: "), err
+
+
+def test_an_interrupted_run_resumes_where_the_receipts_hold(reference, tmp_path, monkeypatch, capsys):
+    """Three ranges of 7 finished; one's tilt chunk then tampered with (its CRC32C fails), another's omega
+    shard deleted (a torn write): both are computed again, the first kept, and the bits are a whole run's."""
+    path, nc, _ = reference
+    out = tmp_path / "out.zarr"
+    _interrupted(load(path), out, after=3, monkeypatch=monkeypatch)
+    receipts = sorted(folder_of(out).glob("receipt-*.json"))
+    assert [r.name for r in receipts] == [zarr_store.RECEIPT.format(j, j + 7) for j in (0, 7, 14)]
+    inside = json.loads(receipts[0].read_text())
+    assert inside["counts"]["members"] == 7 and set(inside["sums"]) >= {"tilt", "omega", "status"}
+    store = Path(f"{out}.tmp")
+    chunk = store / "tilt" / "c" / "1" / "0"
+    data = bytearray(chunk.read_bytes())
+    data[8] ^= 1
+    chunk.write_bytes(bytes(data))
+    (store / "omega" / "c" / "2" / "0" / "0").unlink()
+    calls = []
+    real = runner.integrate_chunk
+    monkeypatch.setattr(runner, "integrate_chunk", lambda *a, **k: calls.append(a[1:3]) or real(*a, **k))
+    runner.run(load(path), out, chunk=3, progress=True, resume=True)  # the store's shards of 7 win
+    assert calls[:2] == [(7, 14), (14, 21)] and (0, 7) not in calls
+    said = capsys.readouterr().err.splitlines()[0]
+    assert said.startswith("resuming: 7 of 120 members in 1 part(s) kept; dropped receipt-000000000007-"), said
+    same_bits(out, nc)
+
+
+def test_a_resume_of_another_run_file_and_a_record_in_segments_are_refused(reference, tmp_path, monkeypatch,
+                                                                           capsys):
+    path, _, _ = reference
+    changed = tmp_path / "changed.toml"
+    changed.write_text(SWEPT_TOPS.replace("seed = 7", "seed = 8"))
+    out = tmp_path / "out.zarr"
+    _interrupted(load(path), out, after=1, monkeypatch=monkeypatch)
+    capsys.readouterr()
+    assert cli.main(["run", str(changed), "-o", str(out), "--quiet", "--resume"]) == 2
+    line = capsys.readouterr().err.strip()
+    assert "\n" not in line and "(run_file_sha256, members_sha256 differ)" in line, line
+    monkeypatch.setattr(runner, "CHUNK_BYTES", 2**10)  # a block's record no longer fits: it runs in segments
+    other = tmp_path / "segments.zarr"
+    assert cli.main(["run", str(path), "-o", str(other), "--quiet"]) == 2
+    line = capsys.readouterr().err.strip()
+    assert "\n" not in line and "runs in segments here" in line and "NetCDF" in line, line
+    assert not other.exists() and not Path(f"{other}.tmp").exists() and not folder_of(other).exists()
+
+
+def test_sigkill_of_the_client_then_resume(tmp_path, write_runfile):
+    """A real run killed after some ranges (the store half written), resumed: the bits of a whole run."""
+    path = write_runfile(top_runfile(members=300, t_end=0.2, save_dt=0.01))
+    expected, out = tmp_path / "expected.nc", tmp_path / "out.zarr"
+    one_by_one = [sys.executable, "-c", "import sys; from ensemble import runner; from ensemble.spec import load; "
+                  "runner.run(load(sys.argv[1]), sys.argv[2], chunk=1, progress=False)", str(path), str(out)]
+    subprocess.run([sys.executable, "-m", "ensemble", "run", str(path), "--quiet", "-o", str(expected)], check=True)
+    _killed(one_by_one, lambda: len(list(folder_of(out).glob("receipt-*.json"))) >= 20)
+    assert not out.exists() and Path(f"{out}.tmp").exists()
+    subprocess.run([sys.executable, "-m", "ensemble", "run", str(path), "--quiet", "-o", str(out), "--resume"],
+                   check=True)
+    same_bits(out, expected)
+
+
+distributed = pytest.importorskip("distributed")  # the tests below use conftest's `client`
+
+
+def _dies_on(marker: Path, start: int, spec, j0, j1, repeats, *, store):
+    """zarr_task, but its worker process dies the first time it gets member `start`."""
+    if j0 == start and not marker.exists():
+        marker.touch()
+        os._exit(1)
+    return runner.zarr_task(spec, j0, j1, repeats, store=store)
+
+
+def test_workers_write_the_store_and_the_client_only_receipts(reference, client, tmp_path, monkeypatch):
+    """The client process never writes a region (the workers do), a worker killed mid-task has its range written
+    again by another, and the store holds the bits of a local run."""
+    path, nc, _ = reference
+    out = tmp_path / "remote.zarr"
+
+    def refused(*args, **kwargs):
+        raise AssertionError("the client wrote members")
+
+    monkeypatch.setattr(zarr_store.Region, "__init__", refused)
+    task = partial(_dies_on, tmp_path / "died", 14, store=Path(f"{out}.tmp").resolve())
+    runner.run(load(path), out, chunk=7, progress=False, client=client, task=task)
+    assert (tmp_path / "died").exists()
+    same_bits(out, nc)
+    monkeypatch.undo()
+    again = tmp_path / "plain.zarr"
+    runner.run(load(path), again, chunk=7, progress=False, client=client)
+    same_bits(again, nc)
+
+
+def test_a_worker_that_does_not_see_the_store_is_refused(reference, client, tmp_path, monkeypatch):
+    """Each worker reads a probe file the client wrote beside the store: one that reads something else (another
+    file system under the same path) stops the run before anything is computed, in one line."""
+    path, _, _ = reference
+    out = tmp_path / "blind.zarr"
+    real = Path.write_text
+    monkeypatch.setattr(Path, "write_text", lambda self, text, *a, **k: real(self, "elsewhere", *a, **k)
+                        if self.name.startswith("probe-") else real(self, text, *a, **k))
+    with pytest.raises(ensemble.cluster.ClusterError, match=r"cannot read .*blind\.zarr\.parts; give an output on a "
+                                                             r"path every worker shares"):
+        runner.run(load(path), out, chunk=7, progress=False, client=client)
+    assert not Path(f"{out}.tmp").exists() and not folder_of(out).exists()
