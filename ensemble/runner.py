@@ -28,7 +28,7 @@ from .results import Outcome, Status
 from .spec import Spec, members_table
 from .store import Writer
 from .summary import ANNOUNCE_AFTER, Summary, Tally
-from .zarr_store import Receipts, ZarrWriter, is_zarr, shard_members, zarr_problem
+from .zarr_store import Receipts, ZarrWriter, is_zarr, task_members, zarr_problem
 
 CHUNK_BYTES = 32 * 2**20  # saved data held in memory per chunk
 CHUNK_MEMBER_STEPS = 2e9  # work per chunk: about two seconds at this project's kernel speeds
@@ -318,7 +318,7 @@ def _run(spec: Spec, out: Path, chunk: int | None, progress: bool, force: bool, 
         raise FileExistsError(f"{out}: exists; pass force=True to replace it")
     if force and not resume:
         folder.discard(out)
-    parts = folder(out, spec, resume=resume)
+    parts = folder(out, spec, resume=resume) if folder is Parts else folder(out, spec, resume=resume, client=client)
     if resume and progress:
         dropped = f"; dropped {', '.join(parts.dropped)}" if parts.dropped else ""
         going = "".join(f"; members {j0} to {j1 - 1} continue from sample {k} of {spec.n_save}"
@@ -329,13 +329,9 @@ def _run(spec: Spec, out: Path, chunk: int | None, progress: bool, force: bool, 
     try:
         n = spec.n_members
         chunk = chunk or (dask_chunk(spec, sum(client.nthreads().values())) if client else default_chunk(spec))
-        if is_zarr(out):  # a task's range is whole shards: those of the store a resume continues
-            chunk = shard_members(parts.store, spec) if parts.parts else chunk
-            if client is not None:  # the workers write the store: they must see it where this process does
-                from .cluster import check_sees
-
-                check_sees(client, parts.folder, str(out))
-                task = task or partial(zarr_task, store=parts.store.resolve())
+        if is_zarr(out):  # a task's range is whole chunks (or a shard): those of the store a resume continues
+            chunk = task_members(parts.store, spec) if parts.parts else chunk
+            task = task or (partial(zarr_task, store=parts.store.resolve()) if client else None)
         todo = [(j, min(j + chunk, stop)) for start, stop in parts.missing() for j in range(start, stop, chunk)]
         preparing = 0.0 if client or not todo else prepare_kernels(spec, announce=progress)
         _say_tuning(progress)

@@ -3,9 +3,10 @@
 A run of OUT.zarr writes a Zarr v3 store, OUT.zarr.tmp, with the NetCDF
 result's contract (ensemble.store.Description: names, units, CF attributes,
 flags, provenance). Its client writes the template: metadata, coordinates,
-parameters. Members then arrive by ranges of whole shards, written by the
-process that computed them (this one, or a Dask worker: never two writers in a
-shard), and each finished range leaves a receipt in OUT.zarr.parts/:
+parameters. Members then arrive by task ranges, each whole chunks (or one shard,
+where a range outgrows a chunk), written by the process that computed them
+(this one, or a Dask worker: never two writers in a chunk or shard), and each
+finished range leaves a receipt in OUT.zarr.parts/:
 
     manifest.json                    the run's fingerprint (ensemble.parts.fingerprint)
     receipt-J0-J1.json               members J0 .. J1 - 1 are in the store: the range, the run file it is of, a
@@ -28,7 +29,7 @@ import os
 import shutil
 import struct
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -41,7 +42,7 @@ from .spec import Spec
 from .store import TIMES_AT_ONCE, described, fsync_path, record_names, temporary_path
 
 SUFFIX = ".zarr"
-INNER_CHUNK_BYTES = 2**22  # a shard's inner chunk: what a reader fetches at once
+CHUNK_BYTES = 2**24  # at most, a chunk: what a reader fetches at once; a task's range above it is sharded
 RECEIPT = "receipt-{:012d}-{:012d}.json"
 
 
@@ -80,17 +81,19 @@ def _largest_divisor(n: int, at_most: int) -> int:
     return best
 
 
-def saved_layout(shape: tuple[int, ...], shard_members: int) -> tuple[tuple[int, ...], tuple[int, ...]]:
-    """(inner chunk, shard) of a saved variable (member, t, ...): a shard is `shard_members` members' whole
-    records; its inner chunks hold whole records of as many members as fit INNER_CHUNK_BYTES, or part of one's."""
+def saved_layout(shape: tuple[int, ...], task_members: int) -> tuple[tuple[int, ...], tuple[int, ...] | None]:
+    """(chunk, shard or None) of a saved variable (member, t, ...) written by tasks of `task_members` members'
+    whole records: a task's range is one chunk if it fits CHUNK_BYTES, else one shard whose chunks hold whole
+    records of as many members as fit, or part of one long record. (A shard costs zarr-python several times a
+    chunk's write time, measured: it is not made where one chunk does.)"""
     members, samples, *rest = shape
-    shard = (min(shard_members, members), samples, *rest)
+    task = (min(task_members, members), samples, *rest)
     row = 8 * math.prod(rest)
-    if samples * row <= INNER_CHUNK_BYTES:
-        inner = (_largest_divisor(shard[0], INNER_CHUNK_BYTES // (samples * row)), samples, *rest)
-    else:
-        inner = (1, _largest_divisor(samples, max(1, INNER_CHUNK_BYTES // row)), *rest)
-    return inner, shard
+    if task[0] * samples * row <= CHUNK_BYTES:
+        return task, None
+    if samples * row <= CHUNK_BYTES:
+        return (_largest_divisor(task[0], CHUNK_BYTES // (samples * row)), samples, *rest), task
+    return (1, _largest_divisor(samples, max(1, CHUNK_BYTES // row)), *rest), task
 
 
 def _attribute(value):
@@ -105,10 +108,10 @@ def _fill_attribute(value, dtype: np.dtype):
     return base64.standard_b64encode(struct.pack("<d", float(value))).decode() if dtype.kind == "f" else int(value)
 
 
-def create(path: Path, spec: Spec, table: dict[str, np.ndarray], command: str | None, shard_members: int) -> None:
+def create(path: Path, spec: Spec, table: dict[str, np.ndarray], command: str | None, task_members: int) -> None:
     """Write the template of the result of `spec` at `path` (a new folder): every variable of
     ensemble.store.Description, coordinates and parameters with their values; samples and records are written
-    later, by ranges of `shard_members` members."""
+    later, by ranges of `task_members` members (tasks)."""
     zarr = _zarr()
     from zarr.codecs import Crc32cCodec
 
@@ -121,9 +124,9 @@ def create(path: Path, spec: Spec, table: dict[str, np.ndarray], command: str | 
             shape, dims = variable.shape, variable.dimensions
             shards = None
             if name in spec.save:
-                chunks, shards = saved_layout(shape, shard_members)
+                chunks, shards = saved_layout(shape, task_members)
             elif dims[:1] == ("member",):
-                chunks = (min(shard_members, shape[0]), *shape[1:])
+                chunks = (min(task_members, shape[0]), *shape[1:])
             elif dims == ("t",):
                 chunks = (max(1, min(shape[0], TIMES_AT_ONCE)),)
             else:
@@ -141,8 +144,8 @@ def create(path: Path, spec: Spec, table: dict[str, np.ndarray], command: str | 
         nc.close()
 
 
-def shard_members(path: Path, spec: Spec) -> int:
-    """Members per shard of the store at `path`: a resume continues with its ranges."""
+def task_members(path: Path, spec: Spec) -> int:
+    """Members per task of the store at `path` (its chunks or shards of members): a resume continues them."""
     zarr = _zarr()
     array = zarr.open_group(path, mode="r")[spec.save[0] if spec.save else "status"]
     return int((array.shards or array.chunks)[0])
@@ -197,14 +200,18 @@ def run_file_sha256(spec: Spec) -> str:
     return hashlib.sha256(spec.text.encode()).hexdigest()
 
 
-def stored_sums(path: Path, spec: Spec, start: int, stop: int) -> dict[str, str]:
-    """The checksums of members start .. stop - 1 as the store at `path` holds them now."""
+def checked_sums(path: Path, spec: Spec, start: int, stop: int) -> dict[str, str] | None:
+    """The checksums of members start .. stop - 1 as the store at `path` holds them now (as Region.receipt's);
+    None when a chunk of theirs cannot be read (its CRC32C fails, or it is not a chunk)."""
     zarr = _zarr()
-    group = zarr.open_group(path, mode="r")
     sums = {}
-    for name in [*spec.save, *record_names(spec)]:
-        values = group[name][start:stop]
-        sums[name] = sample_sum(values, start, 0) if name in spec.save else record_sum(values, start)
+    try:
+        group = zarr.open_group(path, mode="r")
+        for name in [*spec.save, *record_names(spec)]:
+            values = group[name][start:stop]
+            sums[name] = sample_sum(values, start, 0) if name in spec.save else record_sum(values, start)
+    except (OSError, ValueError, KeyError):
+        return None
     return {name: f"{value:016x}" for name, value in sorted(sums.items())}
 
 
@@ -222,32 +229,58 @@ class Receipts:
     Receipts(out, spec, resume) opens it as Parts opens a parts folder (a manifest of another run refused); with
     `resume`, a receipt whose range the store no longer gives its checksums is dropped, with its members."""
 
-    def __init__(self, out: Path, spec: Spec, resume: bool = False):
+    def __init__(self, out: Path, spec: Spec, resume: bool = False, client=None):
+        """`client`: a dask.distributed Client whose workers will write the store: each must see it where this
+        process does (cluster.check_sees), and they check the receipts kept, reading the store where they are."""
         self.out, self.store, self.folder, self.spec = out, temporary_path(out), folder_of(out), spec
         self.dropped: list[str] = []
-        self.segments: dict = {}  # a record in segments is not written to Zarr (ZarrWriter refuses it)
+        self.segments: dict = {}  # a record in segments is not written to Zarr (zarr_problem refuses it)
+        made = not self.folder.exists()
         open_folder(self.folder, spec, resume)
-        self.parts = self._verified() if self.store.exists() else []
-        self.counts: list[dict] = []
+        if client is not None:
+            from .cluster import check_sees
+
+            try:
+                check_sees(client, self.folder, str(out))
+            except BaseException:
+                if made:  # refused before anything ran: nothing is left
+                    remove_folder(self.folder, lambda name: False)
+                raise
+        self.parts = self._verified(client) if self.store.exists() else []
         self.result = None
 
-    def _verified(self) -> list[Receipt]:
-        """The receipts whose ranges the store still holds as they were written; the rest deleted."""
-        kept = []
+    def _verified(self, client) -> list[Receipt]:
+        """The receipts whose ranges the store still holds as they were written (checked on the cluster's workers
+        when there is a `client`); the rest deleted."""
+        found = {}
         for path in sorted(self.folder.glob("receipt-*.json")):
             try:
                 inside = json.loads(path.read_text())
-                good = (path.name == RECEIPT.format(inside["start"], inside["stop"])
-                        and inside["run_file_sha256"] == run_file_sha256(self.spec)
-                        and inside["sums"] == stored_sums(self.store, self.spec, inside["start"], inside["stop"]))
+                if (path.name == RECEIPT.format(inside["start"], inside["stop"])
+                        and inside["run_file_sha256"] == run_file_sha256(self.spec)):
+                    found[path] = inside
+                    continue
             except (OSError, ValueError, KeyError, TypeError):
-                good = False
-            if good:
+                pass
+            self._drop(path)
+        ranges = [(inside["start"], inside["stop"]) for inside in found.values()]
+        light = replace(self.spec, table=None)  # a worker needs no members table to read the store
+        if client is None:
+            stored = [checked_sums(self.store, light, *r) for r in ranges]
+        else:
+            stored = client.gather(client.map(checked_sums, [self.store.resolve()] * len(ranges), [light] * len(
+                ranges), *zip(*ranges), pure=False)) if ranges else []
+        kept = []
+        for (path, inside), sums in zip(found.items(), stored):
+            if sums == inside["sums"]:
                 kept.append(Receipt(inside["start"], inside["stop"], path))
             else:
-                path.unlink()
-                self.dropped.append(f"{path.name} (the store no longer holds what it says)")
+                self._drop(path)
         return kept
+
+    def _drop(self, path: Path) -> None:
+        path.unlink()
+        self.dropped.append(f"{path.name} (the store no longer holds what it says)")
 
     def missing(self) -> list[tuple[int, int]]:
         return gaps(sorted(self.parts, key=lambda r: r.start), self.spec.n_members)
@@ -266,7 +299,6 @@ class Receipts:
         path = self.folder / RECEIPT.format(receipt["start"], receipt["stop"])
         write_atomically(path, json.dumps(receipt).encode(), durable=False)  # a resume checks it against the store
         self.parts.append(Receipt(receipt["start"], receipt["stop"], path))
-        self.counts.append(receipt["counts"])
 
     def settle(self) -> list[Receipt]:
         return self.parts

@@ -41,13 +41,15 @@ def same_attributes(a: Path, b: Path) -> None:
 
 @pytest.fixture(scope="module")
 def reference(tmp_path_factory):
-    """(run file of swept noisy tops, its NetCDF result, its Zarr store in ranges of 8 members)."""
+    """(run file of swept noisy tops, its NetCDF result, its Zarr store in sharded ranges of 8 members)."""
     folder = tmp_path_factory.mktemp("zarr")
     path = folder / "run.toml"
     path.write_text(SWEPT_TOPS)
     nc, store = folder / "ref.nc", folder / "ref.zarr"
     assert cli.main(["run", str(path), "-o", str(nc), "--quiet"]) == 0
-    runner.run(load(path), store, chunk=8, progress=False)  # the command line would round 8 up to a kernel block
+    with pytest.MonkeyPatch.context() as patch:  # chunks of 4 members at most: a task's 8 are a shard of 2
+        patch.setattr(zarr_store, "CHUNK_BYTES", 4 * 201 * 24)
+        runner.run(load(path), store, chunk=8, progress=False)  # the command line would round 8 up to a block
     return path, nc, store
 
 
@@ -61,7 +63,8 @@ def test_a_store_holds_the_netcdf_results_bits_and_contract(reference):
         codecs = array.metadata.codecs
         inner = codecs[0].codecs if type(codecs[0]).__name__ == "ShardingCodec" else codecs
         assert any(type(c).__name__ == "Crc32cCodec" for c in inner), name
-    assert group["tilt"].shards[0] == 8 and group["status"].chunks[0] == 8  # a task's range: whole shards
+    assert group["omega"].shards[0] == 8 and group["omega"].chunks[0] == 4  # a task's range: a shard
+    assert group["tilt"].shards is None and group["tilt"].chunks[0] == 8 == group["status"].chunks[0]  # fits a chunk
     with ensemble.open(store) as ds:
         assert ds.sizes["member"] == 120 and ds.attrs["members_written"] == 120
 
@@ -94,17 +97,21 @@ def test_convert_gives_the_file_a_netcdf_run_writes(reference, tmp_path, capsys)
         assert "\n" not in err and err.startswith("ensemble: error: "), err
 
 
-def test_an_interrupted_run_resumes_where_the_receipts_hold(reference, tmp_path, monkeypatch, capsys):
-    """Three ranges of 7 finished; one's tilt chunk then tampered with (its CRC32C fails), another's omega
-    shard deleted (a torn write): both are computed again, the first kept, and the bits are a whole run's."""
+@pytest.mark.parametrize("sharded", [False, True])
+def test_an_interrupted_run_resumes_where_the_receipts_hold(reference, tmp_path, monkeypatch, capsys, sharded):
+    """Three ranges of 7 finished; one's tilt chunk (or shard) then tampered with (its CRC32C fails), another's
+    omega chunk deleted (a torn write): both are computed again, the first kept, and the bits are a whole run's."""
     path, nc, _ = reference
     out = tmp_path / "out.zarr"
+    if sharded:
+        monkeypatch.setattr(zarr_store, "CHUNK_BYTES", 2 * 201 * 24)
     _interrupted(load(path), out, after=3, monkeypatch=monkeypatch)
     receipts = sorted(folder_of(out).glob("receipt-*.json"))
     assert [r.name for r in receipts] == [zarr_store.RECEIPT.format(j, j + 7) for j in (0, 7, 14)]
     inside = json.loads(receipts[0].read_text())
     assert inside["counts"]["members"] == 7 and set(inside["sums"]) >= {"tilt", "omega", "status"}
     store = Path(f"{out}.tmp")
+    assert (zarr.open_group(store, mode="r")["omega"].shards is not None) == sharded
     chunk = store / "tilt" / "c" / "1" / "0"
     data = bytearray(chunk.read_bytes())
     data[8] ^= 1
@@ -196,3 +203,26 @@ def test_a_worker_that_does_not_see_the_store_is_refused(reference, client, tmp_
                                                              r"path every worker shares"):
         runner.run(load(path), out, chunk=7, progress=False, client=client)
     assert not Path(f"{out}.tmp").exists() and not folder_of(out).exists()
+
+
+def test_a_run_stopped_here_resumes_on_the_cluster_whose_workers_check_the_receipts(reference, client, tmp_path,
+                                                                                   monkeypatch, capsys):
+    path, nc, _ = reference
+    out = tmp_path / "moved.zarr"
+    _interrupted(load(path), out, after=3, monkeypatch=monkeypatch)
+    chunk = Path(f"{out}.tmp") / "steps_accepted" / "c" / "2"  # the third range's: a record's chunk
+    data = bytearray(chunk.read_bytes())
+    data[0] ^= 1
+    chunk.write_bytes(bytes(data))
+
+    here, real = os.getpid(), zarr_store.checked_sums
+
+    def on_workers_only(*args):  # sent to the workers by value
+        assert os.getpid() != here, "the client read the store"
+        return real(*args)
+
+    monkeypatch.setattr(zarr_store, "checked_sums", on_workers_only)
+    runner.run(load(path), out, chunk=5, progress=True, resume=True, client=client)
+    said = capsys.readouterr().err.splitlines()[0]
+    assert said.startswith("resuming: 14 of 120 members in 2 part(s) kept; dropped receipt-000000000014-"), said
+    same_bits(out, nc)
