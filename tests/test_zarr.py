@@ -69,6 +69,18 @@ def test_a_store_holds_the_netcdf_results_bits_and_contract(reference):
         assert ds.sizes["member"] == 120 and ds.attrs["members_written"] == 120
 
 
+def test_a_chains_store_holds_its_per_site_variables(tmp_path, write_runfile):
+    """Per-site parameters and samples (member, t, site), events' records (member, occurrence): the file's bits."""
+    from .test_cluster import CHAIN
+
+    path = write_runfile(CHAIN + '[events.turn]\nof = "v"\nindex = 1\ndirection = "down"\ncount = 2\n')
+    assert cli.main(["run", str(path), "-o", str(tmp_path / "chain.nc"), "--quiet"]) == 0
+    runner.run(load(path), tmp_path / "chain.zarr", chunk=8, progress=False)
+    same_bits(tmp_path / "chain.zarr", tmp_path / "chain.nc")
+    with xr.open_zarr(tmp_path / "chain.zarr") as ds:
+        assert ds.x.dims == ("member", "t", "site") and ds.turn_time.dims == ("member", "turn")
+
+
 def test_fit_reads_a_store_as_it_reads_the_file(reference, capsys):
     _, nc, store = reference
     said = []
