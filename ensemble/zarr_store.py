@@ -156,17 +156,16 @@ class Region:
     members, all of them: no one else writes in its shards). Same write_samples and write as ensemble.store.Writer,
     with the run's member indices; receipt() says what was written."""
 
-    def __init__(self, path: Path, spec: Spec, start: int, stop: int):
-        zarr = _zarr()
-        self.spec, self.start, self.stop = spec, start, stop
-        self.group = zarr.open_group(path, mode="r+")
-        self.arrays: dict = {}  # by name, each opened once (its metadata read from the store)
+    def __init__(self, path: Path, spec: Spec, start: int, stop: int, arrays: dict | None = None):
+        """`arrays`: the store's arrays by name, opened already (Region adds those it opens)."""
+        self.spec, self.start, self.stop, self.path = spec, start, stop, path
+        self.arrays = {} if arrays is None else arrays  # each opened once: its metadata read from the store
         self.sums: dict[str, int] = {}
         self.records: dict[str, np.ndarray] | None = None
 
     def array(self, name: str):
         if name not in self.arrays:
-            self.arrays[name] = self.group[name]
+            self.arrays[name] = _zarr().open_array(self.path, path=name, mode="r+")
         return self.arrays[name]
 
     def write_samples(self, start: int, first: int, data: dict[str, np.ndarray]) -> None:
@@ -248,6 +247,7 @@ class Receipts:
                 raise
         self.parts = self._verified(client) if self.store.exists() else []
         self.result = None
+        self.arrays: dict = {}  # the store's arrays, opened once for every range written here
 
     def _verified(self, client) -> list[Receipt]:
         """The receipts whose ranges the store still holds as they were written (checked on the cluster's workers
@@ -339,7 +339,7 @@ class RegionWriter(Region):
     """A range computed in this process: a Region whose finish() saves its receipt (Parts.begin's writer)."""
 
     def __init__(self, receipts: Receipts, start: int, stop: int):
-        super().__init__(receipts.store, receipts.spec, start, stop)
+        super().__init__(receipts.store, receipts.spec, start, stop, receipts.arrays)
         self.receipts, self.done = receipts, False
 
     def finish(self) -> None:
