@@ -276,7 +276,8 @@ def one_launch_ranges(spec: Spec, todo: list[tuple[int, int]]) -> list[tuple[int
 
 def run(spec: Spec, out: str | Path, *, chunk: int | None = None, progress: bool = True, force: bool = False,
         resume: bool = False, command: str | None = None, client=None, task=None) -> Summary:
-    """Integrate every member of `spec` and write the dataset to `out` (NetCDF); an existing `out` only with
+    """Integrate every member of `spec` and write the dataset to `out` (NetCDF, or a Zarr store for a name ending
+    in .zarr: ensemble.zarr_store); an existing `out` only with
     force. Finished chunks are kept as parts (ensemble.parts) until the result is complete: with `resume`, a run
     stopped midway computes only what its parts lack (raises parts.PartsError if they are another run's).
     `client` (a dask.distributed Client) computes the chunks on its cluster with `task` (default chunk_task, or
@@ -384,7 +385,7 @@ def _writer(out: Path, spec: Spec, command: str | None, parts, chunk: int):
 
 def zarr_task(spec: Spec, start: int, stop: int, repeats: int = 0, *, store: Path) -> dict:
     """On a Dask worker: members start .. stop - 1 of `spec` integrated and written into the Zarr store at
-    `store` (their shards); returns their receipt alone (zarr_store.Region.receipt)."""
+    `store` (their chunks, no one else's); returns their receipt alone (zarr_store.Region.receipt)."""
     from distributed import get_worker
 
     from .zarr_store import Region

@@ -245,7 +245,7 @@ class Receipts:
                 if made:  # refused before anything ran: nothing is left
                     remove_folder(self.folder, lambda name: False)
                 raise
-        self.parts = self._verified(client) if self.store.exists() else []
+        self.parts = self._verified(client) if self.store.exists() else self._lost()
         self.result = None
         self.arrays: dict = {}  # the store's arrays, opened once for every range written here
 
@@ -278,9 +278,15 @@ class Receipts:
                 self._drop(path)
         return kept
 
-    def _drop(self, path: Path) -> None:
+    def _lost(self) -> list[Receipt]:
+        """No store to hold the receipts' members: every receipt deleted, none kept."""
+        for path in sorted(self.folder.glob("receipt-*.json")):
+            self._drop(path, "the store it vouches for is missing")
+        return []
+
+    def _drop(self, path: Path, why: str = "the store no longer holds what it says") -> None:
         path.unlink()
-        self.dropped.append(f"{path.name} (the store no longer holds what it says)")
+        self.dropped.append(f"{path.name} ({why})")
 
     def missing(self) -> list[tuple[int, int]]:
         return gaps(sorted(self.parts, key=lambda r: r.start), self.spec.n_members)
@@ -423,9 +429,10 @@ def convert(source: Path, target: Path, members_at_once: int | None = None) -> N
             variable.setncatts({k: np.asarray(v, dtype=array.dtype) if k == "flag_values" else v
                                 for k, v in attributes.items()})
         for name, array in arrays.items():
-            step = members_at_once or (array.shards or array.chunks)[0] if array.ndim else 1
-            if array.ndim == 0 or not all(array.shape):
+            if array.ndim == 0:
+                nc.variables[name].assignValue(array[...])
                 continue
+            step = max(1, members_at_once or (array.shards or array.chunks)[0])
             for first in range(0, array.shape[0], step):
                 nc.variables[name][first:first + step] = array[first:first + step]
     fsync_path(temporary)

@@ -158,6 +158,27 @@ def test_a_resume_of_another_run_file_and_a_record_in_segments_are_refused(refer
     assert not other.exists() and not Path(f"{other}.tmp").exists() and not folder_of(other).exists()
 
 
+def test_without_zarr_a_store_says_how_to_install_it(tmp_path, write_runfile):
+    path = write_runfile(top_runfile())
+    hide = ("import sys; sys.modules['zarr'] = None; from ensemble.cli import main; "
+            f"sys.exit(main(['run', {str(path)!r}, '-o', {str(tmp_path / 'out.zarr')!r}]))")
+    done = subprocess.run([sys.executable, "-c", hide], capture_output=True, text=True)
+    assert done.returncode == 2 and done.stderr.count("\n") == 1, done.stderr
+    assert "pip install 'ensemble[zarr]'" in done.stderr and not list(tmp_path.glob("out.zarr*"))
+
+
+def test_receipts_whose_store_is_lost_are_dropped(reference, tmp_path, monkeypatch, capsys):
+    path, nc, _ = reference
+    out = tmp_path / "lost.zarr"
+    _interrupted(load(path), out, after=2, monkeypatch=monkeypatch)
+    zarr_store.remove_store(Path(f"{out}.tmp"))
+    runner.run(load(path), out, chunk=7, progress=True, resume=True)
+    said = capsys.readouterr().err.splitlines()[0]
+    assert said.startswith("resuming: 0 of 120 members in 0 part(s) kept; dropped receipt-000000000000-"), said
+    assert "(the store it vouches for is missing)" in said
+    same_bits(out, nc)
+
+
 def test_sigkill_of_the_client_then_resume(tmp_path, write_runfile):
     """A real run killed after some ranges (the store half written), resumed: the bits of a whole run."""
     path = write_runfile(top_runfile(members=300, t_end=0.2, save_dt=0.01))
