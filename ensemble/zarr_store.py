@@ -152,9 +152,9 @@ def task_members(path: Path, spec: Spec) -> int:
 
 
 class Region:
-    """Members start .. stop - 1 written into the store at `path` by the process that computed them (a shard's
-    members, all of them: no one else writes in its shards). Same write_samples and write as ensemble.store.Writer,
-    with the run's member indices; receipt() says what was written."""
+    """Members start .. stop - 1 written into the store at `path` by the process that computed them (a task's
+    range: whole chunks, or a shard, in which no one else writes). Same write_samples and write as
+    ensemble.store.Writer, with the run's member indices; receipt() says what was written."""
 
     def __init__(self, path: Path, spec: Spec, start: int, stop: int, arrays: dict | None = None):
         """`arrays`: the store's arrays by name, opened already (Region adds those it opens)."""
@@ -196,6 +196,7 @@ def record_sum(values: np.ndarray, start: int) -> int:
 
 
 def run_file_sha256(spec: Spec) -> str:
+    """The SHA-256 of the run file's text (as ensemble.parts.fingerprint's), which a receipt names."""
     return hashlib.sha256(spec.text.encode()).hexdigest()
 
 
