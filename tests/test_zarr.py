@@ -17,6 +17,7 @@ import xarray as xr
 
 import ensemble
 from ensemble import cli, runner, zarr_store
+from ensemble.errors import Incomplete
 from ensemble.parts import folder_of
 from ensemble.spec import load
 
@@ -196,9 +197,9 @@ def test_sigkill_of_the_client_then_resume(tmp_path, write_runfile):
 distributed = pytest.importorskip("distributed")  # the tests below use conftest's `client`
 
 
-def _dies_on(marker: Path, start: int, spec, j0, j1, repeats, *, store):
-    """zarr_task, but its worker process dies the first time it gets member `start`."""
-    if j0 == start and not marker.exists():
+def _dies_on(marker: Path, start: int, spec, j0, j1, repeats, *, store, always=False):
+    """zarr_task, but its worker process dies the first time (or every time) it gets member `start`."""
+    if j0 == start and (always or not marker.exists()):
         marker.touch()
         os._exit(1)
     return runner.zarr_task(spec, j0, j1, repeats, store=store)
@@ -258,4 +259,17 @@ def test_a_run_stopped_here_resumes_on_the_cluster_whose_workers_check_the_recei
     runner.run(load(path), out, chunk=5, progress=True, resume=True, client=client)
     said = capsys.readouterr().err.splitlines()[0]
     assert said.startswith("resuming: 14 of 120 members in 2 part(s) kept; dropped receipt-000000000014-"), said
+    same_bits(out, nc)
+
+
+def test_a_range_that_keeps_failing_is_named_and_resume_completes_it(reference, client, tmp_path):
+    path, nc, _ = reference
+    out = tmp_path / "failing.zarr"
+    task = partial(_dies_on, tmp_path / "died", 21, store=Path(f"{out}.tmp").resolve(), always=True)
+    with pytest.raises(Incomplete, match=r"members (.*, )?21..27(, .*)? were not computed") as failure:
+        runner.run(load(path), out, chunk=7, progress=False, client=client, task=task)
+    failed = failure.value.ranges  # a range queued on the worker that died with it may be blamed too
+    assert (21, 28) in failed and len(failed) <= 3
+    assert not out.exists() and len(list(folder_of(out).glob("receipt-*.json"))) == 18 - len(failed)
+    runner.run(load(path), out, chunk=7, progress=False, client=client, resume=True)
     same_bits(out, nc)
