@@ -87,12 +87,11 @@ def refusal(spec, out: Path, runfile: Path | None, *, chunk: int | None, force: 
     if problem:
         return f"{runfile or 'the run'}: {problem}"
     from .parts import Parts
-    from .runner import segment_samples
     from .zarr_store import Receipts, is_zarr, zarr_problem
 
     if resume and (Receipts if is_zarr(out) else Parts).left_complete(out, spec):
         return None  # the run finished and was stopped before removing its parts: the resume removes them
-    problem = zarr_problem(spec, segment_samples(spec)) if is_zarr(out) else None
+    problem = zarr_problem() if is_zarr(out) else None
     problem = problem or output_problem(out, runfile, force) or space_problem(out, spec, resume)
     return f"{out}: {problem}" if problem else None
 

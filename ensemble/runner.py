@@ -311,7 +311,7 @@ FEW_MEMBERS_BLOCK = 8  # the smallest block: one AVX-512 vector of doubles, two 
 def _run(spec: Spec, out: Path, chunk: int | None, progress: bool, force: bool, resume: bool,
          command: str | None, client, task) -> Summary:
     tuning.prepare()
-    folder = _folder_kind(spec, out)
+    folder = _folder_kind(out)
     if resume and folder.left_complete(out, spec):
         folder.discard(out)
         return Summary(0, 0, 0.0, resumed=spec.n_members, complete_already=True)
@@ -366,11 +366,11 @@ def _run(spec: Spec, out: Path, chunk: int | None, progress: bool, force: bool, 
     return summary
 
 
-def _folder_kind(spec: Spec, out: Path):
+def _folder_kind(out: Path):
     """Where a run keeps what it finished: parts (ensemble.parts) beside NetCDF, receipts beside a Zarr store."""
     if not is_zarr(out):
         return Parts
-    problem = zarr_problem(spec, segment_samples(spec))
+    problem = zarr_problem()
     if problem:
         raise EnsembleError(f"{out}: {problem}")
     return Receipts
@@ -379,7 +379,8 @@ def _folder_kind(spec: Spec, out: Path):
 def _writer(out: Path, spec: Spec, command: str | None, parts, chunk: int):
     """The result being written: NetCDF (store.Writer) or a Zarr store (zarr_store.ZarrWriter)."""
     if is_zarr(out):
-        return ZarrWriter(out, spec, members_table(spec), command, chunk, reopen=bool(parts.parts))
+        return ZarrWriter(out, spec, members_table(spec), command, (chunk, segment_samples(spec)),
+                          reopen=bool(parts.parts))
     return Writer(out, spec, members_table(spec), command, reopen=bool(parts.parts or parts.segments))
 
 
@@ -408,11 +409,12 @@ def _say_tuning(progress: bool) -> None:
 def _compute_on_cluster(client, spec: Spec, todo: list[tuple[int, int]], parts: Parts, tally: Tally, bar: Bar,
                         repeats: int, task) -> None:
     """cluster.compute_on: whole chunks a task each, or, for records run in segments, a segment a task (each
-    finished segment a unit that resumes)."""
+    finished segment a unit that resumes). Into a Zarr store a task writes its whole range, segment by segment
+    (the receipt of a range is its unit)."""
     from .cluster import compute_on
 
     segment = segment_samples(spec)
-    if segment < spec.n_save:
+    if segment < spec.n_save and not isinstance(parts, Receipts):
         compute_on(client, spec, one_launch_ranges(spec, todo), parts, tally, bar, repeats, task or segment_task,
                    segment=segment)
     else:

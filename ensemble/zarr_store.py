@@ -59,16 +59,12 @@ def _zarr():
     return zarr
 
 
-def zarr_problem(spec: Spec, segment: int) -> str | None:
-    """Why a run of `spec` cannot write a Zarr store (None if it can): zarr is missing, or its records run in
-    segments of `segment` samples (runner.segment_samples), which a store does not take yet."""
+def zarr_problem() -> str | None:
+    """Why this machine cannot write a Zarr store (None if it can): zarr is missing."""
     try:
         _zarr()
     except EnsembleError as e:
         return str(e)
-    if segment < spec.n_save:
-        return (f"a member's record runs in segments here ({segment} of its {spec.n_save} samples at a time), which "
-                f"only a NetCDF output takes yet")
     return None
 
 
@@ -81,19 +77,23 @@ def _largest_divisor(n: int, at_most: int) -> int:
     return best
 
 
-def saved_layout(shape: tuple[int, ...], task_members: int) -> tuple[tuple[int, ...], tuple[int, ...] | None]:
-    """(chunk, shard or None) of a saved variable (member, t, ...) written by tasks of `task_members` members'
-    whole records: a task's range is one chunk if it fits CHUNK_BYTES, else one shard whose chunks hold whole
-    records of as many members as fit, or part of one long record. (A shard costs zarr-python several times a
-    chunk's write time, measured: it is not made where one chunk does.)"""
+def saved_layout(shape: tuple[int, ...], task: tuple[int, int]) -> tuple[tuple[int, ...], tuple[int, ...] | None]:
+    """(chunk, shard or None) of a saved variable (member, t, ...) written by tasks of `task` = (members, samples
+    per segment) (runner.segment_samples: the whole record, or the segments it runs in, written as they come).
+    A task's range of whole records is one chunk if it fits CHUNK_BYTES, else one shard whose chunks hold whole
+    records of as many members as fit, or part of one long record (zarr-python writes a shard several times
+    slower than a chunk, measured: none is made where one chunk does). A record in segments has a chunk per
+    task and segment, which its writes fill whole."""
     members, samples, *rest = shape
-    task = (min(task_members, members), samples, *rest)
+    task_shape = (min(task[0], members), samples, *rest)
     row = 8 * math.prod(rest)
-    if task[0] * samples * row <= CHUNK_BYTES:
-        return task, None
+    if task[1] < samples:
+        return (task_shape[0], task[1], *rest), None
+    if task_shape[0] * samples * row <= CHUNK_BYTES:
+        return task_shape, None
     if samples * row <= CHUNK_BYTES:
-        return (_largest_divisor(task[0], CHUNK_BYTES // (samples * row)), samples, *rest), task
-    return (1, _largest_divisor(samples, max(1, CHUNK_BYTES // row)), *rest), task
+        return (_largest_divisor(task_shape[0], CHUNK_BYTES // (samples * row)), samples, *rest), task_shape
+    return (1, _largest_divisor(samples, max(1, CHUNK_BYTES // row)), *rest), task_shape
 
 
 def _attribute(value):
@@ -108,10 +108,10 @@ def _fill_attribute(value, dtype: np.dtype):
     return base64.standard_b64encode(struct.pack("<d", float(value))).decode() if dtype.kind == "f" else int(value)
 
 
-def create(path: Path, spec: Spec, table: dict[str, np.ndarray], command: str | None, task_members: int) -> None:
+def create(path: Path, spec: Spec, table: dict[str, np.ndarray], command: str | None, task: tuple[int, int]) -> None:
     """Write the template of the result of `spec` at `path` (a new folder): every variable of
     ensemble.store.Description, coordinates and parameters with their values; samples and records are written
-    later, by ranges of `task_members` members (tasks)."""
+    later by tasks, `task` = (members, samples per segment) at a time."""
     zarr = _zarr()
     from zarr.codecs import Crc32cCodec
 
@@ -124,9 +124,9 @@ def create(path: Path, spec: Spec, table: dict[str, np.ndarray], command: str | 
             shape, dims = variable.shape, variable.dimensions
             shards = None
             if name in spec.save:
-                chunks, shards = saved_layout(shape, task_members)
+                chunks, shards = saved_layout(shape, task)
             elif dims[:1] == ("member",):
-                chunks = (min(task_members, shape[0]), *shape[1:])
+                chunks = (min(task[0], shape[0]), *shape[1:])
             elif dims == ("t",):
                 chunks = (max(1, min(shape[0], TIMES_AT_ONCE)),)
             else:
@@ -234,7 +234,7 @@ class Receipts:
         process does (cluster.check_sees), and they check the receipts kept, reading the store where they are."""
         self.out, self.store, self.folder, self.spec = out, temporary_path(out), folder_of(out), spec
         self.dropped: list[str] = []
-        self.segments: dict = {}  # a record in segments is not written to Zarr (zarr_problem refuses it)
+        self.segments: dict = {}  # a range's receipt is its unit: no segment of it is kept (see ZarrWriter)
         made = not self.folder.exists()
         open_folder(self.folder, spec, resume)
         if client is not None:
@@ -365,14 +365,17 @@ def remove_store(path: Path) -> None:
 
 class ZarrWriter:
     """The store OUT.zarr.tmp: its template made (or, on a resume, found); on success the metadata consolidated
-    and the store renamed to OUT.zarr. Members are written by Region, not through it."""
+    and the store renamed to OUT.zarr. Members are written by Region, not through it. A record in segments is
+    written segment by segment as its range runs; a stopped run computes an unfinished range again from its
+    start (its receipt is the unit a resume keeps)."""
 
-    def __init__(self, path: Path, spec: Spec, table: dict[str, np.ndarray], command: str | None, shard: int,
-                 reopen: bool = False):
+    def __init__(self, path: Path, spec: Spec, table: dict[str, np.ndarray], command: str | None,
+                 task: tuple[int, int], reopen: bool = False):
+        """`task`: (members, samples per segment) a task writes at a time (create)."""
         self.path, self.temporary, self.spec = Path(path), temporary_path(Path(path)), spec
         if not reopen:
             remove_store(self.temporary)
-            create(self.temporary, spec, table, command, shard)
+            create(self.temporary, spec, table, command, task)
 
     def sync(self) -> None:
         """Each chunk is a file of its own, written whole: nothing is held back."""
