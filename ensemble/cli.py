@@ -23,9 +23,11 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"ensemble {__version__}")
     commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     run = commands.add_parser("run", help="integrate a run file and write its dataset",
-                              description="Integrate every member of a run file and write one NetCDF file.")
+                              description="Integrate every member of a run file and write one NetCDF file (or a "
+                                          "Zarr store).")
     run.add_argument("runfile", type=Path, help="run file (TOML), see runs/")
-    run.add_argument("-o", "--output", type=Path, help="output file (default: results/<runfile stem>.nc)")
+    run.add_argument("-o", "--output", type=Path, help="output file (default: results/<runfile stem>.nc), or a Zarr "
+                                                       "store if it ends in .zarr (the zarr extra; docs/cluster.md)")
     run.add_argument("--force", action="store_true", help="replace an existing output file")
     run.add_argument("--chunk", type=int, help="members per chunk held in memory, rounded up to whole kernel blocks "
                                                "(default: about 32 MB of output)")
