@@ -55,6 +55,7 @@ import numpy as np
 from .checksums import file_crc32, sample_sum, write_atomically
 from .errors import EnsembleError
 from .events import dimensions as event_dimensions
+from .results import Status
 from .spec import Spec, members_table
 from .store import fsync_path, kernels_identity, put_records, record_names, record_variables, temporary_path
 from .version import __version__
@@ -379,10 +380,10 @@ class Parts:
         """A new part for members start .. stop - 1."""
         return PartWriter(self, start, stop)
 
-    def assemble(self) -> dict[str, np.ndarray]:
+    def assemble(self) -> np.ndarray:
         """Write every member's records into `result`, each record in one piece (the parts hold them; their
-        samples are in the result already); returns them (member,), in member order. Call settle first: every
-        part must be finished."""
+        samples are in the result already); returns how many members ended in each Status. Call settle first:
+        every part must be finished."""
         self._sealing.shutdown()
         assert not self._sealed and not self.missing(), "assemble needs every member, settled"
         names = record_names(self.spec)
@@ -397,7 +398,7 @@ class Parts:
                 records[name].append(data[name])
         records = {name: np.concatenate(values) for name, values in records.items()}
         self.result.write(0, records)
-        return records
+        return np.bincount(records["status"], minlength=len(Status))
 
 
 class PartWriter:

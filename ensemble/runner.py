@@ -352,7 +352,7 @@ def _run(spec: Spec, out: Path, chunk: int | None, progress: bool, force: bool, 
             parts.settle()  # every part sealed before the result is complete
             interrupts.check()
             held.start()  # a Ctrl-C from here waits until the result is whole and the parts are gone
-            records = parts.assemble()
+            ended = parts.assemble()
     except BaseException:
         held.stop()
         with HeldInterrupts():  # a second Ctrl-C must not cut the cleanup short
@@ -360,7 +360,7 @@ def _run(spec: Spec, out: Path, chunk: int | None, progress: bool, force: bool, 
                 folder.discard(out)
         raise
     folder.discard(out)
-    summary = _summary(spec, tally, records, time.perf_counter() - began, preparing)
+    summary = _summary(spec, tally, ended, time.perf_counter() - began, preparing)
     if held.stop():
         raise LateInterrupt(summary)
     return summary
@@ -421,12 +421,12 @@ def _compute_on_cluster(client, spec: Spec, todo: list[tuple[int, int]], parts: 
         compute_on(client, spec, todo, parts, tally, bar, repeats, task or chunk_task)
 
 
-def _summary(spec: Spec, tally: Tally, records: dict[str, np.ndarray], seconds: float, preparing: float) -> Summary:
-    failed = np.bincount(records["status"], minlength=len(Status))
+def _summary(spec: Spec, tally: Tally, ended: np.ndarray, seconds: float, preparing: float) -> Summary:
+    """`ended`: how many members ended in each Status (Parts.assemble)."""
     return Summary(tally.members, tally.member_steps, seconds,
                    tally.step_counts.pop() if len(tally.step_counts) == 1 else None,
-                   blew_up=int(failed[Status.BLEW_UP]), underflowed=int(failed[Status.STEP_SIZE_UNDERFLOW]),
-                   stopped=int(failed[Status.STOPPED_BY_EVENT]),
+                   blew_up=int(ended[Status.BLEW_UP]), underflowed=int(ended[Status.STEP_SIZE_UNDERFLOW]),
+                   stopped=int(ended[Status.STOPPED_BY_EVENT]),
                    closed_form=all(METHODS[name].closed_form for name in spec.methods), preparing=preparing,
                    resumed=spec.n_members - tally.members)
 
