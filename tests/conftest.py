@@ -88,3 +88,13 @@ def client():
         with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0",
                                       env={"NUMBA_NUM_THREADS": "1"}) as local, distributed.Client(local) as c:
             yield c
+
+
+def run_without(module: str, argv: list[str]):
+    """`ensemble` (cli.main(argv)) in a new process where `module` cannot be imported, as on a machine without
+    it; the CompletedProcess, its output as text."""
+    import subprocess
+    import sys
+
+    hide = f"import sys; sys.modules[{module!r}] = None; from ensemble.cli import main; sys.exit(main({argv!r}))"
+    return subprocess.run([sys.executable, "-c", hide], capture_output=True, text=True)

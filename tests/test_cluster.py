@@ -14,7 +14,7 @@ from ensemble.errors import Incomplete
 from ensemble.parts import folder_of
 from ensemble.spec import load
 
-from .conftest import top_runfile
+from .conftest import run_without, top_runfile
 from .test_resume import NOISY_TOPS, same_bits
 
 distributed = pytest.importorskip("distributed")
@@ -128,9 +128,7 @@ def test_an_unreachable_scheduler_is_one_line(monkeypatch):
 
 def test_without_dask_the_cluster_options_say_how_to_install_it(tmp_path, write_runfile):
     path = write_runfile(top_runfile())
-    hide = ("import sys; sys.modules['distributed'] = None; from ensemble.cli import main; "
-            f"sys.exit(main(['run', {str(path)!r}, '-o', {str(tmp_path / 'out.nc')!r}, '--workers', '2']))")
-    done = subprocess.run([sys.executable, "-c", hide], capture_output=True, text=True)
+    done = run_without("distributed", ["run", str(path), "-o", str(tmp_path / "out.nc"), "--workers", "2"])
     assert done.returncode == 2 and done.stderr.count("\n") == 1, done.stderr
     assert "pip install 'ensemble[dask]'" in done.stderr and not list(tmp_path.glob("out.nc*"))
 

@@ -21,7 +21,7 @@ from ensemble.errors import Incomplete
 from ensemble.parts import folder_of
 from ensemble.spec import load
 
-from .conftest import top_runfile
+from .conftest import run_without, top_runfile
 from .test_resume import _interrupted, _killed, same_bits
 
 zarr = pytest.importorskip("zarr")
@@ -170,9 +170,7 @@ def test_a_record_in_segments_is_written_as_its_segments_come(reference, client,
 
 def test_without_zarr_a_store_says_how_to_install_it(tmp_path, write_runfile):
     path = write_runfile(top_runfile())
-    hide = ("import sys; sys.modules['zarr'] = None; from ensemble.cli import main; "
-            f"sys.exit(main(['run', {str(path)!r}, '-o', {str(tmp_path / 'out.zarr')!r}]))")
-    done = subprocess.run([sys.executable, "-c", hide], capture_output=True, text=True)
+    done = run_without("zarr", ["run", str(path), "-o", str(tmp_path / "out.zarr")])
     assert done.returncode == 2 and done.stderr.count("\n") == 1, done.stderr
     assert "pip install 'ensemble[zarr]'" in done.stderr and not list(tmp_path.glob("out.zarr*"))
 
