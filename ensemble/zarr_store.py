@@ -21,13 +21,11 @@ Every chunk and shard index carries a CRC32C codec.
 """
 from __future__ import annotations
 
-import base64
 import hashlib
 import json
 import math
 import os
 import shutil
-import struct
 import warnings
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -103,16 +101,12 @@ def _attribute(value):
     return value.item() if isinstance(value, np.generic) else value
 
 
-def _fill_attribute(value, dtype: np.dtype):
-    """A _FillValue as xarray writes it in Zarr v3 attributes: a float as the base64 of its 8 bytes."""
-    return base64.standard_b64encode(struct.pack("<d", float(value))).decode() if dtype.kind == "f" else int(value)
-
-
 def create(path: Path, spec: Spec, table: dict[str, np.ndarray], command: str | None, task: tuple[int, int]) -> None:
     """Write the template of the result of `spec` at `path` (a new folder): every variable of
     ensemble.store.Description, coordinates and parameters with their values; samples and records are written
     later by tasks, `task` = (members, samples per segment) at a time."""
     zarr = _zarr()
+    from xarray.backends.zarr import FillValueCoder
     from zarr.codecs import Crc32cCodec
 
     group = zarr.open_group(path, mode="w-", zarr_format=3)
@@ -134,7 +128,7 @@ def create(path: Path, spec: Spec, table: dict[str, np.ndarray], command: str | 
             attributes = {k: _attribute(variable.getncattr(k)) for k in variable.ncattrs() if k != "_FillValue"}
             fill = variable.getncattr("_FillValue") if "_FillValue" in variable.ncattrs() else None
             if fill is not None:
-                attributes["_FillValue"] = _fill_attribute(fill, variable.dtype)
+                attributes["_FillValue"] = FillValueCoder.encode(fill, variable.dtype)  # as xarray writes it
             array = group.create_array(name, shape=shape, dtype=variable.dtype, chunks=chunks, shards=shards,
                                        fill_value=fill if fill is not None else 0, dimension_names=dims,
                                        attributes=attributes, compressors=(Crc32cCodec(),))
@@ -409,6 +403,7 @@ def convert(source: Path, target: Path, members_at_once: int | None = None) -> N
     bits, in the layout `ensemble run` writes (saved variables and records contiguous); copied by ranges of the
     store's shards (`members_at_once`), so memory stays within a few of them. `target` appears when whole."""
     import netCDF4
+    from xarray.backends.zarr import FillValueCoder
 
     zarr = _zarr()
     group = zarr.open_group(source, mode="r")
@@ -426,8 +421,8 @@ def convert(source: Path, target: Path, members_at_once: int | None = None) -> N
         for name, array in arrays.items():
             attributes = dict(array.attrs)
             fill = attributes.pop("_FillValue", None)
-            if isinstance(fill, str):
-                fill = struct.unpack("<d", base64.standard_b64decode(fill))[0]
+            if fill is not None:
+                fill = FillValueCoder.decode(fill, array.dtype)
             dims = array.metadata.dimension_names
             variable = nc.createVariable(name, np.dtype(array.dtype).newbyteorder("="), dims, fill_value=fill,
                                          contiguous=dims[:1] == ("member",) and len(dims) > 0)
