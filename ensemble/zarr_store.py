@@ -175,7 +175,8 @@ class Region:
         self.records = data
 
     def receipt(self) -> dict:
-        """The range, its run file, each variable's checksum and the counts of what it ran (Tally.counts)."""
+        """The range, its run file, each variable's checksum, and the counts of what it ran (which
+        summary.Tally.merge and Receipts.assemble add up)."""
         steps = self.records["steps_accepted"] + self.records["steps_rejected"]
         status = np.bincount(self.records["status"].astype(np.int64), minlength=len(Status))
         return {"start": self.start, "stop": self.stop, "run_file_sha256": run_file_sha256(self.spec),
@@ -227,9 +228,8 @@ class Receipts:
     def __init__(self, out: Path, spec: Spec, resume: bool = False, client=None):
         """`client`: a dask.distributed Client whose workers will write the store: each must see it where this
         process does (cluster.check_sees), and they check the receipts kept, reading the store where they are."""
-        self.out, self.store, self.folder, self.spec = out, temporary_path(out), folder_of(out), spec
+        self.store, self.folder, self.spec = temporary_path(out), folder_of(out), spec
         self.dropped: list[str] = []
-        self.segments: dict = {}  # a range's receipt is its unit: no segment of it is kept (see ZarrWriter)
         made = not self.folder.exists()
         open_folder(self.folder, spec, resume)
         if client is not None:
@@ -242,7 +242,6 @@ class Receipts:
                     remove_folder(self.folder, lambda name: False)
                 raise
         self.parts = self._verified(client) if self.store.exists() else self._lost()
-        self.result = None
         self.arrays: dict = {}  # the store's arrays, opened once for every range written here
 
     def _verified(self, client) -> list[Receipt]:
@@ -367,7 +366,7 @@ class ZarrWriter:
     def __init__(self, path: Path, spec: Spec, table: dict[str, np.ndarray], command: str | None,
                  task: tuple[int, int], reopen: bool = False):
         """`task`: (members, samples per segment) a task writes at a time (create)."""
-        self.path, self.temporary, self.spec = Path(path), temporary_path(Path(path)), spec
+        self.path, self.temporary = Path(path), temporary_path(Path(path))
         if not reopen:
             remove_store(self.temporary)
             create(self.temporary, spec, table, command, task)
