@@ -22,6 +22,11 @@ def sample_sum(values: np.ndarray, member: int, first: int) -> int:
     return int(_mixed_sum(values.reshape(members, -1).view(np.uint64), member, first * per_sample))
 
 
+def record_sum(values: np.ndarray, member: int) -> int:
+    """sample_sum of a per-member variable (member, ...) of members member, member + 1, ..."""
+    return sample_sum(np.asarray(values, dtype=np.float64).reshape(len(values), 1, -1), member, 0)
+
+
 @numba.njit(cache=True, nogil=True)
 def _mixed_sum(bits, member, offset):  # (members, values) uint64; the inner loop vectorizes: no temporaries
     total = np.uint64(0)

@@ -1,8 +1,8 @@
 """Running a sweep's chunks on a dask.distributed cluster (the `dask` extra).
 
-A task carries the run's spec, without its members table, and a member range:
-the worker builds those members' parameters itself (spec.members_table draws
-any range directly), integrates them and returns their arrays, which the
+A task carries the run's spec and a member range: the worker builds those
+members' parameters itself (spec.members_table draws and checks any range
+directly), integrates them and returns their arrays, which the
 client, the single writer of a NetCDF result, keeps as a part
 (ensemble.parts). Into a Zarr store the worker writes them itself and returns
 only a receipt (runner.zarr_task, ensemble.zarr_store); the workers must see
@@ -29,7 +29,7 @@ import numpy as np
 
 from . import interrupts
 from .errors import EnsembleError, Incomplete
-from .spec import Spec
+from .spec import Spec, SpecError
 from .version import __version__
 
 IN_FLIGHT_PER_THREAD = 2  # tasks submitted per worker thread at a time: one running, one queued
@@ -169,6 +169,8 @@ def compute_on(client, spec: Spec, todo: list[tuple[int, int]], parts, tally, ba
             job = jobs.running.pop(future)
             try:
                 result = future.result()
+            except SpecError:  # a member of the range breaks the scene's constraints: the run stops here
+                raise
             except Exception as e:  # a worker that kept dying (KilledWorker), or the task raised
                 failed.append((job.start, job.stop))
                 cause = cause or f"{type(e).__name__}: {str(e).split('. ')[0]}".rstrip(": ")  # its first sentence
@@ -199,17 +201,15 @@ class _Jobs:
 
     def __init__(self, client, spec: Spec, todo: list[tuple[int, int]], parts, repeats: int, task,
                  segment: int | None):
-        from dataclasses import replace
-
         self.client, self.parts, self.repeats, self.task, self.segment = client, parts, repeats, task, segment
-        self.light = replace(spec, table=None)  # a few kB: each worker draws its own members (not scattered: a
-        # worker that dies would take scattered data with it)
+        self.spec = spec  # a few kB: each worker draws its own members (not scattered: a worker that dies would
+        # take scattered data with it)
         self.pending, self.running = iter(todo), {}
 
     def submit(self, job: _Job):
         where = {"workers": [job.worker], "allow_other_workers": True} if job.worker else {}
         more = [job.carried, self.segment] if self.segment is not None else []
-        future = self.client.submit(self.task, self.light, job.start, job.stop, self.repeats, *more, pure=False,
+        future = self.client.submit(self.task, self.spec, job.start, job.stop, self.repeats, *more, pure=False,
                                     **where)
         self.running[future] = job
         return future

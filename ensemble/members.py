@@ -1,8 +1,13 @@
 """The members table: each member's parameter values, drawn from the run's seed and its index alone (ensemble.spec's
 docstring says how), or given member by member. `spec` is an ensemble.spec.Spec throughout (this module is below
-it: spec builds its table here)."""
+it: spec checks its members here).
+
+No process holds every member's values: a range's are built where it is integrated, in time and memory
+proportional to its length, and checked there (members_table). Reading a run file checks the members
+before_start() names, so that a bad sweep value or distribution is refused before anything runs."""
 from __future__ import annotations
 
+import hashlib
 import itertools
 import math
 from dataclasses import replace
@@ -15,7 +20,9 @@ from .parameter import Mode, ParameterError
 from .runfile import DEFAULT_TOLERANCES, POLYGON, SETTINGS, Distribution, PerMember, SpecError, parameter_value
 from .scenes import SceneError
 
-MAX_TABLE_BYTES = 2**31  # every member's parameters, held in memory for the whole run
+CHECKED_BEFORE_START = 2**16  # members a run file's reading checks (all of a smaller run): about 10 ms
+SAMPLED_POINTS = 1024  # sweep points whose first members are checked then, at most (spread over the grid)
+MAX_EIGENPROBLEM_BYTES = 2**31  # a range's mode starts, solved at once
 EIGENPROBLEM_ARRAYS = 3  # n x n arrays per member while mode starts are solved: stiffness, shapes, LAPACK's work
 
 
@@ -37,7 +44,8 @@ def with_values(spec, values: dict):
         parameters[name] = parameter_value(f"values.{name}", PerMember(array, "ensemble.run(values=...)"), known)
         declared[name] = known
     spec = replace(spec, parameters=parameters, declared=declared)
-    return replace(spec, table=build_table(spec))
+    check_before_start(spec)
+    return spec
 
 
 def given_values(spec) -> str:
@@ -48,8 +56,8 @@ def given_values(spec) -> str:
 
 def members_table(spec, start: int = 0, stop: int | None = None) -> dict[str, np.ndarray]:
     """The parameter values of members start .. stop - 1 (default: every member), each an array over those
-    members: a slice of the table parse built, or (a spec sent without it, as to a Dask worker) built for
-    that range alone, in time proportional to its length.
+    members, built in time proportional to the range's length and checked (SpecError naming the range when a
+    member breaks the scene's constraints: one the checks before the start did not reach).
 
     Members are ordered sweep point major, replica minor; the table also holds
     `sweep_point`, the index of each member's point on the sweep grids, and how
@@ -57,18 +65,71 @@ def members_table(spec, start: int = 0, stop: int | None = None) -> dict[str, np
     the method takes none).
     """
     stop = spec.n_members if stop is None else stop
-    if spec.table is None:
+    try:
         return build_table(spec, start, stop)
-    if (start, stop) == (0, spec.n_members):
-        return spec.table
-    return {name: values[start:stop] for name, values in spec.table.items()}
+    except SpecError as e:
+        raise SpecError(e.key, f"{e.problem} (among members {start} to {stop - 1}, met as they were integrated: "
+                               f"the members checked before the start passed)") from None
 
 
-def build_table(spec, start: int = 0, stop: int | None = None) -> dict[str, np.ndarray]:
-    stop = spec.n_members if stop is None else stop
+def before_start(spec) -> list[tuple[int, int]]:
+    """The member ranges a run file's reading checks: every member of a run of at most CHECKED_BEFORE_START, else
+    the first members of each sweep point (of SAMPLED_POINTS points spread over the grid, the last included),
+    CHECKED_BEFORE_START in all, at least one each."""
+    n, per_point = spec.n_members, spec.members
+    if n <= CHECKED_BEFORE_START:
+        return [(0, n)]
+    points = spec.sweep_points
+    sampled = sorted({*range(0, points, -(-points // SAMPLED_POINTS)), points - 1})
+    each = max(1, min(per_point, CHECKED_BEFORE_START // len(sampled)))
+    return [(p * per_point, p * per_point + each) for p in sampled]
+
+
+def check_before_start(spec) -> None:
+    """Build and check the members of before_start(spec) (SpecError for the first bad one); keep none."""
+    points = grid_points(spec)
+    for start, stop in before_start(spec):
+        build_table(spec, start, stop, points)
+
+
+def members_sha256(spec) -> str:
+    """The SHA-256 of the values given member by member and of the members checked before the start: what, with
+    the run file's text and the versions, makes every member's values (ensemble.parts.fingerprint)."""
+    digest = hashlib.sha256()
+    for name, value in sorted(spec.parameters.items()):
+        if isinstance(value, PerMember):
+            given = np.ascontiguousarray(value.values, dtype=float)
+            digest.update(f"{name} given {given.shape}".encode() + given.tobytes())
+    points = grid_points(spec)
+    for start, stop in before_start(spec):
+        table = build_table(spec, start, stop, points)
+        for name in sorted(table):
+            values = np.ascontiguousarray(table[name])
+            digest.update(f"{name} {start} {values.dtype.str} {values.shape}".encode() + values.tobytes())
+    return digest.hexdigest()
+
+
+def grid_points(spec) -> list[dict]:
+    """Every sweep point's values (axis: value), in member order ([{}] for a run without a sweep)."""
+    return [dict(zip(grid, combination)) for grid in spec.grids
+            for combination in itertools.product(*grid.values())] or [{}]
+
+
+def point_settings(spec, points: list[dict]) -> list[dict]:
+    """How the members of each of `points` integrate: method, dt, rtol and atol (None where the method takes
+    none; an adaptive method's default tolerances where the run gives none)."""
+    top_level = {"method": spec.method, "dt": spec.dt, "rtol": spec.rtol, "atol": spec.atol}
+    settings = [{key: p.get(key, top_level[key]) for key in SETTINGS} for p in points]
+    for s in settings:
+        if METHODS[s["method"]].adaptive:
+            s.update({key: value for key, value in DEFAULT_TOLERANCES.items() if s[key] is None})
+    return settings
+
+
+def build_table(spec, start: int, stop: int, points: list[dict] | None = None) -> dict[str, np.ndarray]:
+    """members_table's, unchecked by range; `points`: grid_points(spec), when the caller has them."""
     n = stop - start
-    points = [dict(zip(grid, combination)) for grid in spec.grids
-              for combination in itertools.product(*grid.values())] or [{}]
+    points = grid_points(spec) if points is None else points
     point = np.arange(start, stop) // spec.members
     table = {"sweep_point": point}
     for name in spec.sweep:
@@ -102,21 +163,17 @@ def build_table(spec, start: int = 0, stop: int | None = None) -> dict[str, np.n
         if not 1 <= mode.number <= sizes["site"]:
             raise SpecError(f"parameters.{name}.mode", f"must be in 1..{sizes['site']}, got {mode.number}")
         need = EIGENPROBLEM_ARRAYS * 8 * sizes["site"] ** 2 * n
-        if need > MAX_TABLE_BYTES:
+        if need > MAX_EIGENPROBLEM_BYTES:
             raise SpecError(f"parameters.{name}", f"a mode start solves each member's {sizes['site']} x "
                                                   f"{sizes['site']} eigenproblem at once: {n} member(s) need "
-                                                  f"{need / 1e9:.3g} GB; at most {MAX_TABLE_BYTES / 1e9:.3g} GB")
+                                                  f"{need / 1e9:.3g} GB; at most {MAX_EIGENPROBLEM_BYTES / 1e9:.3g} GB")
         table[name] = scene.mode_start(mode, table["m"], table["k"], spec.constants["boundary"])
     return table
 
 
 def _member_settings(spec, points: list[dict], point: np.ndarray) -> dict[str, np.ndarray]:
     """Each member's method, dt, rtol and atol (NaN where its method takes none), from its sweep point."""
-    top_level = {"method": spec.method, "dt": spec.dt, "rtol": spec.rtol, "atol": spec.atol}
-    settings = [{key: p.get(key, top_level[key]) for key in SETTINGS} for p in points]
-    for s in settings:
-        if METHODS[s["method"]].adaptive:
-            s.update({key: value for key, value in DEFAULT_TOLERANCES.items() if s[key] is None})
+    settings = point_settings(spec, points)
     out = {"method": np.array([s["method"] for s in settings])[point]}
     for key in ("dt", "rtol", "atol"):
         out[key] = np.array([np.nan if s[key] is None else s[key] for s in settings], dtype=float)[point]

@@ -52,16 +52,26 @@ from pathlib import Path
 import netCDF4
 import numpy as np
 
-from .checksums import file_crc32, sample_sum, write_atomically
+from .checksums import file_crc32, record_sum, sample_sum, write_atomically
 from .errors import EnsembleError
 from .events import dimensions as event_dimensions
+from .members import members_sha256
 from .results import Status
-from .spec import Spec, members_table
-from .store import fsync_path, kernels_identity, put_records, record_names, record_variables, temporary_path
+from .spec import Spec
+from .store import (
+    fsync_path,
+    kernels_identity,
+    member_variable_names,
+    put_records,
+    record_names,
+    record_variables,
+    temporary_path,
+)
 from .version import __version__
 
 MANIFEST = "manifest.json"
-PARTS_FORMAT = "2"  # 2: parts carry their range, run file and sample checksums (ensemble 0.5.0)
+PARTS_FORMAT = "3"  # 2: parts carry their range, run file and sample checksums (ensemble 0.5.0); 3: and their
+# member variables' (written into the result by each part's range)
 PART_NAME = re.compile(r"members-(\d{12})-(\d{12})-([0-9a-f]{8})\.nc")
 SEGMENT_NAME = re.compile(r"segment-(\d{12})-(\d{12})-(\d{12})-(\d{12})-([0-9a-f]{8})\.npz")
 
@@ -72,18 +82,14 @@ def folder_of(out: Path) -> Path:
 
 
 def fingerprint(spec: Spec) -> dict[str, str]:
-    """What a part's bits depend on besides the member range: the run file's text, every member's parameters and
-    start values (members_sha256), the sources of the scene (its file and the user's modules it imports) and of
-    the engine's kernels, the device (--device may change the run file's; each rounds differently) and the
-    versions of the packages that compute and store them. Neither the compile target nor the tuning is in it:
-    every target with fused multiply-adds and every tuning choice give the same bits."""
-    table = members_table(spec)
-    members = hashlib.sha256()
-    for name in sorted(table):
-        values = np.ascontiguousarray(table[name])
-        members.update(f"{name} {values.dtype.str} {values.shape}".encode())
-        members.update(values.tobytes())
-    return {"run_file_sha256": hashlib.sha256(spec.text.encode()).hexdigest(), "members_sha256": members.hexdigest(),
+    """What a part's bits depend on besides the member range: the run file's text, the members' values
+    (members_sha256: those given member by member and those of the members checked before the start, which the
+    run file's text, the seed and the versions below make), the sources of the scene (its file and the user's
+    modules it imports) and of the engine's kernels, the device (--device may change the run file's; each
+    rounds differently) and the versions of the packages that compute and store them. Neither the compile
+    target nor the tuning is in it: every target with fused multiply-adds and every tuning choice give the same
+    bits. Its size and cost do not grow with the members."""
+    return {"run_file_sha256": hashlib.sha256(spec.text.encode()).hexdigest(), "members_sha256": members_sha256(spec),
             **{k: v for k, v in kernels_identity(spec).items() if k != "compile_target"},
             "ensemble": __version__, "numba": version("numba"), "numpy": np.__version__,
             "netCDF4": netCDF4.__version__, "device": f"{spec.device} {spec.precision}", "parts_format": PARTS_FORMAT}
@@ -308,6 +314,9 @@ class Parts:
             found = sample_sum(result.variables[name][start:stop, first:end], start, first)
             if inside.get(f"samples_sum_{name}") != f"{found:016x}":
                 return f"its members' {name} in the result changed since it was written"
+        for name in member_variable_names(self.spec) if end is None else ():  # a whole part's
+            if inside.get(f"values_sum_{name}") != f"{record_sum(result.variables[name][start:stop], start):016x}":
+                return f"its members' {name} in the result changed since it was written"
         return None
 
     def _segment_files(self) -> list[Segment]:
@@ -411,6 +420,7 @@ class PartWriter:
         self.temporary = parts.folder / f"members-{start:012d}-{stop:012d}.tmp"
         self._nc = None
         self.sums = {name: 0 for name in parts.spec.save}  # sample_sum of each saved variable's samples
+        self.values_sums: dict[str, int] = {}  # record_sum of each member variable's values
         self.logs: list[SegmentLog] = []
         self.done = False  # finish() was called: the part is on its way to being sealed
 
@@ -440,16 +450,22 @@ class PartWriter:
         return self.logs[-1]
 
     def write(self, start: int, data: dict[str, np.ndarray]) -> None:
-        """The records of every member of the part (start is the part's)."""
-        put_records(self.nc.variables, start - self.start, data)
-        self.records = data
+        """The records of every member of the part (start is the part's) into its file, and their member
+        variables (store.member_variables) into the result."""
+        names = record_names(self.parts.spec)
+        self.records = {name: data[name] for name in names}
+        put_records(self.nc.variables, start - self.start, self.records)
+        values = {name: values for name, values in data.items() if name not in names}
+        self.parts.result.write(start, values)
+        self.values_sums = {name: record_sum(values, start) for name, values in values.items()}
 
     def finish(self) -> None:
         """Close the file, flush the result, and have the result fsynced and then the part sealed (checksum,
         rename to the part's name) on the parts' own thread: the part is complete once Parts.settle returns."""
         self.nc.setncatts({"first_member": self.start, "stop_member": self.stop,
                            "run_file_sha256": self.parts.fingerprint["run_file_sha256"],
-                           **{f"samples_sum_{name}": f"{value:016x}" for name, value in self.sums.items()}})
+                           **{f"samples_sum_{name}": f"{value:016x}" for name, value in self.sums.items()},
+                           **{f"values_sum_{name}": f"{value:016x}" for name, value in self.values_sums.items()}})
         self.nc.close()
         self.parts.written[self.start] = self.records
         self.parts.result.sync()

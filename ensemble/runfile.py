@@ -29,6 +29,9 @@ class SpecError(EnsembleError, ValueError):
         self.key = key
         self.problem = problem
 
+    def __reduce__(self):  # as a Dask worker sends it back: rebuilt from both its arguments
+        return SpecError, (self.key, self.problem)
+
 
 @dataclass(frozen=True, eq=False)
 class PerMember:

@@ -21,12 +21,13 @@ from .bars import BAR, Bar
 from .engine import launch
 from .errors import EnsembleError
 from .interrupts import HeldInterrupts, LateInterrupt
+from .members import grid_points, point_settings
 from .methods import METHODS, Method
 from .parts import Parts
 from .records import Record, kernel_seconds_per_step, measured_growth
 from .results import Outcome, Status
-from .spec import Spec, members_table
-from .store import Writer
+from .spec import Spec, SpecError, members_table
+from .store import Writer, member_variables
 from .summary import ANNOUNCE_AFTER, Summary, Tally
 from .zarr_store import Receipts, ZarrWriter, is_zarr, task_members, zarr_problem
 
@@ -191,8 +192,8 @@ def integrate_chunk(spec: Spec, start: int, stop: int, sink, repeats: int = 0, w
                     threads: int | None = None):
     """Integrate members start .. stop - 1 on `threads` threads (default launch.thread_count()); returns finish(),
     which hands their saved variables to sink.write_samples(first member, first sample, variables) (see
-    integrate_members) and returns their records (member,). watch(fraction) as launch.integrate's, over the
-    whole range."""
+    integrate_members) and returns their records and member variables (member, ...: store.member_variables).
+    watch(fraction) as launch.integrate's, over the whole range."""
     table = members_table(spec, start, stop)
     finishes = []
     for k0, k1 in _same_settings(table, 0, stop - start):
@@ -206,14 +207,15 @@ def integrate_chunk(spec: Spec, start: int, stop: int, sink, repeats: int = 0, w
 
     def finish() -> dict[str, np.ndarray]:
         records = [f() for f in finishes]
-        return {name: np.concatenate([r[name] for r in records]) for name in records[0]}
+        return {**{name: np.concatenate([r[name] for r in records]) for name in records[0]},
+                **member_variables(spec, table, start)}
 
     return finish
 
 
 def compute_chunk(spec: Spec, start: int, stop: int, sink, repeats: int = 0, watch=None,
                   threads: int | None = None) -> dict[str, np.ndarray]:
-    """integrate_chunk, finished at once: returns the records (member,)."""
+    """integrate_chunk, finished at once: returns the records and member variables (member, ...)."""
     return integrate_chunk(spec, start, stop, sink, repeats, watch, threads)()
 
 
@@ -249,7 +251,7 @@ def segment_task(spec: Spec, start: int, stop: int, repeats: int, carried: dict 
     """On a Dask worker: the next segment (of `segment` samples, as the client cut them) of members start ..
     stop - 1 (one launch's settings), continuing from `carried` (None: the first). Returns that segment ("first",
     "samples": saved variables (members, samples, ...), "state", "record", "restarted": it started again from
-    sample 0) or, once every segment is done, the members' records ("records")."""
+    sample 0) or, once every segment is done, the members' records and member variables ("records")."""
     from distributed import get_worker
 
     threads = max(1, launch.thread_count() // get_worker().state.nthreads)
@@ -262,15 +264,21 @@ def segment_task(spec: Spec, start: int, stop: int, repeats: int, carried: dict 
         records = finish()
     except _SegmentDone:
         return {**log.finished, "worker": get_worker().address}
-    return {"records": records, "worker": get_worker().address}
+    return {"records": {**records, **member_variables(spec, values, start)}, "worker": get_worker().address}
 
 
 def one_launch_ranges(spec: Spec, todo: list[tuple[int, int]]) -> list[tuple[int, int]]:
-    """The member ranges `todo` cut where the launch's settings change (each a range segment_task takes)."""
+    """The member ranges `todo` cut where the launch's settings change (each a range segment_task takes), from
+    the sweep points' settings (no members table is built)."""
+    settings = point_settings(spec, grid_points(spec))
+    launch_of = [(s["method"], np.nan if s["dt"] is None else s["dt"]) for s in settings]
     out = []
     for start, stop in todo:
-        table = members_table(spec, start, stop)
-        out += [(start + k0, start + k1) for k0, k1 in _same_settings(table, 0, stop - start)]
+        points = np.arange(start // spec.members, (stop - 1) // spec.members + 1)
+        table = {"method": np.array([launch_of[p][0] for p in points]),
+                 "dt": np.array([launch_of[p][1] for p in points], dtype=float)}
+        edges = [max(start, int(points[k0]) * spec.members) for k0, _ in _same_settings(table, 0, len(points))]
+        out += list(zip(edges, [*edges[1:], stop]))
     return out
 
 
@@ -353,11 +361,12 @@ def _run(spec: Spec, out: Path, chunk: int | None, progress: bool, force: bool, 
             interrupts.check()
             held.start()  # a Ctrl-C from here waits until the result is whole and the parts are gone
             ended = parts.assemble()
-    except BaseException:
+    except BaseException as error:
         held.stop()
         with HeldInterrupts():  # a second Ctrl-C must not cut the cleanup short
-            if not parts.close() and not folder.segments_left(out):  # nothing finished: nothing to resume
-                folder.discard(out)
+            kept = parts.close()
+            if isinstance(error, SpecError) or not (kept or folder.segments_left(out)):
+                folder.discard(out)  # nothing finished, or a member the run file makes bad: no resume can use it
         raise
     folder.discard(out)
     summary = _summary(spec, tally, ended, time.perf_counter() - began, preparing)
@@ -379,9 +388,8 @@ def _folder_kind(out: Path):
 def _writer(out: Path, spec: Spec, command: str | None, parts, chunk: int):
     """The result being written: NetCDF (store.Writer) or a Zarr store (zarr_store.ZarrWriter)."""
     if is_zarr(out):
-        return ZarrWriter(out, spec, members_table(spec), command, (chunk, segment_samples(spec)),
-                          reopen=bool(parts.parts))
-    return Writer(out, spec, members_table(spec), command, reopen=bool(parts.parts or parts.segments))
+        return ZarrWriter(out, spec, command, (chunk, segment_samples(spec)), reopen=bool(parts.parts))
+    return Writer(out, spec, command, reopen=bool(parts.parts or parts.segments))
 
 
 def zarr_task(spec: Spec, start: int, stop: int, repeats: int = 0, *, store: Path) -> dict:

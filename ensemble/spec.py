@@ -1,4 +1,4 @@
-"""Reading and validating run files, and expanding them into a members table (ensemble.members; one value's
+"""Reading and validating run files (ensemble.members builds and checks each range's members table; one value's
 checks and the draws are in ensemble.runfile).
 
 A run file is TOML (see README.md). Every problem is a SpecError naming the
@@ -23,7 +23,7 @@ import io
 import math
 import re
 import tomllib
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -31,8 +31,7 @@ import numpy as np
 from .events import parse as parse_events
 from .inertia import SHAPES
 from .members import (  # noqa: F401 (given_values, members_table, with_values: spec's API, built in members)
-    MAX_TABLE_BYTES,
-    build_table,
+    check_before_start,
     given_values,
     members_table,
     with_values,
@@ -107,7 +106,6 @@ class Spec:
     precision: str = "float64"  # one of PRECISIONS
     draws: str = "each member"  # one of DRAWS: "same at every point" gives replica r the same draws at every point
     events: tuple = ()  # results.Event of the [events] tables (ensemble.events)
-    table: dict[str, np.ndarray] | None = field(default=None, repr=False, compare=False)  # see members_table
     # a user's scene: the identity of its sources when the run file was read (model refuses any other)
     sources: str | None = field(default=None, compare=False)
     # members per block of this process's CPU kernels for a run of few long members (runner.few_members_block
@@ -265,14 +263,8 @@ def parse(text: str, path: str = "<string>") -> Spec:
                 declared=declared, rtol=settings.get("rtol"), atol=settings.get("atol"), measure=measure,
                 blowup_factor=blowup_factor, device=device, precision=precision, draws=draws, events=events,
                 sources=identity(module.module) if hasattr(module, "module") else None)
-    sizes = module.sizes(constants)
-    need = 8 * spec.n_members * (sum(sizes[p.per] if p.per else 1 for p in declared.values()) + len(SETTINGS) + 1)
-    if need > MAX_TABLE_BYTES:
-        raise SpecError("members", f"{spec.n_members} member(s) ({values['members']} per sweep point) need "
-                                   f"{need / 1e9:.3g} GB of parameters in memory; at most "
-                                   f"{MAX_TABLE_BYTES / 1e9:.3g} GB")
-    # Drawing every member's values checks them; keep them, as mode starts may cost an eigensolve each.
-    return replace(spec, table=build_table(spec))
+    check_before_start(spec)
+    return spec
 
 
 def _save(save: tuple, module, events: bool) -> tuple[str, ...]:

@@ -22,6 +22,7 @@ import numpy as np
 from .errors import EnsembleError
 from .events import dimensions as event_dimensions
 from .events import variables as event_variables
+from .members import grid_points, point_settings
 from .results import Status
 from .spec import Spec, given_values
 from .version import __version__
@@ -108,16 +109,17 @@ def device_name(device: str) -> str:
     return f"cuda: {require_gpu()}"
 
 
-def global_attributes(spec: Spec, table: dict[str, np.ndarray], command: str | None = None) -> dict[str, object]:
+def global_attributes(spec: Spec, command: str | None = None) -> dict[str, object]:
     """The run's provenance; a setting (method, dt, rtol, atol) is an attribute when every member shares it.
     `command` is the command line that made the run (default: `ensemble run <run file>`)."""
     now = datetime.datetime.now(datetime.timezone.utc).replace(microsecond=0).isoformat()
     methods = " ".join(spec.methods)
     shared = {}
+    settings = point_settings(spec, grid_points(spec))
     for key in SETTING_UNITS:
-        values = table[key][np.isfinite(table[key])]
-        if len(values) and np.all(values == values[0]) and key not in spec.sweep:
-            shared[key] = float(values[0])
+        values = {s[key] for s in settings} - {None}
+        if len(values) == 1 and key not in spec.sweep:
+            shared[key] = float(values.pop())
     return {
         **spec.constants,
         "Conventions": "CF-1.9",
@@ -156,6 +158,34 @@ def kernels_identity(spec: Spec) -> dict[str, str]:
     return {"scene_sources_sha256": scene_identity(spec.model), "engine_sha256": engine_hash(), **target}
 
 
+def member_variables(spec: Spec, table: dict[str, np.ndarray], start: int) -> dict[str, np.ndarray]:
+    """The result's variables over member that the members `table` (ensemble.members.members_table) of members
+    start, start + 1, ... gives: the member and sweep_point coordinates, each parameter, and the settings the
+    run sweeps (method as its flag code). A range writes them with its records."""
+    n = len(table["sweep_point"])
+    out = {"member": np.arange(start, start + n, dtype=member_type(spec)),
+           "sweep_point": table["sweep_point"].astype(np.int32)}
+    out.update({name: table[name] for name in spec.declared})
+    if "method" in spec.sweep:
+        codes = np.empty(n, dtype=np.int8)
+        for code, name in enumerate(spec.methods):  # in order of first use, as the flag_meanings list them
+            codes[table["method"] == name] = code
+        out["method"] = codes
+    out.update({key: table[key] for key in SETTING_UNITS if key in spec.sweep})
+    return out
+
+
+def member_variable_names(spec: Spec) -> list[str]:
+    """The names of member_variables(spec, ...), in order."""
+    settings = [key for key in ("method", *SETTING_UNITS) if key in spec.sweep]
+    return ["member", "sweep_point", *spec.declared, *settings]
+
+
+def member_type(spec: Spec) -> np.dtype:
+    """The member coordinate's type: int32, or int64 for a run of more members than an int32 counts."""
+    return np.dtype(np.int32 if spec.n_members <= np.iinfo(np.int32).max else np.int64)
+
+
 def put_samples(variables, offset: int, first: int, data: dict[str, np.ndarray]) -> None:
     """Saved variables (member, t, ...) of `data` into `variables` (netCDF4 variables or arrays by name) at
     members offset, offset + 1, ... and samples first, first + 1, ..."""
@@ -188,30 +218,32 @@ def record_variables(spec: Spec) -> dict[str, tuple]:
 
 
 class Description:
-    """Writes everything a result says besides its samples and records into `nc` (a new netCDF4 Dataset):
-    attributes, dimensions, coordinates, parameters and settings, with the samples and records declared."""
+    """Writes everything a result says besides its samples, records and member variables (member_variables) into
+    `nc` (a new netCDF4 Dataset): attributes, dimensions, coordinates, with every variable declared. The member
+    variables, the saved variables and the records are contiguous (member-major, as ranges write them)."""
 
     def __init__(self, nc: netCDF4.Dataset, spec: Spec):
         self.nc, self.spec, self.scene = nc, spec, spec.model
 
-    def describe(self, table: dict[str, np.ndarray], command: str | None) -> None:
-        """Everything the file says besides its samples and records: attributes, dimensions, parameters."""
-        self.nc.setncatts(global_attributes(self.spec, table, command))
-        self._dimensions(table)
-        self._parameters(table)
-        self._settings(table)
+    def describe(self, command: str | None) -> None:
+        """Everything the file says besides what ranges of members write: attributes, dimensions, coordinates."""
+        self.nc.setncatts(global_attributes(self.spec, command))
+        self._dimensions()
+        self._parameters()
+        self._settings()
         self._records()
         self._observables()
 
-    def _dimensions(self, table: dict[str, np.ndarray]) -> None:
+    def _dimensions(self) -> None:
         """member, t and the scene's dimensions that a saved variable or a parameter uses, with coordinates."""
-        spec, n = self.spec, self.spec.n_members
+        spec = self.spec
         used = {d for name in spec.save for d in self.scene.OBSERVABLES[name][0]}
         used |= {p.per for p in spec.declared.values() if p.per}
-        sizes = {"member": n, "t": spec.n_save, **self.scene.sizes(spec.constants), **event_dimensions(spec.events)}
+        sizes = {"member": spec.n_members, "t": spec.n_save, **self.scene.sizes(spec.constants),
+                 **event_dimensions(spec.events)}
         for dim, size in sizes.items():
             self.nc.createDimension(dim, size)
-        self._coordinate("member", np.arange(n, dtype=np.int32), "ensemble member index")
+        self._per_member("member", member_type(spec), ("member",), units="1", long_name="ensemble member index")
         times = self._coordinate("t", np.empty(0), "time since the start of the run", units="s", dims=("t",))
         for first in range(0, spec.n_save, TIMES_AT_ONCE):
             times[first:first + TIMES_AT_ONCE] = spec.times(first, first + TIMES_AT_ONCE)
@@ -220,62 +252,59 @@ class Description:
                 self._coordinate(dim, values, long_name)
         for name, count in event_dimensions(spec.events).items():
             self._coordinate(name, np.arange(count, dtype=np.int32), f"occurrence of event {name}, in order")
-        self._coordinate("sweep_point", table["sweep_point"].astype(np.int32),
-                         "index of the member's point on the sweep grid", dims=("member",))
+        self._per_member("sweep_point", np.int32, ("member",), units="1",
+                         long_name="index of the member's point on the sweep grid")
 
-    def _parameters(self, table: dict[str, np.ndarray]) -> None:
+    def _parameters(self) -> None:
         """Every member's parameter values; those a shape derives say so."""
         spec = self.spec
         derived = {name: source for source, p in self.scene.PARAMETERS.items() if f"{source}_shape" in spec.constants
                    for name in p.derives}
         for name, parameter in spec.declared.items():
-            var = self.nc.createVariable(name, "f8", ("member", parameter.per) if parameter.per else ("member",))
-            var.setncatts({"units": parameter.units, "long_name": parameter.long_name})
+            var = self._per_member(name, "f8", ("member", parameter.per) if parameter.per else ("member",),
+                                   units=parameter.units, long_name=parameter.long_name)
             if name in derived:
                 var.setncattr("comment", f"from the principal moments of the {derived[name]} "
                                          f"({spec.constants[derived[name] + '_shape']}) about its centre of mass")
-            var[:] = table[name]
 
-    def _settings(self, table: dict[str, np.ndarray]) -> None:
+    def _settings(self) -> None:
         """method, dt, rtol and atol per member, where the run sweeps them."""
         spec = self.spec
         if "method" in spec.sweep:
-            methods = spec.methods  # in order of first use, as in the table
-            var = self.nc.createVariable("method", "i1", ("member",))
-            var.setncatts({"long_name": "integration method", "flag_values": np.arange(len(methods), dtype=np.int8),
-                           "flag_meanings": " ".join(methods)})
-            codes = np.empty(len(table["method"]), dtype=np.int8)
-            for code, name in enumerate(methods):
-                codes[table["method"] == name] = code
-            var[:] = codes
+            methods = spec.methods  # in order of first use, as member_variables codes them
+            self._per_member("method", "i1", ("member",), long_name="integration method",
+                             flag_values=np.arange(len(methods), dtype=np.int8), flag_meanings=" ".join(methods))
         for key, (units, long_name, comment) in SETTING_UNITS.items():
             if key in spec.sweep:
-                var = self.nc.createVariable(key, "f8", ("member",), fill_value=np.nan)
-                var.setncatts({"units": units, "long_name": long_name, "comment": comment})
-                var[:] = table[key]
+                self._per_member(key, "f8", ("member",), fill_value=np.nan, units=units, long_name=long_name,
+                                 comment=comment)
 
     def _records(self) -> None:
         """How each member ran: step counts, status, failure time, growth, and what [measure] asks for."""
         for name, (kind, dims, units, long_name, comment, attributes) in record_variables(self.spec).items():
-            var = self.nc.createVariable(name, kind, dims, contiguous=True, fill_value=np.nan if kind == "f8" else None)
             if name == "status":
-                var.setncatts({"long_name": long_name, "flag_values": Status.flag_values(),
-                               "flag_meanings": Status.flag_meanings()})
+                self._per_member(name, kind, dims, long_name=long_name, flag_values=Status.flag_values(),
+                                 flag_meanings=Status.flag_meanings())
             else:
-                var.setncatts({"units": units, "long_name": long_name, "comment": comment, **attributes})
+                self._per_member(name, kind, dims, fill_value=np.nan if kind == "f8" else None, units=units,
+                                 long_name=long_name, comment=comment, **attributes)
 
     def _observables(self) -> None:
-        """The saved variables, contiguous (member-major, as they are written); NaN marks a member's samples after
-        it failed."""
+        """The saved variables; NaN marks a member's samples after it failed."""
         spec = self.spec
         for name in spec.save:
             dims, units, long_name = self.scene.OBSERVABLES[name]
-            var = self.nc.createVariable(name, "f8", dims, contiguous=True, fill_value=np.nan)
-            var.setncatts({"units": units, "long_name": long_name})
+            var = self._per_member(name, "f8", dims, fill_value=np.nan, units=units, long_name=long_name)
             if name in spec.noise:
                 var.setncattr("observation_noise_stddev", spec.noise[name])
                 var.setncattr("comment", "includes Gaussian observation noise of stddev observation_noise_stddev "
                                          "(same units), drawn per member from the run's seed")
+
+    def _per_member(self, name, kind, dims, fill_value=None, **attributes):
+        """A contiguous variable over member (and more), declared: ranges of members write its values."""
+        var = self.nc.createVariable(name, kind, dims, contiguous=True, fill_value=fill_value)
+        var.setncatts(attributes)
+        return var
 
     def _coordinate(self, name, values, long_name, units="1", dims=None):
         var = self.nc.createVariable(name, values.dtype, dims or (name,))
@@ -285,28 +314,33 @@ class Description:
         return var
 
 
-
-def described(spec: Spec, table: dict[str, np.ndarray], command: str | None = None) -> netCDF4.Dataset:
+def described(spec: Spec, command: str | None = None) -> netCDF4.Dataset:
     """The description of the result of `spec` (Description) in a diskless netCDF4 Dataset; close it after use.
-    Its samples and records are declared, never written: it holds no more than the members table."""
+    What ranges of members write is declared, never written: its size does not grow with the members."""
     nc = netCDF4.Dataset("description.nc", "w", diskless=True, persist=False)
     try:
-        Description(nc, spec).describe(table, command)
+        Description(nc, spec).describe(command)
     except BaseException:
         nc.close()
         raise
     return nc
 
 
+def written_by_ranges(spec: Spec) -> list[str]:
+    """The variables that each range of members writes (over member): its member variables, records and saved
+    variables."""
+    return [*member_variable_names(spec), *record_names(spec), *spec.save]
+
+
 class Writer:
-    """Creates the file with every member's parameters; data arrive by member ranges.
+    """Creates the file with every variable declared; the members' values, records and samples arrive by member
+    ranges.
 
     Use as a context manager: on success the file is fsynced and renamed into
     place; on an exception the temporary file is closed and left to the caller.
     """
 
-    def __init__(self, path: str | Path, spec: Spec, table: dict[str, np.ndarray], command: str | None = None,
-                 reopen: bool = False):
+    def __init__(self, path: str | Path, spec: Spec, command: str | None = None, reopen: bool = False):
         """`reopen`: continue the OUT.tmp an interrupted run of the same spec left (ensemble.parts checked it)."""
         self.path = Path(path)
         self.temporary = temporary_path(self.path)
@@ -316,20 +350,20 @@ class Writer:
         self.nc.set_fill_off()  # every value is written (NaN after a failure too): HDF5 need not pre-fill the storage
         try:
             if reopen:
-                self._describe_again(table, command)
+                self._describe_again(command)
             else:
-                Description(self.nc, spec).describe(table, command)
+                Description(self.nc, spec).describe(command)
                 self._allocate()
         except BaseException as error:
             self.__exit__(type(error), error, None)
             raise
 
-    def _describe_again(self, table: dict[str, np.ndarray], command: str | None) -> None:
-        """A resumed OUT.tmp's attributes and its variables but the samples and records, written again from the
-        run file (an edit of them since, of a parameter or a unit, must not reach the result); StoreError when
-        its variables are not the run file's."""
+    def _describe_again(self, command: str | None) -> None:
+        """A resumed OUT.tmp's attributes and the variables that no range writes, written again from the run file
+        (an edit of them since, of a unit or a coordinate, must not reach the result); StoreError when its
+        variables are not the run file's."""
         found = self.nc
-        fresh = described(self.spec, table, command)
+        fresh = described(self.spec, command)
         try:
             shape = {name: (v.dimensions, v.dtype) for name, v in fresh.variables.items()}
             if {name: (v.dimensions, v.dtype) for name, v in found.variables.items()} != shape:
@@ -339,17 +373,17 @@ class Writer:
                 for name in set(target.ncattrs()) - set(source.ncattrs()) - {"_FillValue"}:
                     target.delncattr(name)
                 target.setncatts({k: source.getncattr(k) for k in source.ncattrs() if k != "_FillValue"})
-            for name in set(fresh.variables) - set(self.spec.save) - set(record_names(self.spec)):
+            for name in set(fresh.variables) - set(written_by_ranges(self.spec)):
                 found[name][:] = fresh[name][:]
         finally:
             fresh.close()
 
     def _allocate(self) -> None:
-        """Give the records and saved variables their whole space now, by writing each one's last value (NaN, or
+        """Give every variable that ranges write its whole space now, by writing each one's last value (NaN, or
         0 for an integer; the run writes its own later): the records are written only when every member is in
         (ensemble.parts), and a change of the file's structure then, by a run killed midway, would cost every
         part."""
-        for name in [*record_names(self.spec), *self.spec.save]:
+        for name in written_by_ranges(self.spec):
             variable = self.nc.variables[name]
             variable[tuple(size - 1 for size in variable.shape)] = np.nan if variable.dtype.kind == "f" else 0
 
@@ -359,7 +393,7 @@ class Writer:
         put_samples(self.nc.variables, start, first, data)
 
     def write(self, start: int, data: dict[str, np.ndarray]) -> None:
-        """Store the per-member records (member,) of members start, start + 1, ..."""
+        """Store the per-member records or member variables (member, ...) of members start, start + 1, ..."""
         put_records(self.nc.variables, start, data)
 
     def sync(self) -> None:

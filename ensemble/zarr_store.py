@@ -2,9 +2,10 @@
 
 A run of OUT.zarr writes a Zarr v3 store, OUT.zarr.tmp, with the NetCDF
 result's contract (ensemble.store.Description: names, units, CF attributes,
-flags, provenance). Its client writes the template: metadata, coordinates,
-parameters. Members then arrive by task ranges, each whole chunks (or one shard,
-where a range outgrows a chunk), written by the process that computed them
+flags, provenance). Its client writes the template: metadata and the coordinates
+that are not over member. Members (their parameters, samples and records) then
+arrive by task ranges, each whole chunks (or one shard, where a range outgrows a
+chunk), written by the process that computed them
 (this one, or a Dask worker: never two writers in a chunk or shard), and each
 finished range leaves a receipt in OUT.zarr.parts/:
 
@@ -27,17 +28,17 @@ import math
 import os
 import shutil
 import warnings
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from .checksums import sample_sum, write_atomically
+from .checksums import record_sum, sample_sum, write_atomically
 from .errors import EnsembleError
 from .parts import MANIFEST, fingerprint, folder_of, gaps, open_folder, remove_folder
 from .results import Status
 from .spec import Spec
-from .store import TIMES_AT_ONCE, described, fsync_path, record_names, temporary_path
+from .store import TIMES_AT_ONCE, described, fsync_path, temporary_path, written_by_ranges
 
 SUFFIX = ".zarr"
 CHUNK_BYTES = 2**24  # at most, a chunk: what a reader fetches at once; a task's range above it is sharded
@@ -101,19 +102,20 @@ def _attribute(value):
     return value.item() if isinstance(value, np.generic) else value
 
 
-def create(path: Path, spec: Spec, table: dict[str, np.ndarray], command: str | None, task: tuple[int, int]) -> None:
+def create(path: Path, spec: Spec, command: str | None, task: tuple[int, int]) -> None:
     """Write the template of the result of `spec` at `path` (a new folder): every variable of
-    ensemble.store.Description, coordinates and parameters with their values; samples and records are written
-    later by tasks, `task` = (members, samples per segment) at a time."""
+    ensemble.store.Description, the coordinates that are not over member with their values; what is over member
+    (member variables, samples, records) is written later by tasks, `task` = (members, samples per segment) at a
+    time. Its size does not grow with the members."""
     zarr = _zarr()
     from xarray.backends.zarr import FillValueCoder
     from zarr.codecs import Crc32cCodec
 
     group = zarr.open_group(path, mode="w-", zarr_format=3)
-    nc = described(spec, table, command)
+    nc = described(spec, command)
     try:
         group.attrs.update({name: _attribute(nc.getncattr(name)) for name in nc.ncattrs()})
-        filled_later = {*spec.save, *record_names(spec)}
+        filled_later = set(written_by_ranges(spec))
         for name, variable in nc.variables.items():
             shape, dims = variable.shape, variable.dimensions
             shards = None
@@ -168,7 +170,8 @@ class Region:
             self.sums[name] = (self.sums.get(name, 0) + sample_sum(values, start, first)) % 2**64
 
     def write(self, start: int, data: dict[str, np.ndarray]) -> None:
-        """The records of every member of the range (start is the range's)."""
+        """The records and member variables (ensemble.store.member_variables) of every member of the range (start
+        is the range's)."""
         for name, values in data.items():
             self.array(name)[start:start + len(values)] = values
             self.sums[name] = record_sum(values, start)
@@ -185,11 +188,6 @@ class Region:
                            "step_counts": np.unique(steps).tolist(), "status": status.tolist()}}
 
 
-def record_sum(values: np.ndarray, start: int) -> int:
-    """sample_sum of a record (member, ...) of members start, start + 1, ..."""
-    return sample_sum(np.asarray(values, dtype=np.float64).reshape(len(values), 1, -1), start, 0)
-
-
 def run_file_sha256(spec: Spec) -> str:
     """The SHA-256 of the run file's text (as ensemble.parts.fingerprint's), which a receipt names."""
     return hashlib.sha256(spec.text.encode()).hexdigest()
@@ -202,7 +200,7 @@ def checked_sums(path: Path, spec: Spec, start: int, stop: int) -> dict[str, str
     sums = {}
     try:
         group = zarr.open_group(path, mode="r")
-        for name in [*spec.save, *record_names(spec)]:
+        for name in written_by_ranges(spec):
             values = group[name][start:stop]
             sums[name] = sample_sum(values, start, 0) if name in spec.save else record_sum(values, start)
     except (OSError, ValueError, KeyError):
@@ -259,11 +257,10 @@ class Receipts:
                 pass
             self._drop(path)
         ranges = [(inside["start"], inside["stop"]) for inside in found.values()]
-        light = replace(self.spec, table=None)  # a worker needs no members table to read the store
         if client is None:
-            stored = [checked_sums(self.store, light, *r) for r in ranges]
+            stored = [checked_sums(self.store, self.spec, *r) for r in ranges]
         else:
-            stored = client.gather(client.map(checked_sums, [self.store.resolve()] * len(ranges), [light] * len(
+            stored = client.gather(client.map(checked_sums, [self.store.resolve()] * len(ranges), [self.spec] * len(
                 ranges), *zip(*ranges), pure=False)) if ranges else []
         kept = []
         for (path, inside), sums in zip(found.items(), stored):
@@ -363,13 +360,12 @@ class ZarrWriter:
     written segment by segment as its range runs; a stopped run computes an unfinished range again from its
     start (its receipt is the unit a resume keeps)."""
 
-    def __init__(self, path: Path, spec: Spec, table: dict[str, np.ndarray], command: str | None,
-                 task: tuple[int, int], reopen: bool = False):
+    def __init__(self, path: Path, spec: Spec, command: str | None, task: tuple[int, int], reopen: bool = False):
         """`task`: (members, samples per segment) a task writes at a time (create)."""
         self.path, self.temporary = Path(path), temporary_path(Path(path))
         if not reopen:
             remove_store(self.temporary)
-            create(self.temporary, spec, table, command, task)
+            create(self.temporary, spec, command, task)
 
     def sync(self) -> None:
         """Each chunk is a file of its own, written whole: nothing is held back."""

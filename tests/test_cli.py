@@ -327,12 +327,12 @@ def test_interrupt_before_the_file_opens_is_one_line_naming_no_file(where, expec
                                                                     monkeypatch, capsys):
     """Ctrl-C while kernels load, or while members are drawn (a long chain's mode starts solve eigenproblems):
     one line, status 130, and nothing is left, so the message must not point to anything."""
-    from ensemble import spec as spec_module
+    from ensemble import members
 
     def interrupted(*args, **kwargs):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(*((launch, "prepare") if where == "kernels" else (spec_module, "build_table")), interrupted)
+    monkeypatch.setattr(*((launch, "prepare") if where == "kernels" else (members, "build_table")), interrupted)
     out = tmp_path / "out.nc"
     assert cli.main(["run", str(write_runfile(top_runfile())), "-o", str(out)]) == 130
     assert capsys.readouterr().err.strip().splitlines() == [expected]

@@ -147,11 +147,11 @@ def test_a_disk_without_room_for_the_result_is_refused_before_the_run(tmp_path, 
 
 def test_step_counters_hold_more_than_two_billion(tmp_path):
     """A run of 3e9 steps per member must not wrap to a negative count in the file (they are 64-bit)."""
-    from ensemble.spec import members_table, parse
+    from ensemble.spec import parse
     from ensemble.store import Writer
     spec = parse(top_runfile(members=3), "run.toml")
     counts = np.array([3_000_000_000, 2**40, 7], dtype=np.int64)
-    with Writer(tmp_path / "out.nc", spec, members_table(spec)) as writer:
+    with Writer(tmp_path / "out.nc", spec) as writer:
         writer.write(0, {"steps_accepted": counts, "rhs_evals": 4 * counts})
     with netCDF4.Dataset(tmp_path / "out.nc") as nc:
         np.testing.assert_array_equal(nc["steps_accepted"][:], counts)
@@ -159,24 +159,29 @@ def test_step_counters_hold_more_than_two_billion(tmp_path):
 
 
 def test_the_results_structure_is_fixed_when_it_is_created(tmp_path):
-    """Every record and saved variable has its whole space once the file is made (Writer._allocate), so writing
-    members, the records last of all, changes only their bytes: a run killed while writing leaves a file that
-    opens. HDF5 grows the file when it allocates a variable; here the size must not change."""
+    """Every record, saved variable and member variable has its whole space once the file is made
+    (Writer._allocate), so writing members, the records last of all, changes only their bytes: a run killed
+    while writing leaves a file that opens. HDF5 grows the file when it allocates a variable; here the size must
+    not change."""
     from ensemble.spec import members_table, parse
-    from ensemble.store import Writer, record_names, temporary_path
+    from ensemble.store import Writer, member_variables, record_names, temporary_path
     spec = parse(top_runfile(members=1000, save=["omega", "tilt"], t_end=1.0), "run.toml")
     path = tmp_path / "out.nc"
-    with Writer(path, spec, members_table(spec)) as writer:
+    with Writer(path, spec) as writer:
         writer.sync()
         size = temporary_path(path).stat().st_size
         samples = {name: np.ones(writer.nc.variables[name].shape) for name in spec.save}
         assert size > sum(x.nbytes for x in samples.values())  # the space is there already
         writer.write_samples(0, 0, samples)
+        for start in (0, 500):  # the member variables by ranges, as runs write them
+            writer.write(start, member_variables(spec, members_table(spec, start, start + 500), start))
         writer.write(0, {name: np.ones(1000, writer.nc.variables[name].dtype) for name in record_names(spec)})
         writer.sync()
         assert temporary_path(path).stat().st_size == size
     with netCDF4.Dataset(path) as nc:
         assert nc["tilt"][-1, -1] == 1.0 and nc["status"][-1] == 1  # the allocating writes were overwritten
+        np.testing.assert_array_equal(nc["member"][:], np.arange(1000))
+        np.testing.assert_array_equal(nc["tilt0"][:], members_table(spec)["tilt0"])
 
 
 @pytest.mark.skipif(not hasattr(os, "posix_fadvise"), reason="no posix_fadvise here")

@@ -112,17 +112,15 @@ def test_a_member_keeps_its_draws_when_the_ensemble_grows():
 
 
 def test_any_range_of_members_draws_what_the_whole_run_draws():
-    """A task builds members start .. stop - 1 alone (the spec sent without its table), per-mass normal draws
-    included: the same values as the whole table, for ranges of every size and place."""
-    from dataclasses import replace
-
+    """A task builds members start .. stop - 1 alone, per-mass normal draws included: the same values as the
+    whole table, for ranges of every size and place."""
     text = CHAIN_TEXT.replace("members = 2", "members = 257").replace(
         "x0 = 0.1", "x0 = { normal = [0.0, 0.1] }\nv0 = { uniform = [-1.0, 1.0] }").replace(
         "m = 1.0", "m = { loguniform = [0.5, 2.0] }")
     spec = parse(text)
-    whole, alone = members_table(spec), replace(spec, table=None)
+    whole = members_table(spec)
     for start, stop in [(0, 257), (0, 1), (5, 12), (128, 256), (256, 257)]:
-        part = members_table(alone, start, stop)
+        part = members_table(spec, start, stop)
         assert part.keys() == whole.keys()
         for name in whole:
             np.testing.assert_array_equal(part[name], whole[name][start:stop], err_msg=name)
@@ -202,11 +200,11 @@ def test_summary_says_closed_form_only_for_the_closed_form():
     ({"t_end": 1e308, "save_dt": 1e308}, "save_dt: save_dt / dt = 1e+308 / 0.001 = inf"),
     ({"t_end": 1e13, "save_dt": 1e12, "dt": 1.0}, "dt: t_end / dt = 1e+13 steps per member: more than the 1e+12"),
     ({"seed": 2**70}, "seed: must be in 0 .. 2**63 - 1, got 1180591620717411303424"),
-    ({"members": 10**12}, "members: 1000000000000 member(s) (1000000000000 per sweep point) need 8.8e+04 GB"),
+    ({"members": 10**12}, "the result needs about 3.52e+08 MB"),
 ])
 def test_what_a_run_file_may_ask_for_is_bounded(change, expected, tmp_path, capsys):
     """Steps, seeds and members beyond the limits are one line before anything is allocated (a 10**12-member
-    run would need 8.8e4 GB for its parameters alone)."""
+    run's result would need more disk than there is; its parameters are drawn by ranges, never all at once)."""
     refused(top_runfile(**change), tmp_path, capsys, expected)
 
 
@@ -319,3 +317,47 @@ def test_parameters_given_member_by_member_from_a_file_or_the_api(tmp_path):
     np.save(tmp_path / "tilt.npy", np.array(["a", "b"]))
     with pytest.raises(SpecError, match=r"parameters.tilt0.file: .*tilt.npy: must hold finite numbers"):
         spec_module.load(tmp_path / "run.toml")
+
+
+def test_a_bad_member_past_the_checked_ones_is_one_line_and_leaves_nothing(tmp_path, capsys, monkeypatch):
+    """A run of more members than its reading checks (CHECKED_BEFORE_START) checks every other range where it is
+    integrated: a bad member there is one line naming its range, exit status 2, and nothing is left."""
+    from ensemble import members
+
+    monkeypatch.setattr(members, "CHECKED_BEFORE_START", 16)
+    tilt0 = np.full(300, 0.1)
+    tilt0[250] = 4.0
+    np.save(tmp_path / "tilt0.npy", tilt0)
+    refused(top_runfile(members=300, parameters={"tilt0": {"file": "tilt0.npy"}}), tmp_path, capsys,
+            "parameters.tilt0: must lie in [0, pi] (among members ")
+
+
+@pytest.mark.parametrize("members, points", [(10, 4), (100_000, 1), (20, 5000), (40_000, 6)])
+def test_the_members_checked_before_the_start_cover_every_sweep_point(members, points):
+    """Every member of a small run; of a large one the first members of each sweep point (of at most
+    SAMPLED_POINTS, spread, the last included), about CHECKED_BEFORE_START in all."""
+    from ensemble.members import CHECKED_BEFORE_START, SAMPLED_POINTS, before_start
+
+    spec = parse(top_runfile(members=members, sweep={"c": [1e-6 * k for k in range(points)]},
+                             parameters={"c": None}))
+    ranges = before_start(spec)
+    if spec.n_members <= CHECKED_BEFORE_START:
+        assert ranges == [(0, spec.n_members)]
+        return
+    starts = sorted({start // members for start, _ in ranges})
+    assert len(starts) <= SAMPLED_POINTS + 1 and max(np.diff(starts, prepend=0)) <= -(-points // SAMPLED_POINTS)
+    assert starts[0] == 0 and starts[-1] == points - 1 and all(stop - start >= 1 for start, stop in ranges)
+    assert sum(stop - start for start, stop in ranges) <= CHECKED_BEFORE_START + len(ranges)
+
+
+def test_launch_ranges_come_from_the_grid_as_from_the_table():
+    """runner.one_launch_ranges cuts ranges where the sweep points' method or dt change, without a members table:
+    the cuts the table's settings give, for ranges that start and end inside points."""
+    spec = parse(top_runfile(members=5, method=None, dt=None, parameters={"c": None},
+                             sweep={"method": ["rk4", "split2"], "dt": [1e-3, 2e-3], "c": [1e-4, 2e-4]}))
+    for todo in ([(0, spec.n_members)], [(3, 17), (17, 20), (20, 31)], [(0, 1), (4, 6), (8, 12)]):
+        expected = []
+        for start, stop in todo:
+            table = members_table(spec, start, stop)
+            expected += [(start + k0, start + k1) for k0, k1 in runner._same_settings(table, 0, stop - start)]
+        assert runner.one_launch_ranges(spec, todo) == expected

@@ -11,7 +11,7 @@ from ensemble import cli, fitting, records, runner, stability
 from ensemble.engine import launch
 from ensemble.methods import METHODS
 from ensemble.scenes import chain, top
-from ensemble.spec import load, parse
+from ensemble.spec import load, members_table, parse
 
 from .conftest import top_runfile
 from .test_analysis import command
@@ -277,7 +277,7 @@ def test_omega_max_scales_the_springs(tmp_path):
     unscaled = parse(verlet_chain_text([0.5, 1.7], 6).replace("omega_max = [0.5, 1.7]", ""))
     assert "omega_max" not in runner.simulate(unscaled)  # optional: absent unless given
     # the same draws, scaled: the mode shapes stay
-    np.testing.assert_allclose(shapes, chain.normal_modes(ds["m"].values, unscaled.table["k"])[1], atol=1e-12)
+    np.testing.assert_allclose(shapes, chain.normal_modes(ds["m"].values, members_table(unscaled)["k"])[1], atol=1e-12)
 
 
 @pytest.mark.parametrize("text, key", [

@@ -280,3 +280,51 @@ def test_a_range_that_keeps_failing_is_named_and_resume_completes_it(reference, 
     assert not out.exists() and len(list(folder_of(out).glob("receipt-*.json"))) == 18 - len(failed)
     runner.run(load(path), out, chunk=7, progress=False, client=client, resume=True)
     same_bits(out, nc)
+
+
+def test_the_clients_memory_does_not_grow_with_the_members(tmp_path):
+    """Issue 54, item 8: reading a run file of 10^9 members, its fingerprint and its store's template take the
+    memory those of 10^6 take, and the template holds no member's values (each range draws, checks and writes
+    its own where it runs)."""
+    import tracemalloc
+
+    from ensemble.parts import fingerprint
+    from ensemble.spec import parse
+
+    peaks = {}
+    for members in (10**6, 10**9, 10**6):  # the first of 10^6 warms the imports and caches
+        tracemalloc.start()
+        spec = parse(top_runfile(members=members, save=["tilt"]), "run.toml")
+        fingerprint(spec)
+        store = tmp_path / f"{members}-{len(peaks)}.zarr"
+        zarr_store.create(store, spec, None, (4096, spec.n_save))
+        peaks[members] = tracemalloc.get_traced_memory()[1]
+        tracemalloc.stop()
+    assert peaks[10**9] < 1.1 * peaks[10**6] + 2**20, peaks
+    group = zarr.open_group(store, mode="r")
+    assert group["tilt0"].shape == (10**6,) and group["member"].nchunks_initialized == 0
+    assert group["tilt"].nchunks_initialized == 0 and group["t"].nchunks_initialized == 1
+
+
+def test_a_bad_member_found_by_a_worker_stops_the_run_in_one_line(client, tmp_path, monkeypatch):
+    """A member that the checks before the start do not reach (here: past the first 16) and that breaks the
+    scene's constraints stops a cluster run as soon as its task meets it: one line naming the parameter and the
+    members' range, and nothing is left (no resume could use what was done: the run file must change)."""
+    from ensemble import members
+    from ensemble.spec import SpecError, parse
+
+    tilt0 = np.full(64, 0.1)
+    tilt0[40] = -0.1
+    np.save(tmp_path / "tilt0.npy", tilt0)
+    path = tmp_path / "run.toml"
+    path.write_text(top_runfile(members=64, parameters={"tilt0": {"file": "tilt0.npy"}}))
+    monkeypatch.setattr(members, "CHECKED_BEFORE_START", 16)
+    spec = load(path)
+    out = tmp_path / "bad.zarr"
+    with pytest.raises(SpecError, match=r"^parameters\.tilt0: must lie in \[0, pi\] \(among members 32 to 47, met "
+                                        r"as they were integrated"):
+        runner.run(spec, out, chunk=16, progress=False, client=client)
+    assert not list(tmp_path.glob("bad.zarr*"))
+    monkeypatch.undo()
+    with pytest.raises(SpecError, match=r"^parameters\.tilt0: must lie in \[0, pi\]$"):
+        parse(path.read_text(), str(path))  # every member of a run this small is checked before the start
