@@ -26,8 +26,8 @@ def _parser() -> argparse.ArgumentParser:
                               description="Integrate every member of a run file and write one NetCDF file (or a "
                                           "Zarr store).")
     run.add_argument("runfile", type=Path, help="run file (TOML), see runs/")
-    run.add_argument("-o", "--output", type=Path, help="output file (default: results/<runfile stem>.nc), or a Zarr "
-                                                       "store if it ends in .zarr (the zarr extra; docs/cluster.md)")
+    run.add_argument("-o", "--output", help="output file (default: results/<runfile stem>.nc), or a Zarr store if it "
+                                            "ends in .zarr (the zarr extra; docs/cluster.md)")
     run.add_argument("--force", action="store_true", help="replace an existing output file")
     run.add_argument("--chunk", type=int, help="members per chunk held in memory, rounded up to whole kernel blocks "
                                                "(default: about 32 MB of output)")
@@ -213,7 +213,9 @@ def _run(args) -> int:
     except KeyboardInterrupt:  # drawing members (mode starts solve eigenproblems) can take a while
         print("ensemble: interrupted while reading the run file; nothing was written", file=sys.stderr)
         return EXIT_INTERRUPTED
-    out = args.output or Path("results") / f"{args.runfile.stem}.nc"
+    if args.output and preflight.url_problem(args.output):
+        return _error(preflight.url_problem(args.output))
+    out = Path(args.output) if args.output else Path("results") / f"{args.runfile.stem}.nc"
     try:
         spec, chunk, refusal = preflight.check(spec, out, args.runfile, device=args.device, chunk=args.chunk,
                                                force=args.force, resume=args.resume, chunk_option="--chunk",

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import re
 import shutil
 from pathlib import Path
 
@@ -33,6 +34,18 @@ def remove_empty(folders: list[Path]) -> None:
 
 class RunRefused(EnsembleError):
     """A run refused before it started (nothing was computed or written); the message names what and where."""
+
+
+URL = re.compile(r"[A-Za-z][A-Za-z0-9+.-]*://")
+
+
+def url_problem(output: str) -> str | None:
+    """Why `output`, as the user wrote it, is not a path (None if it is): a URL (s3://, gs://, file://, ...), which
+    a path would quietly turn into a folder named after its scheme."""
+    if URL.match(output):
+        return (f"{output}: is a URL; ensemble writes to a path (a Zarr store on a file system every worker mounts "
+                f"at the same path): object stores (fsspec URLs) are not supported yet")
+    return None
 
 
 def check(spec, out: Path, runfile: Path | None, *, device: str | None, chunk: int | None, force: bool,

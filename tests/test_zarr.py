@@ -328,3 +328,21 @@ def test_a_bad_member_found_by_a_worker_stops_the_run_in_one_line(client, tmp_pa
     monkeypatch.undo()
     with pytest.raises(SpecError, match=r"^parameters\.tilt0: must lie in \[0, pi\]$"):
         parse(path.read_text(), str(path))  # every member of a run this small is checked before the start
+
+
+def test_an_object_store_url_is_refused_in_one_line(tmp_path, write_runfile, monkeypatch, capsys):
+    """`-o s3://bucket/run.zarr` was taken as a path: a folder named `s3:` was made beside the user. URLs are
+    refused (the command line and ensemble.run), and nothing is made."""
+    from ensemble.preflight import RunRefused
+
+    monkeypatch.chdir(tmp_path)
+    path = write_runfile(top_runfile())
+    for url in ("s3://bucket/run.zarr", "file:///tmp/run.nc"):
+        assert cli.main(["run", str(path), "-o", url]) == 2
+        line = capsys.readouterr().err.strip()
+        assert "\n" not in line and line.endswith(f"{url}: is a URL; ensemble writes to a path (a Zarr store on a "
+                                                  f"file system every worker mounts at the same path): object "
+                                                  f"stores (fsspec URLs) are not supported yet"), line
+    with pytest.raises(RunRefused, match="gs://b/x.zarr: is a URL"):
+        ensemble.run(path, "gs://b/x.zarr", progress=False)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["run.toml"]
