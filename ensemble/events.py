@@ -108,20 +108,25 @@ def _source(key: str, of: str, index: int | None, scene, constants: dict) -> tup
     return index, ("function", where, index)
 
 
-def variables(events: tuple[Event, ...], scene, save: tuple[str, ...]) -> dict[str, tuple]:
+def variables(events: tuple[Event, ...], scene, save: tuple[str, ...], noise: dict[str, float]) -> dict[str, tuple]:
     """The result's variables of `events`: name -> (type, dims, units, long_name, comment, attributes). Per event
     <name>_time (member, <name>), which says what it watched (event_of, event_index: -1 for a single value,
-    event_value, event_direction, event_stop: 0 or 1), and <name>_count (member,); where an event stops members,
-    each saved variable at the stop, <variable>_at_stop (its dims but t)."""
+    event_value, event_direction, event_stop: 0 or 1) and, where `noise` (spec.noise) gives its times some, its
+    observation_noise_stddev; and <name>_count (member,); where an event stops members, each saved variable at
+    the stop, <variable>_at_stop (its dims but t)."""
     out = {}
     for e in events:
         what = f"{e.of}[{e.index}]" if e.index >= 0 else e.of
         crossing = {"up": "rises to", "down": "falls to", "both": "crosses"}[e.direction]
         watched = {"event_of": e.of, "event_index": e.index, "event_value": e.level, "event_direction": e.direction,
                    "event_stop": int(e.stop)}
+        sigma = noise.get(f"{e.name}_time")
+        observed = "" if sigma is None else (", plus Gaussian observation noise of stddev observation_noise_stddev "
+                                             "(s), drawn per member from the run's seed")
         out[f"{e.name}_time"] = ("f8", ("member", e.name), "s", f"time of {e.name}",
                                  f"the first {e.count} times at which {what} {crossing} {e.level:g}, located "
-                                 f"within each step on the method's own path; NaN where fewer occurred", watched)
+                                 f"within each step on the method's own path{observed}; NaN where fewer occurred",
+                                 {**watched, **({} if sigma is None else {"observation_noise_stddev": sigma})})
         out[f"{e.name}_count"] = ("i8", ("member",), "1", f"occurrences of {e.name}", "every occurrence, kept in "
                                   f"{e.name}_time or not" + ("; at most 1: the member stops there" if e.stop else ""),
                                   {})

@@ -264,18 +264,18 @@ def crossing_period(t, spin, sigma):
     return 2 * solution[1], 2 * np.sqrt(half_period_variance), changes.size
 
 
-def event_period(times: np.ndarray, per_period: int) -> tuple[float, float, int]:
+def event_period(times: np.ndarray, per_period: int, sigma: float = 0.0) -> tuple[float, float, int]:
     """(period (s), stderr, occurrences) from a member's event times (NaN where fewer occurred), `per_period` of
     them a period apart (2 for a variable's crossings of zero both ways): a line through the times against their
-    count, its stderr from the scatter about it (0 where the line is exact to rounding). NaNs with fewer than
-    MIN_FLIPS."""
+    count. Its stderr: from `sigma`, the times' observation noise (s), where they have some; else from the scatter
+    about the line (their rounding: 0 where the line is exact). NaNs with fewer than MIN_FLIPS."""
     times = times[np.isfinite(times)]
     if times.size < MIN_FLIPS:
         return np.nan, np.nan, times.size
     count = np.arange(times.size)
     slope, intercept = np.polyfit(count, times, 1)
-    rss = np.sum((times - intercept - slope * count) ** 2)
-    stderr = np.sqrt(rss / (times.size - 2) / np.sum((count - count.mean()) ** 2))
+    variance = sigma**2 if sigma > 0 else np.sum((times - intercept - slope * count) ** 2) / (times.size - 2)
+    stderr = np.sqrt(variance / np.sum((count - count.mean()) ** 2))
     return per_period * slope, per_period * stderr, times.size
 
 

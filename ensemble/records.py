@@ -183,8 +183,8 @@ class Record:
     def __init__(self, spec: Spec, method: Method, values: dict[str, np.ndarray], first: int, members: int,
                  write_samples):
         self.spec, self.method, self.values, self.write_samples = spec, method, values, write_samples
-        self.scene = spec.model
-        self.noise = {name: noise_streams(spec, name, first, members) for name in spec.noise}
+        self.scene, self.first = spec.model, first
+        self.noise = {name: noise_streams(spec, name, first, members) for name in spec.noise if name in spec.save}
         self.amplitudes, self.errors = [], []
 
     def add(self, start: int, samples: np.ndarray) -> dict[str, np.ndarray]:
@@ -233,6 +233,10 @@ class Record:
             records["seconds_per_step"] = np.full(members, np.nan if method.closed_form else seconds_per_step())
         if spec.events:
             records.update(event_records(spec.events, outcome, self.scene, spec.save, self.values, spec.constants))
+            for name in spec.noise.keys() - set(spec.save):  # event times observed with noise
+                draws = [g.standard_normal(records[name].shape[1:]) for g in noise_streams(spec, name, self.first,
+                                                                                          members)]
+                records[name] = records[name] + spec.noise[name] * np.stack(draws)
         return records
 
 

@@ -97,7 +97,8 @@ class Spec:
     grids: tuple[dict[str, tuple], ...] = field(repr=False)  # sweep grids: axis -> values; the run is their union
     constants: dict[str, int | str] = field(default_factory=dict)  # run constants, e.g. n, boundary
     declared: dict[str, Parameter] = field(default_factory=dict, repr=False)  # every per-member parameter
-    noise: dict[str, float] = field(default_factory=dict)  # Gaussian observation noise: variable -> stddev
+    noise: dict[str, float] = field(default_factory=dict)  # Gaussian observation noise: variable (a saved one, or
+    # an event's times, <event>_time) -> stddev
     rtol: float | None = None  # top-level tolerances of adaptive methods
     atol: float | None = None
     measure: dict[str, object] = field(default_factory=dict)  # [measure]: error, timing, repeats, growth
@@ -244,7 +245,6 @@ def parse(text: str, path: str = "<string>") -> Spec:
                                          f"size at the start), got {blowup_factor!r}")
     device, precision = _device(values.get("device", "cpu"), values.get("precision", "float64"))
     draws = _one_of("draws", values.get("draws", DRAWS[0]), DRAWS)
-    noise = _noise(values.get("observe", {}), save, module)
     measure = _measure(values.get("measure", {}), module)
 
     parameters, grids, constants, declared = _parameters(
@@ -256,6 +256,7 @@ def parse(text: str, path: str = "<string>") -> Spec:
     if events and device == "cuda" and module.SITES:
         raise SpecError("device", f"a field of sites' events ({module.NAME}'s) are located on the CPU alone yet; "
                                   f"run it with device = \"cpu\"")
+    noise = _noise(values.get("observe", {}), save, module, events)
 
     spec = Spec(path=str(path), text=text, scene=scene, method=settings.get("method"), dt=settings.get("dt"),
                 t_end=t_end, save_dt=save_dt, members=values["members"], seed=values["seed"], save=save,
@@ -513,25 +514,34 @@ def _derived(name: str, module, constants: dict) -> bool:
     return any(name in p.derives and f"{source}_shape" in constants for source, p in module.PARAMETERS.items())
 
 
-def _noise(observe: dict, save: tuple[str, ...], module) -> dict[str, float]:
-    """The [observe] table: noise = { variable = standard deviation (the variable's units) }."""
+def _noise(observe: dict, save: tuple[str, ...], module, events: tuple) -> dict[str, float]:
+    """The [observe] table: noise = { variable = standard deviation (the variable's units) }, a variable being a
+    saved one or an event's times (<event>_time, s)."""
     for key in observe:
         if key not in OBSERVE_KEYS:
             raise unknown(f"observe.{key}", key, OBSERVE_KEYS)
     noise = expect("observe.noise", observe.get("noise", {}), dict)
+    times = [f"{e.name}_time" for e in events]
     out = {}
     for name, sigma in noise.items():
         key = f"observe.noise.{name}"
-        if name not in module.OBSERVABLES:
-            raise unknown(key, name, module.OBSERVABLES)
+        if name not in (*module.OBSERVABLES, *times):
+            raise unknown(key, name, (*module.OBSERVABLES, *times))
+        if name in times:
+            out[name] = _stddev(key, sigma)
+            continue
         if name not in save:
             raise SpecError(key, f"{name!r} is not saved; add it to save")
-        sigma = expect(key, sigma, float)
-        if not 0 <= sigma <= MAX_NOISE:
-            raise SpecError(key, f"must be a standard deviation in 0..{MAX_NOISE:g} (a larger one turns values into "
-                                 f"inf), got {sigma}")
-        out[name] = sigma
+        out[name] = _stddev(key, sigma)
     return out
+
+
+def _stddev(key: str, sigma) -> float:
+    sigma = expect(key, sigma, float)
+    if not 0 <= sigma <= MAX_NOISE:
+        raise SpecError(key, f"must be a standard deviation in 0..{MAX_NOISE:g} (a larger one turns values into "
+                             f"inf), got {sigma}")
+    return sigma
 
 
 def load(path: str | Path) -> Spec:

@@ -214,7 +214,7 @@ def record_variables(spec: Spec) -> dict[str, tuple]:
     records += ["seconds_per_step"] if spec.measure["timing"] else []
     out = {name: (kind, ("member",), units, long_name, comment, {})
            for name, (kind, units, long_name, comment) in ((name, RUN_RECORDS[name]) for name in records)}
-    return {**out, **event_variables(spec.events, spec.model, spec.save)} if spec.events else out
+    return {**out, **event_variables(spec.events, spec.model, spec.save, spec.noise)} if spec.events else out
 
 
 class Description:

@@ -76,10 +76,10 @@ def body_rates(ds: xr.Dataset, max_tilt: float = BODY_MAX_TILT) -> xr.Dataset:
 
 def _flip_periods(ds: xr.Dataset, t, omega, k, sigma) -> np.ndarray:
     """(flip period, stderr, crossings) per member, (3, members): from the run's events on the member's spin-axis
-    rate crossing zero (located within the steps, free of observation noise: fitting.event_period) where it has
-    one, else from its samples (fitting.crossing_period). An event-based stderr is the crossing times' scatter
-    about their line: it holds their rounding, not the method's own error in the period, which then sets
-    flip_z."""
+    rate crossing zero (located within the steps: fitting.event_period) where it has one, else from its samples
+    (fitting.crossing_period). An event-based stderr comes from the event times' own observation noise where the
+    run gives them some ([observe] noise = { flip_time = ... }); without it, from their scatter about their
+    line, which holds their rounding, not the method's own error in the period: flip_z is then no z."""
     events = {int(ds[name].attrs["event_index"]): name for name in ds.data_vars
               if ds[name].attrs.get("event_of") == "omega" and ds[name].attrs.get("event_value") == 0.0}
     out = []
@@ -89,7 +89,7 @@ def _flip_periods(ds: xr.Dataset, t, omega, k, sigma) -> np.ndarray:
             out.append(fitting.crossing_period(t, omega[m, :, k[m]], sigma))
         else:
             both = ds[name].attrs["event_direction"] == "both"
-            out.append(fitting.event_period(ds[name].values[m], 2 if both else 1))
+            out.append(fitting.event_period(ds[name].values[m], 2 if both else 1, fitting.noise_of(ds[name])))
     return np.array(out).reshape(-1, 3).T
 
 
