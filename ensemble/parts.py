@@ -15,7 +15,7 @@ records what it finished in the folder OUT.nc.parts/:
                                               J0 .. J1 - 1 have samples S0 .. S1 - 1 in OUT.nc.tmp; inside,
                                               what their kernel and observation noise continue from, and the
                                               same range, run file and checksums as a part's. Deleted once
-                                              those members' part is made (SegmentLog)
+                                              those members' part is made (ensemble.segments)
 
 A chunk's saved variables are written once, into OUT.nc.tmp. Its part is made
 only after that: the result is flushed (HDF5's buffers, then fsync), then the
@@ -39,11 +39,9 @@ into place, and the folder deleted.
 from __future__ import annotations
 
 import hashlib
-import itertools
 import json
 import os
 import re
-import zipfile
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from importlib.metadata import version
@@ -57,6 +55,15 @@ from .errors import EnsembleError
 from .events import dimensions as event_dimensions
 from .members import members_sha256
 from .results import Status
+from .segments import (  # noqa: F401 (SegmentLog: parts' API, built in segments)
+    SEGMENT_NAME,
+    Segment,
+    SegmentLog,
+    chains,
+    inside_problem,
+    segment_files,
+    segments_left,
+)
 from .spec import Spec
 from .store import (
     fsync_path,
@@ -73,7 +80,6 @@ MANIFEST = "manifest.json"
 PARTS_FORMAT = "3"  # 2: parts carry their range, run file and sample checksums (ensemble 0.5.0); 3: and their
 # member variables' (written into the result by each part's range)
 PART_NAME = re.compile(r"members-(\d{12})-(\d{12})-([0-9a-f]{8})\.nc")
-SEGMENT_NAME = re.compile(r"segment-(\d{12})-(\d{12})-(\d{12})-(\d{12})-([0-9a-f]{8})\.npz")
 
 
 def folder_of(out: Path) -> Path:
@@ -160,21 +166,6 @@ class Part:
     path: Path
 
 
-@dataclass(frozen=True)
-class Segment:
-    """A finished segment: samples first .. end - 1 of members start .. stop - 1, described by the file `path`."""
-    start: int
-    stop: int
-    first: int
-    end: int
-    path: Path
-
-    @staticmethod
-    def of(path: Path) -> Segment | None:
-        match = SEGMENT_NAME.fullmatch(path.name)
-        return match and Segment(*(int(match[k]) for k in range(1, 5)), path)
-
-
 class Parts:
     """The parts folder of one run: what is finished, what is missing, writing new parts and assembling them.
 
@@ -191,7 +182,8 @@ class Parts:
         self.dropped: list[str] = []  # what a resume found broken and deleted, one phrase each
         self.fingerprint = open_folder(self.folder, spec, resume)
         self.parts = self._verified()
-        segments = self._segment_files()
+        segments, dropped = segment_files(self.folder, lambda start: any(p.start <= start < p.stop for p in self.parts))
+        self.dropped += dropped
         problem = self._result_problem(temporary_path(out)) if self.parts or segments else None
         if problem:
             for file in [*self.parts, *segments]:
@@ -299,68 +291,21 @@ class Parts:
     def _part_problem(self, part: Part, result: netCDF4.Dataset) -> str | None:
         with netCDF4.Dataset(part.path) as nc:
             inside = {key: nc.getncattr(key) for key in nc.ncattrs()}
-        return self._inside_problem(inside, part.start, part.stop, 0, None, result)
-
-    def _inside_problem(self, inside: dict, start: int, stop: int, first: int, end: int | None,
-                        result: netCDF4.Dataset) -> str | None:
-        """What is wrong with a part's or segment's own account of members start .. stop - 1, samples first ..
-        end - 1 (every sample: end None), checked against its name, this run and the samples in `result`."""
-        if (inside.get("first_member"), inside.get("stop_member")) != (start, stop) or (
-                end is not None and (inside.get("first_sample"), inside.get("stop_sample")) != (first, end)):
-            return "holds other members than its name says"
-        if inside.get("run_file_sha256") != self.fingerprint["run_file_sha256"]:
-            return "is another run's"
-        for name in self.spec.save:
-            found = sample_sum(result.variables[name][start:stop, first:end], start, first)
-            if inside.get(f"samples_sum_{name}") != f"{found:016x}":
-                return f"its members' {name} in the result changed since it was written"
-        for name in member_variable_names(self.spec) if end is None else ():  # a whole part's
-            if inside.get(f"values_sum_{name}") != f"{record_sum(result.variables[name][start:stop], start):016x}":
-                return f"its members' {name} in the result changed since it was written"
-        return None
-
-    def _segment_files(self) -> list[Segment]:
-        """The segment files whose bytes match their checksum, and whose members no part holds; the rest
-        deleted (those of a part made just before the run stopped silently)."""
-        kept = []
-        for path in sorted(self.folder.glob("segment-*")):
-            segment = Segment.of(path)
-            if segment and any(p.start <= segment.start < p.stop for p in self.parts):
-                path.unlink()
-            elif not segment or file_crc32(path) != SEGMENT_NAME.fullmatch(path.name)[5]:
-                path.unlink()
-                self.dropped.append(f"{path.name} ({'checksum differs' if segment else 'not a segment'})")
-            else:
-                kept.append(segment)
-        return kept
+        return inside_problem(inside, self.fingerprint["run_file_sha256"], self.spec.save, part.start, part.stop, 0,
+                              None, result.variables, member_variable_names(self.spec))
 
     def _continuable(self, segments: list[Segment], result: Path) -> dict[tuple[int, int], list[Segment]]:
         """Per member range, its segments that run on unbroken from sample 0 and whose samples in `result` give
         their checksums; every other segment deleted."""
-        chains: dict[tuple[int, int], list[Segment]] = {}
         if not segments:
-            return chains
+            return {}
         with netCDF4.Dataset(result) as nc:
             nc.set_auto_mask(False)
-            ordered = sorted(segments, key=lambda g: (g.start, g.stop, g.first))
-            for members, group in itertools.groupby(ordered, key=lambda g: (g.start, g.stop)):
-                chain, problem = [], None
-                for segment in group:
-                    if problem:
-                        problem = "follows a segment that was dropped"
-                    elif segment.first != (chain[-1].end if chain else 0):
-                        problem = "does not continue the segments before it"
-                    else:
-                        problem = self._inside_problem(_segment_inside(segment.path), *members, segment.first,
-                                                       segment.end, nc)
-                    if problem:
-                        segment.path.unlink()
-                        self.dropped.append(f"{segment.path.name} ({problem})")
-                    else:
-                        chain.append(segment)
-                if chain:
-                    chains[members] = chain
-        return chains
+            found, dropped = chains(segments, lambda g, inside: inside_problem(
+                inside, self.fingerprint["run_file_sha256"], self.spec.save, g.start, g.stop, g.first, g.end,
+                nc.variables))
+        self.dropped += dropped
+        return found
 
     def missing(self) -> list[tuple[int, int]]:
         """The member ranges [start, stop) that no finished part holds, in order (see settle)."""
@@ -373,12 +318,7 @@ class Parts:
     @staticmethod
     def segments_left(out: Path) -> list[tuple[int, int, int]]:
         """As continuing(), read from the names of the segment files of `out`'s parts folder."""
-        done: dict[tuple[int, int], int] = {}
-        for path in folder_of(out).glob("segment-*.npz"):
-            segment = Segment.of(path)
-            if segment:
-                done[segment.start, segment.stop] = max(done.get((segment.start, segment.stop), 0), segment.end)
-        return [(start, stop, end) for (start, stop), end in sorted(done.items())]
+        return segments_left(folder_of(out))
 
     def members_done(self) -> int:
         """Members in finished parts, counting those being sealed."""
@@ -446,8 +386,22 @@ class PartWriter:
 
     def log(self, start: int, stop: int) -> SegmentLog:
         """The segment log of members start .. stop - 1 (a range of the part's members that runs together)."""
-        self.logs.append(SegmentLog(self, start, stop))
+        kept = [segment.path for segment in self.parts.segments.pop((start, stop), [])]
+        self.logs.append(SegmentLog(self, start, stop, kept))
         return self.logs[-1]
+
+    @property
+    def segment_folder(self) -> Path:
+        return self.parts.folder
+
+    @property
+    def run_file_sha256(self) -> str:
+        return self.parts.fingerprint["run_file_sha256"]
+
+    def make_durable(self) -> None:
+        """The result's samples so far onto the disk (before a segment file says they are there)."""
+        self.parts.result.sync()
+        fsync_path(self.parts.result.temporary)
 
     def write(self, start: int, data: dict[str, np.ndarray]) -> None:
         """The records of every member of the part (start is the part's) into its file, and their member
@@ -489,89 +443,3 @@ class PartWriter:
         except (OSError, RuntimeError):
             pass  # a write failed already (a full disk); that error is the one to report
         self.temporary.unlink(missing_ok=True)
-
-
-class SegmentLog:
-    """The finished segments of a record run in segments (runner.segment_samples), members start .. stop - 1 of a
-    part being written: each segment's end is saved as a segment file, and a resumed run continues from the last
-    one kept (Parts.segments) instead of from sample 0."""
-
-    STATE = ("works", "status", "failure_time", "counts", "event_times", "event_counts", "stopped",
-             "event_states")  # Launch.state()
-
-    def __init__(self, writer: PartWriter, start: int, stop: int):
-        self.writer, self.start, self.stop = writer, start, stop
-        self.paths = [segment.path for segment in writer.parts.segments.pop((start, stop), [])]
-
-    def resumed(self, call, record) -> tuple[int, dict] | None:
-        """Where the kept segments end, (sample, kernel state), with `record` (records.Record) and the part's
-        checksums restored to that point; None (and the segments deleted) when there are none, or when they are
-        of another kernel layout than `call`'s."""
-        kept = self.kept()
-        if kept is None:
-            return None
-        if not call.takes(kept["state"]):
-            self.restart()
-            return None
-        record.restore(kept["noise"], kept["amplitudes"], kept["errors"])
-        return kept["sample"], kept["state"]
-
-    def kept(self) -> dict | None:
-        """What the kept segments leave to continue from, the part's checksums restored to that point: "sample"
-        (the first not done), "state" (launch.Launch.state()), "noise" (the noise streams' states), "amplitudes"
-        and "errors" (a list of pieces, one per segment); None when there are none."""
-        if not self.paths:
-            return None
-        loaded = [_load(path) for path in self.paths]
-        for inside in (json.loads(str(d["inside"])) for d in loaded):
-            for name in self.writer.sums:
-                self.writer.sums[name] = (self.writer.sums[name] + int(inside[f"samples_sum_{name}"], 16)) % 2**64
-        return {"sample": Segment.of(self.paths[-1]).end,
-                "state": {name: loaded[-1][name] for name in self.STATE if name in loaded[-1]},
-                "noise": json.loads(str(loaded[-1]["noise"])),
-                "amplitudes": [d["amplitudes"] for d in loaded if "amplitudes" in d],
-                "errors": [d["errors"] for d in loaded if "errors" in d]}
-
-    def restart(self) -> None:
-        """The range starts again from sample 0: its segments deleted, the part's checksums zeroed."""
-        self.discard()
-        self.writer.sums = dict.fromkeys(self.writer.sums, 0)
-
-    def save(self, first: int, data: dict[str, np.ndarray], state: dict[str, np.ndarray], record: dict) -> None:
-        """Samples first, first + 1, ... of the members, just written as `data` (name: (members, samples, ...)),
-        are finished: with the kernel's `state` and the record's (records.Record.state), a segment file says so,
-        once the samples are on the disk."""
-        end = first + len(next(iter(data.values()))[0])
-        inside = {"first_member": self.start, "stop_member": self.stop, "first_sample": first, "stop_sample": end,
-                  "run_file_sha256": self.writer.parts.fingerprint["run_file_sha256"],
-                  **{f"samples_sum_{name}": f"{sample_sum(values, self.start, first):016x}"
-                     for name, values in data.items()}}
-        result = self.writer.parts.result
-        result.sync()
-        fsync_path(result.temporary)
-        name = f"segment-{self.start:012d}-{self.stop:012d}-{first:012d}-{end:012d}"
-        temporary = self.writer.parts.folder / f"{name}.tmp"
-        with open(temporary, "wb") as file:
-            np.savez(file, **state, **{k: v for k, v in record.items() if k != "noise"},
-                     noise=np.array(json.dumps(record["noise"])), inside=np.array(json.dumps(inside)))
-        path = self.writer.parts.folder / f"{name}-{file_crc32(temporary)}.npz"
-        os.replace(temporary, path)
-        self.paths.append(path)
-
-    def discard(self) -> None:
-        for path in self.paths:
-            path.unlink(missing_ok=True)
-        self.paths = []
-
-
-def _load(path: Path) -> dict[str, np.ndarray]:
-    with np.load(path, allow_pickle=False) as data:
-        return dict(data)
-
-
-def _segment_inside(path: Path) -> dict:
-    """A segment file's own account of itself (see SegmentLog.save); empty when it cannot be read."""
-    try:
-        return json.loads(str(_load(path)["inside"]))
-    except (OSError, ValueError, KeyError, zipfile.BadZipFile):
-        return {}
