@@ -189,11 +189,12 @@ def integrate_members(spec: Spec, method: Method, values: dict[str, np.ndarray],
 
 
 def integrate_chunk(spec: Spec, start: int, stop: int, sink, repeats: int = 0, watch=None,
-                    threads: int | None = None):
+                    threads: int | None = None, segment: int | None = None):
     """Integrate members start .. stop - 1 on `threads` threads (default launch.thread_count()); returns finish(),
     which hands their saved variables to sink.write_samples(first member, first sample, variables) (see
     integrate_members) and returns their records and member variables (member, ...: store.member_variables).
-    watch(fraction) as launch.integrate's, over the whole range."""
+    watch(fraction) as launch.integrate's, over the whole range; `segment`: samples per kernel call (default
+    segment_samples(spec))."""
     table = members_table(spec, start, stop)
     finishes = []
     for k0, k1 in _same_settings(table, 0, stop - start):
@@ -203,7 +204,7 @@ def integrate_chunk(spec: Spec, start: int, stop: int, sink, repeats: int = 0, w
             spec, METHODS[str(values["method"][0])], values, start + k0,
             lambda first, samples, k0=k0: sink.write_samples(start + k0, first, samples),
             repeats, watch=fraction, threads=threads,
-            log=sink.log(start + k0, start + k1) if hasattr(sink, "log") else None))
+            log=sink.log(start + k0, start + k1) if hasattr(sink, "log") else None, segment=segment))
 
     def finish() -> dict[str, np.ndarray]:
         records = [f() for f in finishes]
@@ -214,9 +215,9 @@ def integrate_chunk(spec: Spec, start: int, stop: int, sink, repeats: int = 0, w
 
 
 def compute_chunk(spec: Spec, start: int, stop: int, sink, repeats: int = 0, watch=None,
-                  threads: int | None = None) -> dict[str, np.ndarray]:
+                  threads: int | None = None, segment: int | None = None) -> dict[str, np.ndarray]:
     """integrate_chunk, finished at once: returns the records and member variables (member, ...)."""
-    return integrate_chunk(spec, start, stop, sink, repeats, watch, threads)()
+    return integrate_chunk(spec, start, stop, sink, repeats, watch, threads, segment)()
 
 
 class _SegmentDone(Exception):
@@ -339,8 +340,9 @@ def _run(spec: Spec, out: Path, chunk: int | None, progress: bool, force: bool, 
         n = spec.n_members
         chunk = chunk or (dask_chunk(spec, sum(client.nthreads().values())) if client else default_chunk(spec))
         if is_zarr(out):  # a task's range is whole chunks (or a shard): those of the store a resume continues
-            chunk = task_members(parts.store, spec) if parts.parts else chunk
-            task = task or (partial(zarr_task, store=parts.store.resolve()) if client else None)
+            chunk = task_members(parts.store, spec) if parts.parts or parts.continuing() else chunk
+            task = task or (partial(zarr_task, store=parts.store.resolve(), folder=parts.folder.resolve(),
+                                    segment=segment_samples(spec)) if client else None)
         todo = [(j, min(j + chunk, stop)) for start, stop in parts.missing() for j in range(start, stop, chunk)]
         preparing = 0.0 if client or not todo else prepare_kernels(spec, announce=progress)
         _say_tuning(progress)
@@ -388,21 +390,25 @@ def _folder_kind(out: Path):
 def _writer(out: Path, spec: Spec, command: str | None, parts, chunk: int):
     """The result being written: NetCDF (store.Writer) or a Zarr store (zarr_store.ZarrWriter)."""
     if is_zarr(out):
-        return ZarrWriter(out, spec, command, (chunk, segment_samples(spec)), reopen=bool(parts.parts))
+        return ZarrWriter(out, spec, command, (chunk, segment_samples(spec)),
+                          reopen=bool(parts.parts or parts.continuing()))
     return Writer(out, spec, command, reopen=bool(parts.parts or parts.segments))
 
 
-def zarr_task(spec: Spec, start: int, stop: int, repeats: int = 0, *, store: Path) -> dict:
+def zarr_task(spec: Spec, start: int, stop: int, repeats: int = 0, *, store: Path, folder: Path,
+              segment: int) -> dict:
     """On a Dask worker: members start .. stop - 1 of `spec` integrated and written into the Zarr store at
-    `store` (their chunks, no one else's); returns their receipt alone (zarr_store.Region.receipt)."""
+    `store` (their chunks, no one else's), `segment` samples at a time (the store's chunks: as the client cut
+    them), a record in segments continuing from its last segment kept in the receipts `folder`; returns their
+    receipt alone (zarr_store.Region.receipt)."""
     from distributed import get_worker
 
     from .zarr_store import Region
 
     threads = max(1, launch.thread_count() // get_worker().state.nthreads)
-    region = Region(store, spec, start, stop)
+    region = Region(store, spec, start, stop, folder)
     spec = replace(spec, kernel_block=few_members_block(spec))  # as a local run would
-    region.write(start, compute_chunk(spec, start, stop, region, repeats, threads=threads))
+    region.write(start, compute_chunk(spec, start, stop, region, repeats, threads=threads, segment=segment))
     return {"receipt": region.receipt()}
 
 

@@ -43,12 +43,12 @@ class Segment:
         return match and Segment(*(int(match[k]) for k in range(1, 5)), path)
 
 
-def segment_files(folder: Path, whole) -> tuple[list[Segment], list[str]]:
-    """(the segment files in `folder` whose bytes match their checksum, what was dropped): a segment whose
-    members `whole(start)` says are held whole already (by a part) is deleted silently, one whose name or bytes
-    are broken with a phrase saying so."""
+def segment_files(folder: Path, whole, pattern: str = "segment-*") -> tuple[list[Segment], list[str]]:
+    """(the segment files in `folder` (those `pattern` matches) whose bytes match their checksum, what was
+    dropped): a segment whose members `whole(start)` says are held whole already (by a part) is deleted
+    silently, one whose name or bytes are broken with a phrase saying so."""
     kept, dropped = [], []
-    for path in sorted(folder.glob("segment-*")):
+    for path in sorted(folder.glob(pattern)):
         segment = Segment.of(path)
         if segment and whole(segment.start):
             path.unlink()

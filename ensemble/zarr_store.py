@@ -13,10 +13,14 @@ finished range leaves a receipt in OUT.zarr.parts/:
     receipt-J0-J1.json               members J0 .. J1 - 1 are in the store: the range, the run file it is of, a
                                      checksum of each variable's values there (ensemble.checksums.sample_sum) and
                                      the counts the run's summary needs
+    segment-J0-J1-S0-S1-CRC.npz      a record run in segments: members J0 .. J1 - 1 have samples S0 .. S1 - 1 in
+                                     the store, and what they continue from (ensemble.segments); deleted with
+                                     the receipt of their range
 
 A resume trusts a range only by its receipt, and a receipt only when the store
 still gives its checksums (a chunk of fill values is not stored, and a torn
-write may leave a chunk behind): the rest is computed again. Once every member
+write may leave a chunk behind): the rest is computed again, a range in
+segments from its last segment whose samples the store still gives. Once every member
 is in, the metadata is consolidated and OUT.zarr.tmp renamed to OUT.zarr.
 Every chunk and shard index carries a CRC32C codec.
 """
@@ -37,6 +41,7 @@ from .checksums import record_sum, sample_sum, write_atomically
 from .errors import EnsembleError
 from .parts import MANIFEST, fingerprint, folder_of, gaps, open_folder, remove_folder
 from .results import Status
+from .segments import SEGMENT_NAME, Segment, SegmentLog, chains, inside_problem, segment_files, segments_left
 from .spec import Spec
 from .store import TIMES_AT_ONCE, described, fsync_path, temporary_path, written_by_ranges
 
@@ -149,15 +154,36 @@ def task_members(path: Path, spec: Spec) -> int:
 
 class Region:
     """Members start .. stop - 1 written into the store at `path` by the process that computed them (a task's
-    range: whole chunks, or a shard, in which no one else writes). Same write_samples and write as
-    ensemble.store.Writer, with the run's member indices; receipt() says what was written."""
+    range: whole chunks, or a shard, in which no one else writes). Same write_samples, write and log as
+    ensemble.parts.PartWriter, with the run's member indices; receipt() says what was written. A record run in
+    segments keeps each finished segment's file in `folder` (the receipts folder; ensemble.segments), which
+    whoever computes the range again continues from, once the store gives its samples' checksums."""
 
-    def __init__(self, path: Path, spec: Spec, start: int, stop: int, arrays: dict | None = None):
+    def __init__(self, path: Path, spec: Spec, start: int, stop: int, folder: Path, arrays: dict | None = None):
         """`arrays`: the store's arrays by name, opened already (Region adds those it opens)."""
-        self.spec, self.start, self.stop, self.path = spec, start, stop, path
+        self.spec, self.start, self.stop, self.path, self.segment_folder = spec, start, stop, path, folder
         self.arrays = {} if arrays is None else arrays  # each opened once: its metadata read from the store
-        self.sums: dict[str, int] = {}
+        self.sums: dict[str, int] = dict.fromkeys(spec.save, 0)
         self.records: dict[str, np.ndarray] | None = None
+        self.run_file_sha256 = run_file_sha256(spec)
+        self._scrub()
+
+    def _scrub(self) -> None:
+        """Delete the range's chunk (or shard) files of its saved variables that cannot be read (their CRC32C
+        fails: a flipped bit, or a crash before they reached the disk), left by an attempt that did not finish:
+        the range writes them again, and zarr reads a chunk it writes only part of (a range of two launches, or
+        a segment). Files are found by the store's chunk keys (c/ROW/COLUMN/..., its default encoding)."""
+        for name in self.spec.save:
+            array = self.array(name)
+            grid = array.shards or array.chunks
+            for row in range(self.start // grid[0], (self.stop - 1) // grid[0] + 1):
+                folder = self.path / name / "c" / str(row)
+                for path in [p for p in folder.rglob("*") if p.is_file()] if folder.is_dir() else []:
+                    coordinates = (row, *map(int, path.relative_to(folder).parts))
+                    try:
+                        array[tuple(slice(c * g, (c + 1) * g) for c, g in zip(coordinates, grid))]
+                    except ValueError:
+                        path.unlink()
 
     def array(self, name: str):
         if name not in self.arrays:
@@ -168,6 +194,26 @@ class Region:
         for name, values in data.items():
             self.array(name)[start:start + values.shape[0], first:first + values.shape[1]] = values
             self.sums[name] = (self.sums.get(name, 0) + sample_sum(values, start, first)) % 2**64
+
+    def log(self, start: int, stop: int) -> SegmentLog:
+        """The segment log of members start .. stop - 1 (a range of the region's members that runs together),
+        with the range's segment files that run on unbroken from sample 0 and whose samples the store still gives;
+        the others deleted."""
+        pattern = f"segment-{start:012d}-{stop:012d}-*"
+        found, _ = segment_files(self.segment_folder, lambda first: False, pattern)
+        kept, _ = chains(found, self._segment_problem)
+        return SegmentLog(self, start, stop, [segment.path for segment in kept.get((start, stop), [])])
+
+    def _segment_problem(self, segment, inside: dict) -> str | None:
+        arrays = {name: self.array(name) for name in self.spec.save}
+        try:
+            return inside_problem(inside, self.run_file_sha256, self.spec.save, segment.start, segment.stop,
+                                  segment.first, segment.end, arrays)
+        except (OSError, ValueError, KeyError):
+            return "its samples in the store cannot be read"
+
+    def make_durable(self) -> None:
+        """Nothing to do: each chunk is a file written whole (a resume checks a segment's samples in the store)."""
 
     def write(self, start: int, data: dict[str, np.ndarray]) -> None:
         """The records and member variables (ensemble.store.member_variables) of every member of the range (start
@@ -271,8 +317,8 @@ class Receipts:
         return kept
 
     def _lost(self) -> list[Receipt]:
-        """No store to hold the receipts' members: every receipt deleted, none kept."""
-        for path in sorted(self.folder.glob("receipt-*.json")):
+        """No store to hold the receipts' members: every receipt and segment deleted, none kept."""
+        for path in sorted([*self.folder.glob("receipt-*.json"), *self.folder.glob("segment-*")]):
             self._drop(path, "the store it vouches for is missing")
         return []
 
@@ -283,8 +329,10 @@ class Receipts:
     def missing(self) -> list[tuple[int, int]]:
         return gaps(sorted(self.parts, key=lambda r: r.start), self.spec.n_members)
 
-    def continuing(self) -> list:
-        return []
+    def continuing(self) -> list[tuple[int, int, int]]:
+        """(first member, stop member, samples done) of each member range with segments kept, from their names
+        (whoever computes the range checks them against the store first)."""
+        return segments_left(self.folder)
 
     def members_done(self) -> int:
         return sum(r.stop - r.start for r in self.parts)
@@ -297,6 +345,10 @@ class Receipts:
         path = self.folder / RECEIPT.format(receipt["start"], receipt["stop"])
         write_atomically(path, json.dumps(receipt).encode(), durable=False)  # a resume checks it against the store
         self.parts.append(Receipt(receipt["start"], receipt["stop"], path, tuple(receipt["counts"]["status"])))
+        for path in self.folder.glob("segment-*.npz"):  # those of the range: the receipt holds their members
+            segment = Segment.of(path)
+            if segment and receipt["start"] <= segment.start < receipt["stop"]:
+                path.unlink(missing_ok=True)
 
     def settle(self) -> list[Receipt]:
         return self.parts
@@ -325,19 +377,20 @@ class Receipts:
     @staticmethod
     def discard(out: Path) -> None:
         """Delete the receipts of `out` and its unfinished store, OUT.zarr.tmp (only when it is a Zarr store)."""
-        remove_folder(folder_of(out), lambda name: name.startswith("receipt-"))
+        remove_folder(folder_of(out), lambda name: name.startswith("receipt-") or SEGMENT_NAME.fullmatch(name) or (
+            name.startswith("segment-") and name.endswith(".tmp")))
         remove_store(temporary_path(out))
 
     @staticmethod
-    def segments_left(out: Path) -> list:
-        return []
+    def segments_left(out: Path) -> list[tuple[int, int, int]]:
+        return segments_left(folder_of(out))
 
 
 class RegionWriter(Region):
     """A range computed in this process: a Region whose finish() saves its receipt (Parts.begin's writer)."""
 
     def __init__(self, receipts: Receipts, start: int, stop: int):
-        super().__init__(receipts.store, receipts.spec, start, stop, receipts.arrays)
+        super().__init__(receipts.store, receipts.spec, start, stop, receipts.folder, receipts.arrays)
         self.receipts, self.done = receipts, False
 
     def finish(self) -> None:
@@ -357,8 +410,8 @@ def remove_store(path: Path) -> None:
 class ZarrWriter:
     """The store OUT.zarr.tmp: its template made (or, on a resume, found); on success the metadata consolidated
     and the store renamed to OUT.zarr. Members are written by Region, not through it. A record in segments is
-    written segment by segment as its range runs; a stopped run computes an unfinished range again from its
-    start (its receipt is the unit a resume keeps)."""
+    written segment by segment as its range runs, and a stopped run continues an unfinished range from its last
+    segment (Region.log)."""
 
     def __init__(self, path: Path, spec: Spec, command: str | None, task: tuple[int, int], reopen: bool = False):
         """`task`: (members, samples per segment) a task writes at a time (create)."""

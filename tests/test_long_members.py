@@ -55,16 +55,18 @@ def _segments_added(monkeypatch) -> list[int]:
     return added
 
 
+@pytest.mark.parametrize("suffix", ["nc", "zarr"])
 @pytest.mark.parametrize("saves", [3, 51 + 7], ids=["in the first group", "in the second group"])
 def test_an_interrupted_long_record_continues_from_its_last_segment(write_runfile, tmp_path, monkeypatch,
-                                                                    small_segments, saves, capsys):
+                                                                    small_segments, saves, capsys, suffix):
     """Interrupted in its first group of members (rk4) or its second (dopri5, after the first finished), with
     observation noise and growth amplitudes kept along: the resume computes only the segments still missing, and
-    the result has the bits of one uninterrupted run."""
+    the result has the bits of one uninterrupted run; into a NetCDF file or a Zarr store (whose segments are
+    checked against the store by whoever continues the range)."""
     path = write_runfile(NOISY_GROWING)
     spec = load(path)
     assert runner.segment_samples(spec) == 2 and spec.n_save == 101  # 51 segments per group
-    whole, out = tmp_path / "whole.nc", tmp_path / "out.nc"
+    whole, out = tmp_path / "whole.nc", tmp_path / f"out.{suffix}"
     runner.run(spec, whole, progress=False)
     _interrupted_after(spec, out, saves, monkeypatch)
     assert len(list(folder_of(out).glob("segment-*.npz"))) == saves  # kept until their chunk's part is made

@@ -204,12 +204,13 @@ def test_sigkill_of_the_client_then_resume(tmp_path, write_runfile):
 distributed = pytest.importorskip("distributed")  # the tests below use conftest's `client`
 
 
-def _dies_on(marker: Path, start: int, spec, j0, j1, repeats, *, store, always=False):
-    """zarr_task, but its worker process dies the first time (or every time) it gets member `start`."""
+def _dies_on(marker: Path, start: int, spec, j0, j1, repeats, *, out, always=False):
+    """zarr_task into `out`, but its worker process dies the first time (or every time) it gets member `start`."""
     if j0 == start and (always or not marker.exists()):
         marker.touch()
         os._exit(1)
-    return runner.zarr_task(spec, j0, j1, repeats, store=store)
+    return runner.zarr_task(spec, j0, j1, repeats, store=Path(f"{out}.tmp").resolve(),
+                            folder=folder_of(out).resolve(), segment=spec.n_save)
 
 
 def test_workers_write_the_store_and_the_client_only_receipts(reference, client, tmp_path, monkeypatch):
@@ -222,7 +223,7 @@ def test_workers_write_the_store_and_the_client_only_receipts(reference, client,
         raise AssertionError("the client wrote members")
 
     monkeypatch.setattr(zarr_store.Region, "__init__", refused)
-    task = partial(_dies_on, tmp_path / "died", 14, store=Path(f"{out}.tmp").resolve())
+    task = partial(_dies_on, tmp_path / "died", 14, out=out)
     runner.run(load(path), out, chunk=7, progress=False, client=client, task=task)
     assert (tmp_path / "died").exists()
     same_bits(out, nc)
@@ -272,7 +273,7 @@ def test_a_run_stopped_here_resumes_on_the_cluster_whose_workers_check_the_recei
 def test_a_range_that_keeps_failing_is_named_and_resume_completes_it(reference, client, tmp_path):
     path, nc, _ = reference
     out = tmp_path / "failing.zarr"
-    task = partial(_dies_on, tmp_path / "died", 21, store=Path(f"{out}.tmp").resolve(), always=True)
+    task = partial(_dies_on, tmp_path / "died", 21, out=out, always=True)
     with pytest.raises(Incomplete, match=r"members (.*, )?21..27(, .*)? were not computed") as failure:
         runner.run(load(path), out, chunk=7, progress=False, client=client, task=task)
     failed = failure.value.ranges  # a range queued on the worker that died with it may be blamed too
@@ -346,3 +347,46 @@ def test_an_object_store_url_is_refused_in_one_line(tmp_path, write_runfile, mon
     with pytest.raises(RunRefused, match="gs://b/x.zarr: is a URL"):
         ensemble.run(path, "gs://b/x.zarr", progress=False)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["run.toml"]
+
+
+def test_a_long_record_stopped_here_continues_on_the_cluster_from_its_last_good_segment(client, tmp_path,
+                                                                                       write_runfile, monkeypatch):
+    """A range whose record runs in segments, stopped after its fifth segment here, continues on the cluster from
+    its segment files: the worker that takes the range checks them against the store first, so the third
+    segment, whose tilt chunk got a flipped byte, is dropped with those after it. The workers compute only the
+    segments missing (2 x 51 - 2), and the store holds the bits of one uninterrupted run."""
+    from .test_long_members import NOISY_GROWING, _interrupted_after
+
+    monkeypatch.setattr(runner, "CHUNK_BYTES", 20_000)  # records in segments of 2 samples
+    spec = load(write_runfile(NOISY_GROWING))
+    assert runner.segment_samples(spec) == 2 and spec.n_save == 101
+    whole, out = tmp_path / "whole.nc", tmp_path / "long.zarr"
+    runner.run(spec, whole, progress=False)
+    _interrupted_after(spec, out, 5, monkeypatch)
+    assert len(list(folder_of(out).glob("segment-*.npz"))) == 5
+    chunk = Path(f"{out}.tmp") / "tilt" / "c" / "0" / "2"  # samples 4 and 5 of the range's members
+    data = bytearray(chunk.read_bytes())
+    data[0] ^= 1
+    chunk.write_bytes(bytes(data))
+
+    def count_adds():  # on each worker: count the segments its records add
+        from ensemble import records
+
+        records.real_add, records.added = records.Record.add, []
+        records.Record.add = lambda self, start, samples: records.added.append(start) or records.real_add(
+            self, start, samples)
+
+    def counted():
+        from ensemble import records
+
+        records.Record.add = records.real_add
+        return len(records.added)
+
+    client.run(count_adds)
+    try:
+        runner.run(spec, out, progress=False, resume=True, client=client)
+    finally:
+        added = sum(client.run(counted).values())
+    assert added == 2 * 51 - 2
+    same_bits(out, whole)
+    assert not folder_of(out).exists()
