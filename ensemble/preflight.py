@@ -177,15 +177,18 @@ def memory_problem(spec) -> str | None:
 
 
 def space_problem(out: Path, spec, resume: bool = False) -> str | None:
-    """The disk's free space against what the run will take: the result, and its parts (a copy of the per-member
-    records) until they are deleted (a full disk midway costs the run). A resumed run counts only what is still
-    to come: OUT.tmp took its whole space when it was made, and the parts kept hold their records."""
+    """The disk's free space against what the run will take: the result, and a NetCDF result's parts (a copy of
+    the per-member records) until they are deleted (a full disk midway costs the run; a Zarr store's receipts are
+    a few hundred bytes a range). A resumed run counts only what is still to come: OUT.tmp took its whole space
+    when it was made, and the parts kept hold their records."""
     from .parts import folder_of
     from .store import output_bytes, record_values, temporary_path
+    from .zarr_store import is_zarr
 
-    need = output_bytes(spec) + 8 * record_values(spec) * spec.n_members
+    need = output_bytes(spec) + (0 if is_zarr(out) else 8 * record_values(spec) * spec.n_members)
     if resume:
         made = [temporary_path(out), *(folder_of(out).iterdir() if folder_of(out).is_dir() else ())]
+        made += list(temporary_path(out).rglob("*")) if temporary_path(out).is_dir() else []  # a store's chunks
         need = max(0, need - sum(path.stat().st_size for path in made if path.is_file()))
     free = shutil.disk_usage(existing_folder(out.parent)).free
     if need > free:

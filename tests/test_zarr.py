@@ -390,3 +390,18 @@ def test_a_long_record_stopped_here_continues_on_the_cluster_from_its_last_good_
     assert added == 2 * 51 - 2
     same_bits(out, whole)
     assert not folder_of(out).exists()
+
+
+def test_a_stores_disk_check_counts_no_copy_of_the_records(tmp_path, monkeypatch):
+    """A NetCDF run keeps a copy of its records in its parts until the end; a Zarr run keeps receipts of a few
+    hundred bytes: a disk with room for the result alone takes the store and refuses the file."""
+    import shutil
+
+    from ensemble import preflight, store
+    from ensemble.spec import parse
+
+    spec = parse(top_runfile(members=10_000))
+    free = shutil.disk_usage(tmp_path)._replace(free=store.output_bytes(spec) + 4096)
+    monkeypatch.setattr(shutil, "disk_usage", lambda path: free)
+    assert preflight.space_problem(tmp_path / "out.zarr", spec) is None
+    assert "the result needs about" in preflight.space_problem(tmp_path / "out.nc", spec)
