@@ -243,10 +243,11 @@ def left_behind(out: Path, resume: str) -> str:
     """What an interrupted or failed run leaves, and how to finish it."""
     from .parts import Parts, folder_of
     from .store import temporary_path
+    from .zarr_store import Receipts, is_zarr
 
     folder = folder_of(out)
     finished = len([*folder.glob("members-*.nc"), *folder.glob("receipt-*.json")]) if folder.exists() else 0
-    going = Parts.segments_left(out) if folder.exists() else []
+    going = (Receipts if is_zarr(out) else Parts).segments_left(out) if folder.exists() else []
     if not finished and not going:
         return "no chunk had finished; nothing was kept"
     kept = [f"the {finished} chunk(s) finished so far"] if finished else []

@@ -341,7 +341,7 @@ def _run(spec: Spec, out: Path, chunk: int | None, progress: bool, force: bool, 
         chunk = chunk or (dask_chunk(spec, sum(client.nthreads().values())) if client else default_chunk(spec))
         if is_zarr(out):  # a task's range is whole chunks (or a shard): those of the store a resume continues
             chunk = task_members(parts.store, spec) if parts.parts or parts.continuing() else chunk
-            task = task or (partial(zarr_task, store=parts.store.resolve(), folder=parts.folder.resolve(),
+            task = task or (partial(zarr_task, store=parts.store.resolve(), folder=parts.segments.resolve(),
                                     segment=segment_samples(spec)) if client else None)
         todo = [(j, min(j + chunk, stop)) for start, stop in parts.missing() for j in range(start, stop, chunk)]
         preparing = 0.0 if client or not todo else prepare_kernels(spec, announce=progress)
@@ -399,8 +399,8 @@ def zarr_task(spec: Spec, start: int, stop: int, repeats: int = 0, *, store: Pat
               segment: int) -> dict:
     """On a Dask worker: members start .. stop - 1 of `spec` integrated and written into the Zarr store at
     `store` (their chunks, no one else's), `segment` samples at a time (the store's chunks: as the client cut
-    them), a record in segments continuing from its last segment kept in the receipts `folder`; returns their
-    receipt alone (zarr_store.Region.receipt)."""
+    them), a record in segments continuing from its last segment kept in `folder` (zarr_store.segments_folder);
+    returns their receipt alone (zarr_store.Region.receipt)."""
     from distributed import get_worker
 
     from .zarr_store import Region

@@ -174,6 +174,7 @@ class SegmentLog:
                      for name, values in data.items()}}
         self.owner.make_durable()
         folder = self.owner.segment_folder
+        folder.mkdir(exist_ok=True)
         name = f"segment-{self.start:012d}-{self.stop:012d}-{first:012d}-{end:012d}"
         temporary = folder / f"{name}.tmp"
         with open(temporary, "wb") as file:

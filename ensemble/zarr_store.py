@@ -13,9 +13,11 @@ finished range leaves a receipt in OUT.zarr.parts/:
     receipt-J0-J1.json               members J0 .. J1 - 1 are in the store: the range, the run file it is of, a
                                      checksum of each variable's values there (ensemble.checksums.sample_sum) and
                                      the counts the run's summary needs
-    segment-J0-J1-S0-S1-CRC.npz      a record run in segments: members J0 .. J1 - 1 have samples S0 .. S1 - 1 in
+    segments/segment-J0-J1-S0-S1-CRC.npz
+                                     a record run in segments: members J0 .. J1 - 1 have samples S0 .. S1 - 1 in
                                      the store, and what they continue from (ensemble.segments); deleted with
-                                     the receipt of their range
+                                     the receipt of their range (a folder of their own: a range looks for its
+                                     segments there, not among every receipt)
 
 A resume trusts a range only by its receipt, and a receipt only when the store
 still gives its checksums (a chunk of fill values is not stored, and a torn
@@ -156,8 +158,8 @@ class Region:
     """Members start .. stop - 1 written into the store at `path` by the process that computed them (a task's
     range: whole chunks, or a shard, in which no one else writes). Same write_samples, write and log as
     ensemble.parts.PartWriter, with the run's member indices; receipt() says what was written. A record run in
-    segments keeps each finished segment's file in `folder` (the receipts folder; ensemble.segments), which
-    whoever computes the range again continues from, once the store gives its samples' checksums."""
+    segments keeps each finished segment's file in `folder` (segments_folder; ensemble.segments), which whoever
+    computes the range again continues from, once the store gives its samples' checksums."""
 
     def __init__(self, path: Path, spec: Spec, start: int, stop: int, folder: Path, arrays: dict | None = None):
         """`arrays`: the store's arrays by name, opened already (Region adds those it opens)."""
@@ -199,6 +201,8 @@ class Region:
         """The segment log of members start .. stop - 1 (a range of the region's members that runs together),
         with the range's segment files that run on unbroken from sample 0 and whose samples the store still gives;
         the others deleted."""
+        if not self.segment_folder.is_dir():
+            return SegmentLog(self, start, stop, [])
         pattern = f"segment-{start:012d}-{stop:012d}-*"
         found, _ = segment_files(self.segment_folder, lambda first: False, pattern)
         kept, _ = chains(found, self._segment_problem)
@@ -273,6 +277,7 @@ class Receipts:
         """`client`: a dask.distributed Client whose workers will write the store: each must see it where this
         process does (cluster.check_sees), and they check the receipts kept, reading the store where they are."""
         self.store, self.folder, self.spec = temporary_path(out), folder_of(out), spec
+        self.segments = segments_folder(out)
         self.dropped: list[str] = []
         made = not self.folder.exists()
         open_folder(self.folder, spec, resume)
@@ -318,7 +323,7 @@ class Receipts:
 
     def _lost(self) -> list[Receipt]:
         """No store to hold the receipts' members: every receipt and segment deleted, none kept."""
-        for path in sorted([*self.folder.glob("receipt-*.json"), *self.folder.glob("segment-*")]):
+        for path in sorted([*self.folder.glob("receipt-*.json"), *self.segments.glob("segment-*")]):
             self._drop(path, "the store it vouches for is missing")
         return []
 
@@ -332,7 +337,7 @@ class Receipts:
     def continuing(self) -> list[tuple[int, int, int]]:
         """(first member, stop member, samples done) of each member range with segments kept, from their names
         (whoever computes the range checks them against the store first)."""
-        return segments_left(self.folder)
+        return segments_left(self.segments)
 
     def members_done(self) -> int:
         return sum(r.stop - r.start for r in self.parts)
@@ -345,7 +350,7 @@ class Receipts:
         path = self.folder / RECEIPT.format(receipt["start"], receipt["stop"])
         write_atomically(path, json.dumps(receipt).encode(), durable=False)  # a resume checks it against the store
         self.parts.append(Receipt(receipt["start"], receipt["stop"], path, tuple(receipt["counts"]["status"])))
-        for path in self.folder.glob("segment-*.npz"):  # those of the range: the receipt holds their members
+        for path in self.segments.glob("segment-*.npz"):  # those of the range: the receipt holds their members
             segment = Segment.of(path)
             if segment and receipt["start"] <= segment.start < receipt["stop"]:
                 path.unlink(missing_ok=True)
@@ -377,20 +382,25 @@ class Receipts:
     @staticmethod
     def discard(out: Path) -> None:
         """Delete the receipts of `out` and its unfinished store, OUT.zarr.tmp (only when it is a Zarr store)."""
-        remove_folder(folder_of(out), lambda name: name.startswith("receipt-") or SEGMENT_NAME.fullmatch(name) or (
-            name.startswith("segment-") and name.endswith(".tmp")))
+        if (folder_of(out) / MANIFEST).is_file():
+            for path in segments_folder(out).glob("segment-*"):
+                if SEGMENT_NAME.fullmatch(path.name) or path.suffix == ".tmp":
+                    path.unlink()
+            if segments_folder(out).is_dir():
+                segments_folder(out).rmdir()
+        remove_folder(folder_of(out), lambda name: name.startswith("receipt-"))
         remove_store(temporary_path(out))
 
     @staticmethod
     def segments_left(out: Path) -> list[tuple[int, int, int]]:
-        return segments_left(folder_of(out))
+        return segments_left(segments_folder(out))
 
 
 class RegionWriter(Region):
     """A range computed in this process: a Region whose finish() saves its receipt (Parts.begin's writer)."""
 
     def __init__(self, receipts: Receipts, start: int, stop: int):
-        super().__init__(receipts.store, receipts.spec, start, stop, receipts.folder, receipts.arrays)
+        super().__init__(receipts.store, receipts.spec, start, stop, receipts.segments, receipts.arrays)
         self.receipts, self.done = receipts, False
 
     def finish(self) -> None:
@@ -399,6 +409,11 @@ class RegionWriter(Region):
 
     def abandon(self) -> None:
         """Nothing to delete: without a receipt the range is computed again."""
+
+
+def segments_folder(out: Path) -> Path:
+    """Where the segment files of a run writing the store `out` are kept."""
+    return folder_of(out) / "segments"
 
 
 def remove_store(path: Path) -> None:

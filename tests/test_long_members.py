@@ -69,7 +69,7 @@ def test_an_interrupted_long_record_continues_from_its_last_segment(write_runfil
     whole, out = tmp_path / "whole.nc", tmp_path / f"out.{suffix}"
     runner.run(spec, whole, progress=False)
     _interrupted_after(spec, out, saves, monkeypatch)
-    assert len(list(folder_of(out).glob("segment-*.npz"))) == saves  # kept until their chunk's part is made
+    assert len(list(folder_of(out).rglob("segment-*.npz"))) == saves  # kept until their chunk's part is made
     added = _segments_added(monkeypatch)
     runner.run(spec, out, progress=True, resume=True)
     line = capsys.readouterr().err.splitlines()[0]

@@ -210,7 +210,7 @@ def _dies_on(marker: Path, start: int, spec, j0, j1, repeats, *, out, always=Fal
         marker.touch()
         os._exit(1)
     return runner.zarr_task(spec, j0, j1, repeats, store=Path(f"{out}.tmp").resolve(),
-                            folder=folder_of(out).resolve(), segment=spec.n_save)
+                            folder=zarr_store.segments_folder(out).resolve(), segment=spec.n_save)
 
 
 def test_workers_write_the_store_and_the_client_only_receipts(reference, client, tmp_path, monkeypatch):
@@ -363,7 +363,7 @@ def test_a_long_record_stopped_here_continues_on_the_cluster_from_its_last_good_
     whole, out = tmp_path / "whole.nc", tmp_path / "long.zarr"
     runner.run(spec, whole, progress=False)
     _interrupted_after(spec, out, 5, monkeypatch)
-    assert len(list(folder_of(out).glob("segment-*.npz"))) == 5
+    assert len(list(zarr_store.segments_folder(out).glob("segment-*.npz"))) == 5
     chunk = Path(f"{out}.tmp") / "tilt" / "c" / "0" / "2"  # samples 4 and 5 of the range's members
     data = bytearray(chunk.read_bytes())
     data[0] ^= 1
