@@ -207,3 +207,20 @@ def test_a_finished_chunk_is_on_the_disk_before_its_pages_are_released(tmp_path,
     monkeypatch.setattr(os, "posix_fadvise", refuses)
     store.fsync_path(path, release=True)
     assert path.read_bytes() == b"samples"
+
+
+def test_the_member_coordinate_counts_past_an_int32():
+    """`member` is int32 up to 2^31 - 1 members and int64 beyond (a run's members are drawn by ranges, so nothing
+    else bounds their number); the description of a run of 3e9 members declares it without writing it."""
+    from ensemble.spec import members_table, parse
+    from ensemble.store import described, member_variables
+
+    for members, kind in ((2**31 - 1, np.int32), (3 * 10**9, np.int64)):
+        spec = parse(top_runfile(members=members), "run.toml")
+        nc = described(spec)
+        try:
+            assert nc["member"].dtype == kind and nc.dimensions["member"].size == members
+        finally:
+            nc.close()
+        last = member_variables(spec, members_table(spec, members - 2, members), members - 2)["member"]
+        assert last.dtype == kind and last.tolist() == [members - 2, members - 1]
