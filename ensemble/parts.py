@@ -3,7 +3,7 @@
 A run of OUT.nc writes its result as OUT.nc.tmp (ensemble.store.Writer) and
 records what it finished in the folder OUT.nc.parts/:
 
-    manifest.json                             the run's fingerprint (fingerprint): its run file, members table,
+    manifest.json                             the run's fingerprint (fingerprint): its run file, members' values,
                                               scene's and engine's sources, and the versions that make its bits
     members-J0-J1-CRC.nc                      members J0 .. J1 - 1 (12 digits each) are in OUT.nc.tmp: their
                                               per-member records; inside, the range and run file it is of and

@@ -92,8 +92,8 @@ def smallest_chunk(spec: Spec) -> int:
 def steps_per_member(spec: Spec) -> float:
     """The most steps a member of the run takes with a fixed step, t_end / dt (adaptive members: t_end over
     their first trial step, a guess, at least one; 0 when every member is in closed form). From the sweep grids,
-    as the members table's dt is: segment_samples asks for it per chunk, and a table of 10^7 members (or a Dask
-    worker's, which has none) costs time in proportion to the run."""
+    as the members table's dt is: segment_samples asks for it per chunk, and no process holds the whole table
+    (building it costs time in proportion to the run)."""
     steps = [dt for grid in spec.grids or ({},) for dt in grid.get("dt", (spec.dt,))
              if dt is not None and math.isfinite(dt) and dt > 0]
     return max(1.0, spec.t_end / min(steps)) if steps else 0.0
