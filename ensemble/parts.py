@@ -95,10 +95,15 @@ def fingerprint(spec: Spec) -> dict[str, str]:
     rounds differently) and the versions of the packages that compute and store them. Neither the compile
     target nor the tuning is in it: every target with fused multiply-adds and every tuning choice give the same
     bits. Its size and cost do not grow with the members."""
-    return {"run_file_sha256": hashlib.sha256(spec.text.encode()).hexdigest(), "members_sha256": members_sha256(spec),
+    return {"run_file_sha256": run_file_sha256(spec), "members_sha256": members_sha256(spec),
             **{k: v for k, v in kernels_identity(spec).items() if k != "compile_target"},
             "ensemble": __version__, "numba": version("numba"), "numpy": np.__version__,
             "netCDF4": netCDF4.__version__, "device": f"{spec.device} {spec.precision}", "parts_format": PARTS_FORMAT}
+
+
+def run_file_sha256(spec: Spec) -> str:
+    """The SHA-256 of the run file's text, which the fingerprint, each part and each receipt name."""
+    return hashlib.sha256(spec.text.encode()).hexdigest()
 
 
 class PartsError(EnsembleError):

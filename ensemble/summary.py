@@ -5,6 +5,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .results import Status
+
 ANNOUNCE_AFTER = 1.0  # s: kernels taking longer than this to get ready are being compiled, and a line says so
 
 
@@ -54,13 +56,19 @@ class Tally:
     step_counts: set = field(default_factory=set)
 
     def add(self, records: dict[str, np.ndarray]) -> None:
-        steps = records["steps_accepted"] + records["steps_rejected"]
-        self.members += len(steps)
-        self.member_steps += int(steps.sum())
-        self.step_counts.update(np.unique(steps).tolist())
+        self.merge(counts(records))
 
     def merge(self, counts: dict) -> None:
-        """Add what a receipt counted (ensemble.zarr_store.Region.receipt)."""
+        """Add what counts() counted (here, or in a receipt: ensemble.zarr_store.Region.receipt)."""
         self.members += counts["members"]
         self.member_steps += counts["member_steps"]
         self.step_counts.update(counts["step_counts"])
+
+
+def counts(records: dict[str, np.ndarray]) -> dict:
+    """What the summary needs of a range's records: its members, member-steps, distinct step counts, and how many
+    members ended in each Status (JSON-ready)."""
+    steps = records["steps_accepted"] + records["steps_rejected"]
+    status = np.bincount(records["status"].astype(np.int64), minlength=len(Status))
+    return {"members": len(steps), "member_steps": int(steps.sum()), "step_counts": np.unique(steps).tolist(),
+            "status": status.tolist()}

@@ -28,7 +28,6 @@ Every chunk and shard index carries a CRC32C codec.
 """
 from __future__ import annotations
 
-import hashlib
 import json
 import math
 import os
@@ -41,11 +40,11 @@ import numpy as np
 
 from .checksums import record_sum, sample_sum, write_atomically
 from .errors import EnsembleError
-from .parts import MANIFEST, fingerprint, folder_of, gaps, open_folder, remove_folder
-from .results import Status
+from .parts import MANIFEST, fingerprint, folder_of, gaps, open_folder, remove_folder, run_file_sha256
 from .segments import SEGMENT_NAME, Segment, SegmentLog, chains, inside_problem, segment_files, segments_left
 from .spec import Spec
 from .store import TIMES_AT_ONCE, described, fsync_path, temporary_path, written_by_ranges
+from .summary import counts
 
 SUFFIX = ".zarr"
 CHUNK_BYTES = 2**24  # at most, a chunk: what a reader fetches at once; a task's range above it is sharded
@@ -230,17 +229,9 @@ class Region:
     def receipt(self) -> dict:
         """The range, its run file, each variable's checksum, and the counts of what it ran (which
         summary.Tally.merge and Receipts.assemble add up)."""
-        steps = self.records["steps_accepted"] + self.records["steps_rejected"]
-        status = np.bincount(self.records["status"].astype(np.int64), minlength=len(Status))
-        return {"start": self.start, "stop": self.stop, "run_file_sha256": run_file_sha256(self.spec),
+        return {"start": self.start, "stop": self.stop, "run_file_sha256": self.run_file_sha256,
                 "sums": {name: f"{value:016x}" for name, value in sorted(self.sums.items())},
-                "counts": {"members": self.stop - self.start, "member_steps": int(steps.sum()),
-                           "step_counts": np.unique(steps).tolist(), "status": status.tolist()}}
-
-
-def run_file_sha256(spec: Spec) -> str:
-    """The SHA-256 of the run file's text (as ensemble.parts.fingerprint's), which a receipt names."""
-    return hashlib.sha256(spec.text.encode()).hexdigest()
+                "counts": counts(self.records)}
 
 
 def checked_sums(path: Path, spec: Spec, start: int, stop: int) -> dict[str, str] | None:
