@@ -54,8 +54,8 @@ def run(spec, output=None, *, chunk: int | None = None, progress: bool = True, f
         from .spec import with_values
 
         spec = with_values(spec, values)
-    if output is not None and preflight.url_problem(str(output)):
-        raise preflight.RunRefused(preflight.url_problem(str(output)))
+    if output is not None and (url := preflight.url_problem(str(output))):
+        raise preflight.RunRefused(url)
     folder = Path(tempfile.mkdtemp(prefix="ensemble-")) if output is None else None
     out = folder / "result.nc" if folder else Path(output)
     spec, rounded, problem = preflight.check(spec, out, runfile, device=device, chunk=chunk, force=force,

@@ -213,8 +213,8 @@ def _run(args) -> int:
     except KeyboardInterrupt:  # drawing members (mode starts solve eigenproblems) can take a while
         print("ensemble: interrupted while reading the run file; nothing was written", file=sys.stderr)
         return EXIT_INTERRUPTED
-    if args.output and preflight.url_problem(args.output):
-        return _error(preflight.url_problem(args.output))
+    if args.output and (url := preflight.url_problem(args.output)):
+        return _error(url)
     out = Path(args.output) if args.output else Path("results") / f"{args.runfile.stem}.nc"
     try:
         spec, chunk, refusal = preflight.check(spec, out, args.runfile, device=args.device, chunk=args.chunk,

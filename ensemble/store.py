@@ -163,16 +163,13 @@ def member_variables(spec: Spec, table: dict[str, np.ndarray], start: int) -> di
     start, start + 1, ... gives: the member and sweep_point coordinates, each parameter, and the settings the
     run sweeps (method as its flag code). A range writes them with its records."""
     n = len(table["sweep_point"])
-    out = {"member": np.arange(start, start + n, dtype=member_type(spec)),
-           "sweep_point": table["sweep_point"].astype(np.int32)}
-    out.update({name: table[name] for name in spec.declared})
+    values = {**table, "member": np.arange(start, start + n, dtype=member_type(spec)),
+              "sweep_point": table["sweep_point"].astype(np.int32)}
     if "method" in spec.sweep:
-        codes = np.empty(n, dtype=np.int8)
+        values["method"] = np.empty(n, dtype=np.int8)
         for code, name in enumerate(spec.methods):  # in order of first use, as the flag_meanings list them
-            codes[table["method"] == name] = code
-        out["method"] = codes
-    out.update({key: table[key] for key in SETTING_UNITS if key in spec.sweep})
-    return out
+            values["method"][table["method"] == name] = code
+    return {name: values[name] for name in member_variable_names(spec)}
 
 
 def member_variable_names(spec: Spec) -> list[str]:
