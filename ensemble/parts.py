@@ -50,10 +50,10 @@ from pathlib import Path
 import netCDF4
 import numpy as np
 
-from .checksums import file_crc32, record_sum, sample_sum, write_atomically
+from .checksums import file_crc32, sample_sum, write_atomically
 from .errors import EnsembleError
 from .events import dimensions as event_dimensions
-from .members import members_sha256
+from .members import members_sha256, members_table
 from .results import Status
 from .segments import (  # noqa: F401 (SegmentLog: parts' API, built in segments)
     SEGMENT_NAME,
@@ -68,7 +68,7 @@ from .spec import Spec
 from .store import (
     fsync_path,
     kernels_identity,
-    member_variable_names,
+    member_variables,
     put_records,
     record_names,
     record_variables,
@@ -77,8 +77,8 @@ from .store import (
 from .version import __version__
 
 MANIFEST = "manifest.json"
-PARTS_FORMAT = "3"  # 2: parts carry their range, run file and sample checksums (ensemble 0.5.0); 3: and their
-# member variables' (written into the result by each part's range)
+PARTS_FORMAT = "2"  # 2: parts carry their range, run file and sample checksums (ensemble 0.5.0)
+MEMBERS_AT_ONCE = 2**16  # members whose member variables assemble() draws and writes at a time
 PART_NAME = re.compile(r"members-(\d{12})-(\d{12})-([0-9a-f]{8})\.nc")
 
 
@@ -297,7 +297,7 @@ class Parts:
         with netCDF4.Dataset(part.path) as nc:
             inside = {key: nc.getncattr(key) for key in nc.ncattrs()}
         return inside_problem(inside, self.fingerprint["run_file_sha256"], self.spec.save, part.start, part.stop, 0,
-                              None, result.variables, member_variable_names(self.spec))
+                              None, result.variables)
 
     def _continuable(self, segments: list[Segment], result: Path) -> dict[tuple[int, int], list[Segment]]:
         """Per member range, its segments that run on unbroken from sample 0 and whose samples in `result` give
@@ -336,8 +336,10 @@ class Parts:
 
     def assemble(self) -> np.ndarray:
         """Write every member's records into `result`, each record in one piece (the parts hold them; their
-        samples are in the result already); returns how many members ended in each Status. Call settle first:
-        every part must be finished."""
+        samples are in the result already), and the member variables (store.member_variables: drawn again by
+        ranges of MEMBERS_AT_ONCE, a pure function of the run file, so that each takes one write a range, not
+        one a part); returns how many members ended in each Status. Call settle first: every part must be
+        finished."""
         self._sealing.shutdown()
         assert not self._sealed and not self.missing(), "assemble needs every member, settled"
         names = record_names(self.spec)
@@ -352,6 +354,9 @@ class Parts:
                 records[name].append(data[name])
         records = {name: np.concatenate(values) for name, values in records.items()}
         self.result.write(0, records)
+        for start in range(0, self.spec.n_members, MEMBERS_AT_ONCE):
+            stop = min(start + MEMBERS_AT_ONCE, self.spec.n_members)
+            self.result.write(start, member_variables(self.spec, members_table(self.spec, start, stop), start))
         return np.bincount(records["status"], minlength=len(Status))
 
 
@@ -365,7 +370,6 @@ class PartWriter:
         self.temporary = parts.folder / f"members-{start:012d}-{stop:012d}.tmp"
         self._nc = None
         self.sums = {name: 0 for name in parts.spec.save}  # sample_sum of each saved variable's samples
-        self.values_sums: dict[str, int] = {}  # record_sum of each member variable's values
         self.logs: list[SegmentLog] = []
         self.done = False  # finish() was called: the part is on its way to being sealed
 
@@ -409,22 +413,17 @@ class PartWriter:
         fsync_path(self.parts.result.temporary)
 
     def write(self, start: int, data: dict[str, np.ndarray]) -> None:
-        """The records of every member of the part (start is the part's) into its file, and their member
-        variables (store.member_variables) into the result."""
-        names = record_names(self.parts.spec)
-        self.records = {name: data[name] for name in names}
+        """The records of every member of the part (start is the part's) into its file (the member variables
+        beside them in `data` are written by Parts.assemble)."""
+        self.records = {name: data[name] for name in record_names(self.parts.spec)}
         put_records(self.nc.variables, start - self.start, self.records)
-        values = {name: values for name, values in data.items() if name not in names}
-        self.parts.result.write(start, values)
-        self.values_sums = {name: record_sum(values, start) for name, values in values.items()}
 
     def finish(self) -> None:
         """Close the file, flush the result, and have the result fsynced and then the part sealed (checksum,
         rename to the part's name) on the parts' own thread: the part is complete once Parts.settle returns."""
         self.nc.setncatts({"first_member": self.start, "stop_member": self.stop,
                            "run_file_sha256": self.parts.fingerprint["run_file_sha256"],
-                           **{f"samples_sum_{name}": f"{value:016x}" for name, value in self.sums.items()},
-                           **{f"values_sum_{name}": f"{value:016x}" for name, value in self.values_sums.items()}})
+                           **{f"samples_sum_{name}": f"{value:016x}" for name, value in self.sums.items()}})
         self.nc.close()
         self.parts.written[self.start] = self.records
         self.parts.result.sync()

@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .checksums import file_crc32, record_sum, sample_sum
+from .checksums import file_crc32, sample_sum
 
 SEGMENT_NAME = re.compile(r"segment-(\d{12})-(\d{12})-(\d{12})-(\d{12})-([0-9a-f]{8})\.npz")
 
@@ -85,10 +85,10 @@ def chains(segments: list[Segment], problem_of) -> tuple[dict[tuple[int, int], l
 
 
 def inside_problem(inside: dict, run_file_sha256: str, save, start: int, stop: int, first: int, end: int | None,
-                   arrays, member_names=()) -> str | None:
+                   arrays) -> str | None:
     """What is wrong with a part's or segment's own account of members start .. stop - 1, samples first .. end - 1
-    (every sample: end None), checked against its name, this run's file and the values in `arrays` (the result's
-    variables by name: saved variables `save`, and for a whole part the member variables `member_names`)."""
+    (every sample: end None), checked against its name, this run's file and the saved variables `save` in
+    `arrays` (the result's variables by name)."""
     if (inside.get("first_member"), inside.get("stop_member")) != (start, stop) or (
             end is not None and (inside.get("first_sample"), inside.get("stop_sample")) != (first, end)):
         return "holds other members than its name says"
@@ -97,9 +97,6 @@ def inside_problem(inside: dict, run_file_sha256: str, save, start: int, stop: i
     for name in save:
         found = sample_sum(arrays[name][start:stop, first:end], start, first)
         if inside.get(f"samples_sum_{name}") != f"{found:016x}":
-            return f"its members' {name} in the result changed since it was written"
-    for name in member_names if end is None else ():
-        if inside.get(f"values_sum_{name}") != f"{record_sum(arrays[name][start:stop], start):016x}":
             return f"its members' {name} in the result changed since it was written"
     return None
 
