@@ -15,8 +15,9 @@ event stops its members, each saved variable's value at the stop, <variable>_at_
 
 A scene says what its events can watch in EVENT_VALUES: name -> ("state", first row) for a state variable (a
 vector's components follow; the first row may be the name of a constant that gives it, as a chain's v), or
-("function", name of a function in its physics, f(t, *state, *parameters) -> a value or a vector's values). A
-field of sites' events watch its state alone.
+("function", name of a function in its physics, f(t, *state, *parameters) -> a value or a vector's values[, name
+of its watch, watch(t, *state, *parameters, level) -> a value of the sign of f - level that costs less]). A field
+of sites' events watch its state alone.
 """
 from __future__ import annotations
 
@@ -82,7 +83,7 @@ def _kept(key: str, keep: list, scene) -> tuple[str, ...]:
 
 
 def _source(key: str, of: str, index: int | None, scene, constants: dict) -> tuple[int, tuple]:
-    """(index or -1, the kernels' value: ("state", row) or ("function", name, index or -1)) of `of`."""
+    """(index or -1, the kernels' value: ("state", row) or ("function", name, index or -1[, watch])) of `of`."""
     known = getattr(scene, "EVENT_VALUES", {})
     if of not in known:
         saved = [name for name in scene.OBSERVABLES if name not in known]
@@ -101,11 +102,11 @@ def _source(key: str, of: str, index: int | None, scene, constants: dict) -> tup
     elif index is not None:
         raise SpecError(f"{key}.index", f"{of!r} is a single value: leave index out")
     index = -1 if index is None else index
-    kind, where = known[of]
+    kind, where, *watch = known[of]
     if kind == "state":
         first = constants[where] if isinstance(where, str) else where
         return index, ("state", first + max(index, 0))
-    return index, ("function", where, index)
+    return index, ("function", where, index, *watch)
 
 
 def variables(events: tuple[Event, ...], scene, save: tuple[str, ...], noise: dict[str, float]) -> dict[str, tuple]:

@@ -49,7 +49,7 @@ class Event(NamedTuple):
     name: str
     of: str
     index: int  # -1: a scalar
-    source: tuple  # the kernel's value of it: ("state", row) or ("function", scene function, index)
+    source: tuple  # the kernel's value of it: ("state", row) or ("function", scene function, index[, its watch])
     level: float = 0.0
     direction: str = "both"  # "up", "down" or "both"
     count: int = 1  # occurrences kept per member

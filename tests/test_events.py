@@ -10,7 +10,7 @@ import pytest
 import xarray as xr
 
 import ensemble
-from ensemble import cli
+from ensemble import cli, events
 from ensemble.engine import launch
 from ensemble.methods import METHODS
 from ensemble.results import Event, Status
@@ -142,10 +142,13 @@ def test_a_prolate_tops_tilt_reaches_its_level_at_the_closed_forms_time():
     values = {"lambda1": np.full(3, 1e-3), "lambda3": np.full(3, 0.5e-3), "c": np.full(3, 1e-4),
               "spin0": np.full(3, 60.0), "tilt0": tilt0, "azimuth0": np.zeros(3)}
     level, rate = 0.6, 1e-4 * (1 / 0.5e-3 - 1 / 1e-3)
-    tip = Event("tip", "tilt", -1, ("function", "value_tilt", -1), level, "up", 1, True)
+    tip = Event("tip", "tilt", -1, ("function", "value_tilt", -1, "watch_tilt"), level, "up", 1, True)
+    assert events.parse({"tip": {"of": "tilt", "value": level, "direction": "up", "stop": True}}, top, {},
+                        set()) == (tip,)  # a run file's tilt event is watched through watch_tilt
+    outcomes = {}
     for method in ("rk4", "split4", "exact"):
-        outcome = launch.integrate(top, METHODS[method], values, {}, n_save=301, save_dt=0.1, dt=2e-3,
-                                   events=(tip,))
+        outcome = outcomes[method] = launch.integrate(top, METHODS[method], values, {}, n_save=301, save_dt=0.1,
+                                                      dt=2e-3, events=(tip,))
         expected = np.log(math.tan(level) / np.tan(tilt0)) / rate
         t = np.arange(301) * 0.1
         own = np.nanmax(np.abs(top.tilt(outcome.samples, 1) - tilt_theory(values, t).T), axis=0)
@@ -156,6 +159,48 @@ def test_a_prolate_tops_tilt_reaches_its_level_at_the_closed_forms_time():
         assert np.allclose(stopped, level, rtol=0, atol=1e-9)
         later = t[:, None] > expected[None, :] + 2e-3  # samples after the step it stopped in are NaN
         assert np.all(np.isnan(outcome.samples[:, 0, :][later])) and np.all(np.isfinite(outcome.samples[:, 0][~later]))
+    unwatched = launch.integrate(top, METHODS["split4"], values, {}, n_save=301, save_dt=0.1, dt=2e-3,
+                                 events=(tip._replace(source=tip.source[:3]),))  # the tilt's value alone
+    for name in ("samples", "status", "event_times", "event_counts", "stopped"):  # the same bits
+        assert np.array_equal(getattr(unwatched, name), getattr(outcomes["split4"], name), equal_nan=True), name
+
+
+def test_the_tops_watch_has_the_sign_of_its_tilt_minus_the_level():
+    """physics.watch_tilt, which the kernels evaluate instead of the tilt itself, has the sign of value_tilt -
+    level (numpy's arctan2 of |(w1, w2)| and w3), on and off the spin axis, for levels in and beyond [0, pi]."""
+    from ensemble.scenes.top.physics import watch_tilt
+
+    rng = np.random.default_rng(5)
+    rates = np.concatenate([rng.normal(size=(4000, 3)) * 10.0 ** rng.uniform(-3, 3, (4000, 1)),
+                            [[0, 0, 5], [0, 0, -5], [0, 0, 0.0], [0, 0, -0.0], [1e-3, 0, -7], [0, -2, 0]]])
+    levels = np.concatenate([[-0.5, 0.0, 1e-9, 0.6, math.pi / 2, math.pi - 1e-9, math.pi, 3.5],
+                             rng.uniform(0, math.pi, 8)])
+    for w1, w2, w3 in rates:
+        tilt = np.arctan2(np.hypot(w1, w2), w3)
+        for level in levels:
+            sign = watch_tilt(0.0, w1, w2, w3, 0.0, 0.0, 0.0, level)
+            if abs(tilt - level) > 1e-12:
+                assert np.sign(sign) == np.sign(tilt - level), (w1, w2, w3, level)
+            elif tilt == level:
+                assert sign == 0.0 or abs(sign) < 1e-12 * np.linalg.norm((w1, w2, w3)), (w1, w2, w3, level)
+    assert math.isnan(watch_tilt(0.0, math.nan, 0.0, 1.0, 0.0, 0.0, 0.0, 0.5))
+    assert math.isnan(watch_tilt(0.0, 0.0, 0.0, math.nan, 0.0, 0.0, 0.0, 0.5))
+
+
+def test_a_crossing_that_only_the_watch_saw_is_put_at_the_nearer_end_of_its_step():
+    """events.root: a step's values on either side of the level are bracketed (Illinois, to the last bits); values
+    on one side (a watch's sign crossed, the value not: one end on the level to its rounding) give that end."""
+    from numba import njit
+
+    from ensemble.engine.events import root
+
+    values = njit(lambda t, y, p: (y[0],))
+    advance = njit(lambda t0, h, y0, p: (y0[0] + h * (1.0 + y0[0]),))  # y(s) = s from y0 = 0: a line
+    find = njit(lambda level, y0, before, after: root(values, advance, 0, level, 0.0, 1.0, (y0,), (), before,
+                                                      after))
+    assert find(0.3, 0.0, 0.0, 1.0) == pytest.approx(0.3, abs=1e-15)
+    assert find(0.3, 0.3, 0.3 - 1e-17, 1.3) == 0.0 and find(1.0, 0.0, 0.0, 1.0 - 1e-16) == 1.0
+    assert find(0.3, 0.0, 0.31, 1.0) == 0.0 and find(0.9, 0.0, 0.0, 0.89) == 1.0
 
 
 def test_a_tops_fit_finds_its_tilt_decay_rate_from_event_times_alone(tmp_path):

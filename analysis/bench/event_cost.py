@@ -6,7 +6,8 @@
 
 Aerobie tops (spin 60 rad/s, tilts drawn in 0.02..0.2 rad) integrate 0.5 s with each method: without events,
 with an event on a state component (omega[2] rising to 1e6 rad/s) and with one on an observable (the tilt
-rising to 1.5 rad), none of which occurs. With --sites n, chains of n unit masses between walls (unit springs,
+rising to 1.5 rad: watched through the top's watch_tilt, as a run file's, and, "unwatched", through its value
+alone), none of which occurs. With --sites n, chains of n unit masses between walls (unit springs,
 x0 drawn in -0.1..0.1 m), without events and with one on mass 1's x rising to 1e6 m. Prints each kernel's
 member-steps/s on all threads (median of the repeats, the kernels alternated) and the median of the repeats'
 ratios to the kernel without events.
@@ -27,7 +28,8 @@ from ensemble.scenes import resolve
 
 WATCHED = {"none": (),
            "omega[2]": (Event("spin", "omega", 2, ("state", 2), 1e6, "up"),),
-           "tilt": (Event("tip", "tilt", -1, ("function", "value_tilt", -1), 1.5, "up"),)}
+           "tilt": (Event("tip", "tilt", -1, ("function", "value_tilt", -1, "watch_tilt"), 1.5, "up"),),
+           "tilt unwatched": (Event("tip", "tilt", -1, ("function", "value_tilt", -1), 1.5, "up"),)}
 
 
 def tops(members: int) -> dict[str, np.ndarray]:
@@ -79,7 +81,7 @@ def main() -> None:
                 rates[label].append(rate(method, values, events, device=args.device, sites=args.sites))
         for label, measured in rates.items():
             ratio = statistics.median(r / base for r, base in zip(measured, rates["none"]))
-            print(f"{method:7s} {label:9s} {statistics.median(measured):.3e} member-steps/s   x {ratio:.3f}")
+            print(f"{method:7s} {label:14s} {statistics.median(measured):.3e} member-steps/s   x {ratio:.3f}")
 
 
 if __name__ == "__main__":

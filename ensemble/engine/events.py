@@ -5,14 +5,17 @@ calls `crossed` and `located` as device functions; a CPU kernel without events c
 (NO_ADAPTIVE_WATCH), which are nothing, and NO_STEPS, a loop of steps alone.
 
 An event's value is a function value(t, y, p) -> float of a member's time (s), state and parameters (tuples):
-a state component, a scene's observable, or a scene's own event function (`component`, `function_value`). A kernel
-with E events evaluates all of them at once, `values(t, y, p)` -> E floats (`values_chain`), at the end of every
-step, and compares them with their values at the step's start. Where one crossed its level in its direction, the
-crossing is found on the method's own path through the step: the state at t0 + s h is the method's step of s h
-from the step's start (t0, y0), `advance(t0, s h, y0, p)` (each family's advance_of), by the Illinois variant of
-regula falsi, to the last bits of the step's time. The event's time is then as accurate as the method's states,
-for every family: an interpolant of the step's ends would not be (a cubic Hermite is of order 3, dopri5's dense
-output of order 4, below the methods' own).
+a state component, a scene's observable, or a scene's own event function (`component`, `function_value`). A CPU
+kernel with E events watches them all at the end of every step through their signs, `signs(t, y, p, levels)` -> E
+floats (`signs_chain`), each of the sign of the value's difference from its level: that difference, or a scene's
+watch of the observable, a function of that sign that costs less (the top's tilt: |w| sin(tilt - level), without
+the arctangent's divisions), and compares them with their signs at the step's start. Where one crossed in its
+direction, the member's values at both ends are computed and the crossing is found on the method's own path
+through the step: the state at t0 + s h is the method's step of s h from the step's start (t0, y0), `advance(t0,
+s h, y0, p)` (each family's advance_of), by the Illinois variant of regula falsi, to the last bits of the step's
+time. The event's time is then as accurate as the method's states, for every family: an interpolant of the step's
+ends would not be (a cubic Hermite is of order 3, dopri5's dense output of order 4, below the methods' own). A
+GPU thread, whose step is not vectorized, watches the values themselves.
 
 A kernel call's events are a tuple (spec, times, counts, stopped, states):
 - spec (E, 5): per event its level, direction (+1 up: from below to level or above; -1 down; 0 both), stop
@@ -27,9 +30,9 @@ A kernel call's events are a tuple (spec, times, counts, stopped, states):
 A stopped member's status is STOPPED (results.Status.STOPPED_BY_EVENT), its state NaN after its event, so that
 its later samples are NaN and its block's steps carry it as they carry a failed member.
 
-Work rows from a kernel's `first` event row: fixed steps keep the values at the step's end and start and the
-state at its start (`fixed_watcher`); adaptive kernels G and GNEW (E each: the
-values at the step's start and end; its states are in rows 0 and NEW).
+Work rows from a kernel's `first` event row: fixed steps keep the signs at the step's end and start and the
+state at its start (`fixed_watcher`); adaptive kernels G and GNEW (E each: the signs at the step's start and end;
+its states are in rows 0 and NEW).
 """
 from __future__ import annotations
 
@@ -85,6 +88,43 @@ def values_chain(functions: tuple, compiled=_inlined):
     return compiled(values)
 
 
+@cache
+def difference(value, compiled=_inlined):
+    """sign(t, y, p, level) = value(t, y, p) - level: its sign says on which side of the level the value is (the
+    difference of two floats is 0 only where they are equal, and negative only where the first is less)."""
+    def sign(t, y, p, level):
+        return value(t, y, p) - level
+    return compiled(sign)
+
+
+@cache
+def function_sign(function, index: int, compiled=_inlined):
+    """sign(t, y, p, level) = function(t, *y, *p, level), or its value `index` where index >= 0: a scene's watch
+    of an observable (EVENT_VALUES' third entry), of the sign of the observable's difference from the level."""
+    if index < 0:
+        def sign(t, y, p, level):
+            return float(function(t, *y, *p, level))
+    else:
+        def sign(t, y, p, level):
+            return float(function(t, *y, *p, level)[index])
+    return compiled(sign)
+
+
+@cache
+def signs_chain(functions: tuple, compiled=_inlined):
+    """signs(t, y, p, levels) -> (functions[0](t, y, p, levels[0]), ..): every event's sign (`difference`,
+    `function_sign`), written out."""
+    if not functions:
+        def signs(t, y, p, levels):
+            return ()
+        return compiled(signs)
+    previous, last, e = signs_chain(functions[:-1], compiled), functions[-1], len(functions) - 1
+
+    def signs(t, y, p, levels):
+        return previous(t, y, p, levels) + (last(t, y, p, levels[e]),)
+    return compiled(signs)
+
+
 EVENT_STATE = ("event_times", "event_counts", "stopped", "event_states")  # what a run's events carry on
 
 
@@ -127,10 +167,13 @@ def user_state(to_user, y, p):
 def root(values, advance, e, level, t0, h, y0, p, before, after):
     """The fraction s of a step of h (s) from t0 (s) and state y0 at which event e's value on the method's path
     (advance) reaches `level`, its values at the ends before and after on either side of it: Illinois regula
-    falsi."""
+    falsi. Where they are not (a scene's watch saw a crossing its value does not show: one end is on the level to
+    the value's rounding), the nearer end."""
     a, b, ga, gb = 0.0, 1.0, before - level, after - level
     if gb == 0.0:
         return 1.0
+    if not ((ga < 0.0) != (gb < 0.0)):  # a watch's sign crossed, the value not: at an end, to its rounding
+        return 0.0 if abs(ga) <= abs(gb) else 1.0
     side = 0
     s = 1.0
     for _ in range(ROOT_ITERATIONS):
@@ -158,9 +201,10 @@ def root(values, advance, e, level, t0, h, y0, p, before, after):
 
 
 @njit(inline="always", **FAST)
-def located(values, advance, arrays, member, t0, h, y0, p, before, after):
+def located(values, advance, arrays, member, t0, h, y0, p, before, after, hit):
     """Every event of one member that crossed within its step of h (s) from t0 (s) and state y0 (before, after:
-    each event's values at the step's ends, tuples of E), located on the method's path `advance` (`root`) and
+    each event's values at the step's ends, tuples of E; hit: whether each crossed, `crossed_each` of its values or
+    of its watch's signs), located on the method's path `advance` (`root`) and
     recorded in the kernel call's event arrays (times, counts, and states where an event keeps them), but those
     after the step's first stopping event, at which the member's state goes to `stopped`. Returns the stopping
     time (s), or NaN where the member goes on. The CPU's kernels (`locator`) and the GPU's (gpu_kernels) call it."""
@@ -169,7 +213,7 @@ def located(values, advance, arrays, member, t0, h, y0, p, before, after):
     fractions = repeated(2.0, before)
     stop = 2.0
     for e in range(len(before)):
-        if crossed(before[e], after[e], spec[e, 0], spec[e, 1]):
+        if hit[e]:
             fractions = tuple_setitem(fractions, e, root(values, advance, e, spec[e, 0], t0, h, y0, p, before[e],
                                                          after[e]))
             if spec[e, 2] > 0.0:
@@ -191,7 +235,7 @@ def located(values, advance, arrays, member, t0, h, y0, p, before, after):
 
 @cache
 def locator(values, advance):
-    """located(arrays, member, t0, h, y0, p, before, after) for a CPU event kernel of `values` and a family's
+    """located(arrays, member, t0, h, y0, p, before, after, hit) for a CPU event kernel of `values` and a family's
     `advance` (`located`'s, bound). A function of its own, called where an event occurred: inlined into the
     members' loop, it tripled the kernel's compile time; so is the family's step it calls (`moved`), compiled once
     rather than at each of its three calls."""
@@ -200,8 +244,8 @@ def locator(values, advance):
         return advance(t0, h, y0, p)
 
     @njit(**FAST)
-    def located_here(arrays, member, t0, h, y0, p, before, after):
-        return located(values, moved, arrays, member, t0, h, y0, p, before, after)
+    def located_here(arrays, member, t0, h, y0, p, before, after, hit):
+        return located(values, moved, arrays, member, t0, h, y0, p, before, after, hit)
     return located_here
 
 
@@ -211,6 +255,15 @@ def any_crossed(before, after, levels, directions):
     hit = False
     for e in range(len(before)):
         hit |= crossed(before[e], after[e], levels[e], directions[e])
+    return hit
+
+
+@njit(inline="always", **FAST)
+def crossed_each(before, after, levels, directions):
+    """Whether each event crossed (`crossed`): a tuple of E booleans, of tuples of E values each."""
+    hit = repeated(False, before)
+    for e in range(len(before)):
+        hit = tuple_setitem(hit, e, crossed(before[e], after[e], levels[e], directions[e]))
     return hit
 
 
@@ -266,37 +319,39 @@ def NO_ADAPTIVE_WATCH(like_y, like_p, work, B, K, NEW, C0, S, context):
 
 
 @cache
-def beginning(values, first: int):
-    """begin(like_y, like_p, work, B, context) for either watcher: every member's events' values at t = 0 into
-    its rows from `first` (the values at the first step's start)."""
+def beginning(signs, first: int, E: int):
+    """begin(like_y, like_p, work, B, context) for either watcher: every member's events' signs (`signs_chain`) at
+    t = 0 into its rows from `first` (the signs at the first step's start)."""
+    like_g = (0.0,) * E
+
     @njit(inline="always", **FAST)
     def begin(like_y, like_p, work, B, context):
         D = len(like_y)
+        levels, _ = levels_and_directions(context[0][0], like_g)
         for j in range(B):
             y, p = loaded(work, 0, B, j, like_y), loaded(work, D, B, j, like_p)
-            stored(work, first, B, j, values(0.0, y, p))
+            stored(work, first, B, j, signs(0.0, y, p, levels))
     return begin
 
 
-def fixed_watcher(values, advance, to_user, first: int, E: int):
+def fixed_watcher(values, signs, advance, to_user, first: int, E: int):
     """(begin, remember, steps) for a fixed-step kernel (ensemble.engine.frames.fixed_step) whose E events' rows
-    start at `first`: their values at the step's end and start (E rows each) and the state at the step's start
-    (D rows). The levels and directions are read from `spec` once per step, before the members' loop (read in it,
-    beside stores to the work array that LLVM could not prove apart, they cost a tenth of the top's rk4 rate).
+    start at `first`: their signs (`signs_chain`: the sign of each value's difference from its level, or of a
+    scene's cheaper watch of it) at the step's end and start (E rows each) and the state at the step's start (D
+    rows). Levels and directions are read once per step, before the members' loop (in it, a tenth of rk4's rate).
 
     begin(like_y, like_p, work, B, context) at t = 0. In a family's loop over a block's members, remember(work,
     B, j, y) keeps a member's state before its step (y, in the family's coordinates). After that loop,
-    watch(like_y, like_p, work, B, t, h, context) evaluates every member's events at its new state (to_user: a
+    watch(like_y, like_p, work, B, t, h, context) evaluates every member's signs at its new state (to_user: a
     splitting's from_pieces to the scene's coordinates, or None) in a loop of its own and counts those that
     crossed (in an integer: a float sum, which LLVM may not reorder, kept the loop from vectorizing); where any
-    did, locate(like_y, like_p, work, B, t, h, context) locates each such member's events on advance(t0, h, y0,
-    p), the family's step in the scene's coordinates (runge_kutta.advance_of, splitting.advance_of); the member
-    stops at the first that stops it. steps: NO_STEPS with watch and locate (`watched_steps`). Every row is
-    stored whole: a store of a value selected against what the row held became a masked store (vmaskmovpd, slow
-    on AMD Zen 3), and rows chosen at run time kept LLVM from proving a block's members apart. In the members'
-    loop of the step itself the events cost more: a top's tilt, a call there, kept the step from vectorizing.
-    context: (events, status, failure_time, j0) as frames hands it."""
-    located, like_g, begin = locator(values, advance), (0.0,) * E, beginning(values, first)
+    did, locate(like_y, like_p, work, B, t, h, context) takes each such member's values at both ends and locates
+    its events on advance(t0, h, y0, p), the family's step in the scene's coordinates (runge_kutta.advance_of,
+    splitting.advance_of); the member stops at the first that stops it. steps: NO_STEPS with watch and locate
+    (`watched_steps`). Rows are stored whole (a value selected against the row's became a masked store, slow on
+    AMD Zen 3) at rows fixed when compiled (else LLVM cannot prove a block's members apart); watched in the step's
+    own loop, a top's tilt kept it from vectorizing. context: (events, status, failure_time, j0) from frames."""
+    located, like_g, begin = locator(values, advance), (0.0,) * E, beginning(signs, first, E)
     G, BEFORE, OLD = first, first + E, first + 2 * E
 
     @njit(inline="always", **FAST)
@@ -305,30 +360,33 @@ def fixed_watcher(values, advance, to_user, first: int, E: int):
 
     @njit(inline="always", **FAST)
     def watch(like_y, like_p, work, B, t, h, context):
-        arrays, status, failure_time, j0 = context
-        spec = arrays[0]
         D = len(like_y)
-        levels, directions = levels_and_directions(spec, like_g)  # loaded once: constants of the loops
+        levels, directions = levels_and_directions(context[0][0], like_g)  # loaded once: constants of the loops
+        zeros = repeated(0.0, like_g)
         hits = 0
         for j in range(B):
             p = loaded(work, D, B, j, like_p)
             before = loaded(work, G, B, j, like_g)
-            after = values(t + h, user_state(to_user, loaded(work, 0, B, j, like_y), p), p)
+            after = signs(t + h, user_state(to_user, loaded(work, 0, B, j, like_y), p), p, levels)
             stored(work, G, B, j, after)
             stored(work, BEFORE, B, j, before)
-            hits += any_crossed(before, after, levels, directions)
+            hits += any_crossed(before, after, zeros, directions)
         return hits
 
     @njit(inline="always", **FAST)
     def locate(like_y, like_p, work, B, t, h, context):
         arrays, status, failure_time, j0 = context
         D = len(like_y)
-        levels, directions = levels_and_directions(arrays[0], like_g)
+        _, directions = levels_and_directions(arrays[0], like_g)
+        zeros = repeated(0.0, like_g)
         for j in range(B):
             before, after = loaded(work, BEFORE, B, j, like_g), loaded(work, G, B, j, like_g)
-            if any_crossed(before, after, levels, directions):
-                y, p = loaded(work, OLD, B, j, like_y), loaded(work, D, B, j, like_p)
-                when = located(arrays, j0 + j, t, h, user_state(to_user, y, p), p, before, after)
+            if any_crossed(before, after, zeros, directions):
+                p = loaded(work, D, B, j, like_p)
+                y0 = user_state(to_user, loaded(work, OLD, B, j, like_y), p)
+                y1 = user_state(to_user, loaded(work, 0, B, j, like_y), p)
+                when = located(arrays, j0 + j, t, h, y0, p, values(t, y0, p), values(t + h, y1, p),
+                               crossed_each(before, after, zeros, directions))
                 if when == when:
                     stop_member(work, 0, D, B, j, status, failure_time, j0, when)
 
@@ -338,35 +396,38 @@ def fixed_watcher(values, advance, to_user, first: int, E: int):
     return begin, remember, steps
 
 
-def adaptive_watcher(values, advance, first: int, E: int):
+def adaptive_watcher(values, signs, advance, first: int, E: int):
     """(begin, watch) for an adaptive kernel (ensemble.engine.frames.adaptive) whose event rows start at
     `first`: begin(like_y, like_p, work, B, context) at t = 0; watch(like_y, like_p, work, B, K, NEW, C0, S,
-    context) after control_step, before the accepted steps move to their new states. advance: the pair's step
-    (adaptive.advance_of). E: the events' count."""
-    located, like_g, begin = locator(values, advance), (0.0,) * E, beginning(values, first)
+    context) after control_step, before the accepted steps move to their new states: each event's sign
+    (`signs_chain`) at the trial state, and where one crossed, the member's values at both ends, its events
+    located on advance (adaptive.advance_of, the pair's step). E: the events' count."""
+    located, like_g, begin = locator(values, advance), (0.0,) * E, beginning(signs, first, E)
 
     @njit(inline="always", **FAST)
     def watch(like_y, like_p, work, B, K, NEW, C0, S, context):
         arrays, status, failure_time, j0 = context
-        spec = arrays[0]
         D = len(like_y)
         G, GNEW = first, first + E
-        levels, directions = levels_and_directions(spec, like_g)
+        levels, directions = levels_and_directions(arrays[0], like_g)
+        zeros = repeated(0.0, like_g)
         hits = 0
         for j in range(B):
             accepted = (work[(C0 + REJECTED_LAST) * B + j] == 0.0) & (work[(C0 + ERR) * B + j] >= 0.0)
             p, before = loaded(work, D, B, j, like_p), loaded(work, G, B, j, like_g)
-            after = values(work[(C0 + TIME) * B + j], loaded(work, NEW, B, j, like_y), p)
+            after = signs(work[(C0 + TIME) * B + j], loaded(work, NEW, B, j, like_y), p, levels)
             for e in range(E):
                 work[(GNEW + e) * B + j] = select(accepted, after[e], before[e])
-            hits += accepted & any_crossed(before, after, levels, directions)
+            hits += accepted & any_crossed(before, after, zeros, directions)
         if hits:
             for j in range(B):
                 before, after = loaded(work, G, B, j, like_g), loaded(work, GNEW, B, j, like_g)
-                if any_crossed(before, after, levels, directions):
+                if any_crossed(before, after, zeros, directions):
                     p, y0 = loaded(work, D, B, j, like_p), loaded(work, 0, B, j, like_y)
                     t1, h = work[(C0 + TIME) * B + j], work[(C0 + STEP) * B + j]
-                    when = located(arrays, j0 + j, t1 - h, h, y0, p, before, after)
+                    when = located(arrays, j0 + j, t1 - h, h, y0, p, values(t1 - h, y0, p),
+                                   values(t1, loaded(work, NEW, B, j, like_y), p),
+                                   crossed_each(before, after, zeros, directions))
                     if when == when:
                         stop_member(work, NEW, D, B, j, status, failure_time, j0, when)
                         work[(C0 + H) * B + j] = 0.0  # no further steps

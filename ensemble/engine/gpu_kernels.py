@@ -192,11 +192,12 @@ def event_watch(events, g, t, h, y, new, p, status, failure_time, m):
     (state, the events' values at the step's end)."""
     spec = events[0]
     after = VALUES(t + h, left(new, p), p)
-    hit = False
+    hit, any_hit = repeated(False, g), False
     for e in range(E):
-        hit = hit or crossed(g[e], after[e], spec[e, 0], spec[e, 1])
-    if hit:
-        when = located(VALUES, moved, events, m, t, h, left(y, p), p, g, after)
+        crossing = crossed(g[e], after[e], spec[e, 0], spec[e, 1])
+        hit, any_hit = tuple_setitem(hit, e, crossing), any_hit or crossing
+    if any_hit:
+        when = located(VALUES, moved, events, m, t, h, left(y, p), p, g, after, hit)
         if when == when:
             status[m], failure_time[m] = STOPPED, when
             new = repeated(NAN, LIKE_Y)

@@ -17,6 +17,7 @@ from ensemble.engine.events import (
     any_crossed,
     component,
     crossed,
+    crossed_each,
     levels_and_directions,
     locator,
     stop_member,
@@ -180,7 +181,7 @@ def located_members(work, context, n, t, h, kinds, taus, start):
         before, after = loaded(work, BEFORE, B, j, LIKE_G), loaded(work, G, B, j, LIKE_G)
         if any_crossed(before, after, levels, directions):
             when = LOCATED(arrays, j0 + j, t, h, start(work, j, n, h, kinds, taus), member_couplings(work, j),
-                           before, after)
+                           before, after, crossed_each(before, after, levels, directions))
             if when == when:  # its sites' rows and the ghost between x and v NaN: this member's alone
                 stop_member(work, X + 1, 2 * N + 1, B, j, status, failure_time, j0, when)
 
@@ -279,7 +280,7 @@ def events_adaptive_watch(work, B, context):
             if any_crossed(before, after, levels, directions):
                 t1, h = work[(C0 + TIME) * B + j], work[(C0 + STEP) * B + j]
                 when = LOCATED(arrays, j0 + j, t1 - h, h, member_state(work, X + 1, j, B), member_couplings(work, j),
-                               before, after)
+                               before, after, crossed_each(before, after, levels, directions))
                 if when == when:
                     stop_member(work, ZX + 1, 2 * N + 1, B, j, status, failure_time, j0, when)
                     work[(C0 + H) * B + j] = 0.0  # no further steps

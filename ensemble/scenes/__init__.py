@@ -37,7 +37,8 @@ class Scene(Protocol):
     PIECES: tuple[str, ...]  # the exactly solved pieces its splitting methods take (see methods.Splitting)
     EVALUATING_PIECES: tuple[str, ...]  # the pieces that evaluate the right-hand side (counted as rhs_evals)
     STABILITY_AXES: tuple[str, ...]  # the dimensionless steps its stability is read against
-    EVENT_VALUES: dict[str, tuple]  # what events watch: name -> ("state", row) or ("function", physics function)
+    EVENT_VALUES: dict[str, tuple]  # what events watch: name -> ("state", row) or ("function", physics function[,
+    # its watch: ensemble.events])
 
     def sizes(self, constants: dict) -> dict[str, int]: ...  # dimensions besides member and t
     def coordinates(self, constants: dict) -> dict[str, tuple[np.ndarray, str]]: ...  # dim -> (values, long_name)

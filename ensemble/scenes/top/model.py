@@ -44,8 +44,8 @@ OBSERVABLES: dict[str, tuple[tuple[str, ...], str, str]] = {
 }
 
 # What events can watch (ensemble.events): omega's components are the kernel's state rows 0..2; the tilt is
-# physics.value_tilt.
-EVENT_VALUES = {"omega": ("state", 0), "tilt": ("function", "value_tilt")}
+# physics.value_tilt, which the kernels watch through physics.watch_tilt (its sign against a level, cheaper).
+EVENT_VALUES = {"omega": ("state", 0), "tilt": ("function", "value_tilt", "watch_tilt")}
 
 # Relative slack for lambda3 <= 2 lambda1: a flat body sits exactly on the bound.
 _FLAT_BODY_RTOL = 1e-9

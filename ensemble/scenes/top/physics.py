@@ -77,6 +77,18 @@ def value_tilt(t, w1, w2, w3, p, r1, r3):
     return _tilt_and_transverse(w1, w2, w3)[0]
 
 
+def watch_tilt(t, w1, w2, w3, p, r1, r3, level):
+    """Of the sign of value_tilt - level (rad) at a fraction of its cost, for the kernels' watch of a tilt event
+    (ensemble.engine.events): |w| sin(tilt - level) = |(w1, w2)| cos(level) - w3 sin(level) off the spin axis,
+    (0 or pi) - level on it, +-1 for a level the tilt never reaches, NaN where a rate is."""
+    transverse = math.sqrt(w1 * w1 + w2 * w2)
+    off_axis = transverse * math.cos(level) - w3 * math.sin(level)
+    on_axis = (math.pi if math.copysign(1.0, w3) < 0.0 else 0.0) - level
+    sign = off_axis if transverse > 0.0 else on_axis
+    sign = sign if 0.0 <= level <= math.pi else (1.0 if level < 0.0 else -1.0)
+    return sign if transverse == transverse and w3 == w3 else math.nan
+
+
 @njit(cache=True, nogil=True, **OBSERVING)
 def observed_tilt(omega):
     """Tilt (rad), (members, t), of member-major rates omega (members, t, 3) rad/s (see model.tilt)."""
