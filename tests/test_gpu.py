@@ -163,14 +163,14 @@ def test_events_on_the_gpu_are_the_cpus(method, dt, stop):
 
 @pytest.mark.parametrize("method", ["rk4", "split4"])
 def test_a_tops_stopping_event_on_the_gpu_is_the_cpus(method):
-    """A prolate top's tilt rising through 0.6 rad (the top's compiled observable) stops each member there: status,
-    steps, the state kept at the stop and the NaN samples after it as on the CPU (the kernels of test_events'
-    stopping tops; dopri5's stops are tested on the pendulum above)."""
+    """A prolate top's tilt rising through 0.6 rad (the top's compiled observable, watched through watch_tilt) stops
+    each member there: status, steps, the state kept at the stop and the NaN samples after it as on the CPU (the
+    kernels of test_events' stopping tops; dopri5's stops are tested on the pendulum above)."""
     from ensemble.results import Event
 
     values = {"lambda1": np.full(3, 1e-3), "lambda3": np.full(3, 0.5e-3), "c": np.full(3, 2e-4),
               "spin0": np.full(3, 60.0), "tilt0": np.array([0.4, 0.5, 0.55]), "azimuth0": np.zeros(3)}
-    tip = Event("tip", "tilt", -1, ("function", "value_tilt", -1), 0.6, "up", 1, True)  # at 2.4, 1.1, 0.55 s
+    tip = Event("tip", "tilt", -1, ("function", "value_tilt", -1, "watch_tilt"), 0.6, "up", 1, True)  # 2.4, 1.1, .55 s
     settings = dict(n_save=11, save_dt=0.5, dt=2e-2, rtol=1e-8, atol=1e-10, events=(tip,))
     top = resolve("top")
     cpu = launch.integrate(top, METHODS[method], values, {}, **settings)

@@ -5,7 +5,7 @@ calls `crossed` and `located` as device functions; a CPU kernel without events c
 (NO_ADAPTIVE_WATCH), which are nothing, and NO_STEPS, a loop of steps alone.
 
 An event's value is a function value(t, y, p) -> float of a member's time (s), state and parameters (tuples):
-a state component, a scene's observable, or a scene's own event function (`component`, `function_value`). A CPU
+a state component, a scene's observable, or a scene's own event function (`component`, `function_value`). A
 kernel with E events watches them all at the end of every step through their signs, `signs(t, y, p, levels)` -> E
 floats (`signs_chain`), each of the sign of the value's difference from its level: that difference, or a scene's
 watch of the observable, a function of that sign that costs less (the top's tilt: |w| sin(tilt - level), without
@@ -15,7 +15,7 @@ through the step: the state at t0 + s h is the method's step of s h from the ste
 s h, y0, p)` (each family's advance_of), by the Illinois variant of regula falsi, to the last bits of the step's
 time. The event's time is then as accurate as the method's states, for every family: an interpolant of the step's
 ends would not be (a cubic Hermite is of order 3, dopri5's dense output of order 4, below the methods' own). A
-GPU thread, whose step is not vectorized, watches the values themselves.
+GPU thread watches its member's events through the same signs (gpu_device.device_event_signs).
 
 A kernel call's events are a tuple (spec, times, counts, stopped, states):
 - spec (E, 5): per event its level, direction (+1 up: from below to level or above; -1 down; 0 both), stop
@@ -123,6 +123,16 @@ def signs_chain(functions: tuple, compiled=_inlined):
     def signs(t, y, p, levels):
         return previous(t, y, p, levels) + (last(t, y, p, levels[e]),)
     return compiled(signs)
+
+
+def signs_of(sources: tuple, value_of, function_of, compiled=_inlined):
+    """signs_chain of events' sources (results.Event.source): the scene's watch where a function source names one
+    (its fourth entry), function_of(name) compiled as the kernel's; else the difference of value_of(source), the
+    source's value, from the level."""
+    watches = (source[3] if source[0] == "function" and len(source) > 3 else None for source in sources)
+    return signs_chain(tuple(function_sign(function_of(watch), source[2], compiled) if watch else
+                             difference(value_of(source), compiled) for source, watch in zip(sources, watches)),
+                       compiled)
 
 
 EVENT_STATE = ("event_times", "event_counts", "stopped", "event_states")  # what a run's events carry on

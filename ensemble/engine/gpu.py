@@ -142,9 +142,10 @@ def work_rows(method: Method, D: int, E: int = 0) -> int:
     return (2 * D + len(ADAPTIVE_ROWS) if method.adaptive else D) + E
 
 
-EVENTS = '''from ensemble.engine.gpu_device import device_event_values
+EVENTS = '''from ensemble.engine.gpu_device import device_event_signs, device_event_values
 E = {E}  # events
-VALUES = device_event_values({where!r}, {event_sources!r}, {sources!r})  # each one's value (engine.events)'''
+VALUES = device_event_values({where!r}, {event_sources!r}, {sources!r})  # each one's value (engine.events)
+SIGNS = device_event_signs({where!r}, {event_sources!r}, {sources!r})  # each one's sign against its level'''
 
 
 @cache

@@ -140,12 +140,30 @@ def device_event_values(where: str, sources: tuple, expected: str):
     functions: a state component, or a scene's function (its physics module `where`, of identity `expected`)."""
     from . import events
 
-    module = loaded(where, expected)
-    done: dict = {}
-    functions = tuple(events.component(source[1], device_inlined) if source[0] == "state" else
-                      events.function_value(device_function(getattr(module, source[1]), done), source[2],
-                                            device_inlined) for source in sources)
-    return events.values_chain(functions, device_inlined)
+    module, done = loaded(where, expected), {}
+    return events.values_chain(tuple(_device_event_value(module, source, done) for source in sources),
+                               device_inlined)
+
+
+@cache
+def device_event_signs(where: str, sources: tuple, expected: str):
+    """signs(t, y, p, levels) -> each event's sign against its level (ensemble.engine.events.signs_chain,
+    kernels.event_signs) of device functions: a scene's watch where a function source names one, else the value's
+    difference from the level."""
+    from . import events
+
+    module, done = loaded(where, expected), {}
+    return events.signs_of(sources, lambda source: _device_event_value(module, source, done),
+                           lambda name: device_function(getattr(module, name), done), device_inlined)
+
+
+def _device_event_value(module, source: tuple, done: dict):
+    """value(t, y, p) of an event's source as a device function (kernels._event_value)."""
+    from . import events
+
+    if source[0] == "state":
+        return events.component(source[1], device_inlined)
+    return events.function_value(device_function(getattr(module, source[1]), done), source[2], device_inlined)
 
 
 @cache

@@ -61,12 +61,18 @@ CONTROLLER = (0.7 / 3 - 0.75 * 0.04, 0.04, 0.9, 0.2, 10.0)  # alpha, beta, safet
 split_step = splitting.sequence_step(((kick, REAL(0.5)), (drift, REAL(1.0)), (kick, REAL(0.5))), device_inlined)
 split_factors = splitting.sequence_factors(((None, REAL(0.5)), (None, REAL(1.0)), (None, REAL(0.5))),
                                            device_inlined)
-E = 0  # events (an event kernel's header binds E and VALUES: gpu_device.device_event_values)
+E = 0  # events (an event kernel's header binds E, VALUES and SIGNS: gpu_device.device_event_values, _signs)
 
 
 @cuda.jit(device=True, inline="always")
 def VALUES(t, y, p):
     """Each event's value (float64) at time t (s) of a member's state y and parameters p (tuples)."""
+    return ()
+
+
+@cuda.jit(device=True, inline="always")
+def SIGNS(t, y, p, levels):
+    """Each event's sign against its level (ensemble.engine.events.signs_chain), as VALUES."""
     return ()
 
 # ---------------------------------------------------------------- CODE: copied into every kernel's file
@@ -76,8 +82,17 @@ rk_step = device_function(runge_kutta.step)
 trial_step, error_norm = device_function(adaptive.trial_step), device_function(adaptive.error_norm)
 LIKE_Y, LIKE_P, WIDE_Y = (ZERO,) * D, (ZERO,) * P, (0.0,) * D  # a state and parameters in REAL, a state in float64
 WIDE_CONTROL = (0.0,) * 7  # an adaptive member's time, step, log2 of its last error, rejected last, counts
-LIKE_G = (0.0,) * E  # the events' values
+LIKE_G = (0.0,) * E  # the events' signs
 crossed, located = device_events()
+
+
+@cuda.jit(device=True, inline="always")
+def levels_of(spec):
+    """The events' levels (spec's first column) as a tuple of E."""
+    levels = repeated(0.0, LIKE_G)
+    for e in range(E):
+        levels = tuple_setitem(levels, e, spec[e, 0])
+    return levels
 
 
 @cuda.jit(device=True, inline="always")
@@ -185,19 +200,21 @@ def no_watch(events, g, t, h, y, new, p, status, failure_time, m):
 
 @cuda.jit(device=True, inline="always")
 def event_watch(events, g, t, h, y, new, p, status, failure_time, m):
-    """After member m's step of h (s) from t (s), from y to new (the family's coordinates), its events' values g
-    at the step's start: their values at its end, and where one crossed its level, the member's events located on
-    the family's path (`moved`) and recorded (ensemble.engine.events.located); a member stopped at one gets status
-    STOPPED, its time in failure_time (the launch counts its steps, then clears it) and a NaN state. Returns
-    (state, the events' values at the step's end)."""
+    """After member m's step of h (s) from t (s), from y to new (the family's coordinates), its events' signs g
+    at the step's start (the CPU's watch: ensemble.engine.events.signs_chain): their signs at its end, and where
+    one crossed, the member's values at both ends and its events located on the family's path (`moved`) and
+    recorded (ensemble.engine.events.located); a member stopped at one gets status STOPPED, its time in
+    failure_time (the launch counts its steps, then clears it) and a NaN state. Returns (state, the events' signs
+    at the step's end)."""
     spec = events[0]
-    after = VALUES(t + h, left(new, p), p)
+    after = SIGNS(t + h, left(new, p), p, levels_of(spec))
     hit, any_hit = repeated(False, g), False
     for e in range(E):
-        crossing = crossed(g[e], after[e], spec[e, 0], spec[e, 1])
+        crossing = crossed(g[e], after[e], 0.0, spec[e, 1])
         hit, any_hit = tuple_setitem(hit, e, crossing), any_hit or crossing
     if any_hit:
-        when = located(VALUES, moved, events, m, t, h, left(y, p), p, g, after, hit)
+        y0, y1 = left(y, p), left(new, p)
+        when = located(VALUES, moved, events, m, t, h, y0, p, VALUES(t, y0, p), VALUES(t + h, y1, p), hit)
         if when == when:
             status[m], failure_time[m] = STOPPED, when
             new = repeated(NAN, LIKE_Y)
@@ -213,12 +230,12 @@ def fixed_frame(advance, prepared, state0, rate, h, steps_per_save, limit, sampl
     """Member m from sample `start` on (0: from state0; later: from where the last call left works): each save
     interval's steps_per_save steps of h (s), advance(h, t, y, p, prepared(h, p)) taking it one step from t (s),
     the scene's coordinates for its pieces (`entered`, `left`) around them, and its events watched after each
-    (`watch`; their values carried in works rows D .. D + E - 1)."""
+    (`watch`; their signs carried in works rows D .. D + E - 1)."""
     p = converted(loaded(rate, 0, rate.shape[1], m, LIKE_P), LIKE_P)
     first = 0
     if start == 0:
         y = started(first_state(state0, m), limit, samples, status, failure_time, m)
-        g = VALUES(0.0, y, p)
+        g = SIGNS(0.0, y, p, levels_of(events[0]))
         first = 1
     else:
         y = converted(loaded(works, 0, works.shape[1], m, WIDE_Y), LIKE_Y)
@@ -276,7 +293,7 @@ def first_guess(y, k0, rtol, atol, h, save_dt):
 @cuda.jit(device=True, inline="always")
 def resumed(works, m):
     """Where the last call left an adaptive member: its state, first slopes, time, step, log2 of its last error,
-    whether its last step was rejected, its counts, and its events' values."""
+    whether its last step was rejected, its counts, and its events' signs."""
     y = converted(loaded(works, 0, works.shape[1], m, WIDE_Y), LIKE_Y)
     k0 = converted(loaded(works, D, works.shape[1], m, WIDE_Y), LIKE_Y)
     time, h, log2_previous, rejected, accepted_count, rejected_count, evaluations = loaded(
@@ -304,7 +321,7 @@ def adaptive_kernel(state0, rate, control, save_dt, limit, samples, counts, stat
         time, log2_previous, rejected_last = REAL(0.0), REAL(FIRST_LOG2_ERR_PREVIOUS), False
         tally = (0.0, 0.0, 1.0)  # accepted and rejected steps, right-hand-side evaluations
         y = started(y, limit, samples, status, failure_time, m)
-        g = VALUES(0.0, y, p)
+        g = SIGNS(0.0, y, p, levels_of(spec))
         first = 1
     else:
         y, k0, time, h, log2_previous, rejected_last, tally, g = resumed(works, m)

@@ -210,16 +210,13 @@ def event_values(where: str, sources: tuple, expected: str):
 
 
 def event_signs(where: str, sources: tuple, expected: str):
-    """signs(t, y, p, levels) -> each event's sign against its level (ensemble.engine.events.signs_chain): the
-    scene's watch(t, *y, *p, level) where a function source names one (its fourth entry), else the value's
-    difference from the level."""
+    """signs(t, y, p, levels) -> each event's sign against its level (ensemble.engine.events.signs_of): the
+    scene's watch where a function source names one, else the value's difference from the level."""
     from . import events
 
     module = loaded(where, expected)
-    watches = (source[3] if source[0] == "function" and len(source) > 3 else None for source in sources)
-    return events.signs_chain(tuple(
-        events.function_sign(_called(getattr(module, watch)), source[2]) if watch else
-        events.difference(_event_value(module, source)) for source, watch in zip(sources, watches)))
+    return events.signs_of(sources, lambda source: _event_value(module, source),
+                           lambda name: _called(getattr(module, name)))
 
 
 def _event_value(module, source: tuple):
