@@ -1,11 +1,11 @@
-"""The same bits for every compile target this host can run (issue 50): each method family's kernel, compiled for
-the host's own CPU and for other CPU names through NUMBA_CPU_NAME (AVX2's generic x86-64-v3, and AVX-512's
-skylake-avx512 where the host has it), gives the same results to the last bit, freshly compiled and loaded from
-Numba's disk cache alike. Fast math is contraction into fused multiply-adds only, so LLVM has no licence to
-regroup arithmetic differently for another vector width or CPU. (With full fast math a chain's dopri5 took other
-last bits on an AMD Zen 4 than on an Intel Xeon, and other bits for skylake-avx512 than for x86-64-v3 on one
-machine; kernels compiled with parallel=True once gave other bits in the process that compiled them than in
-the later ones that loaded them.)"""
+"""The same bits for every compile target this host can run (issue 50): each method family's kernel, and an event
+kernel watching the top's tilt, compiled for the host's own CPU and for other CPU names through NUMBA_CPU_NAME
+(AVX2's generic x86-64-v3, and AVX-512's skylake-avx512 where the host has it), gives the same results to the
+last bit, freshly compiled and loaded from Numba's disk cache alike. Fast math is contraction into fused
+multiply-adds only, so LLVM has no licence to regroup arithmetic differently for another vector width or CPU.
+(With full fast math a chain's dopri5 took other last bits on an AMD Zen 4 than on an Intel Xeon, and other bits
+for skylake-avx512 than for x86-64-v3 on one machine; kernels compiled with parallel=True once gave other bits
+in the process that compiled them than in the later ones that loaded them.)"""
 from __future__ import annotations
 
 import hashlib
@@ -42,6 +42,11 @@ method = ["verlet"]
 method = ["dopri5"]
 rtol = [1e-9]
 """
+EVENTS = (top_runfile(members=5, t_end=2.0, save_dt=0.5, method="split4",
+                      parameters={"lambda3": 0.5e-3, "tilt0": {"uniform": [0.38, 0.44]}})
+          + '[events.tip]\nof = "tilt"\nvalue = 0.45\ndirection = "up"\nstop = true\n'  # watch_tilt's sign
+          + '[events.turn]\nof = "omega"\nindex = 0\ncount = 8\nkeep = ["omega"]\n')
+RUNS = {"tops": TOPS, "chains": CHAINS, "events": EVENTS}
 
 # What each CPU name needs of the host, from LLVM's definitions of them (x86-64-v3: AVX2, FMA, BMI1 and 2, ...)
 NEEDS = {"x86-64-v3": {"avx2", "fma", "bmi1", "bmi2", "movbe", "f16c", "abm"},
@@ -68,7 +73,7 @@ def _digests(cpu_name: str | None, cache) -> dict[str, str]:
     env["NUMBA_CACHE_DIR"] = str(cache)
     if cpu_name:
         env["NUMBA_CPU_NAME"] = cpu_name
-    done = subprocess.run([sys.executable, "-c", DIGEST, json.dumps({"tops": TOPS, "chains": CHAINS})], env=env,
+    done = subprocess.run([sys.executable, "-c", DIGEST, json.dumps(RUNS)], env=env,
                           capture_output=True, text=True, timeout=600)
     assert done.returncode == 0, done.stderr[-2000:]
     return json.loads(done.stdout.strip().splitlines()[-1])
@@ -78,7 +83,7 @@ def _digests(cpu_name: str | None, cache) -> dict[str, str]:
 def host_digests():
     """In this process: kernels that the other tests compile for the host are loaded from the cache."""
     found = {}
-    for label, text in {"tops": TOPS, "chains": CHAINS}.items():
+    for label, text in RUNS.items():
         ds = ensemble.run(text, progress=False)
         found.update({f"{label}:{name}": hashlib.sha256(ds[name].values.tobytes()).hexdigest()
                       for name in sorted(ds.data_vars) if name != "seconds_per_step"})
