@@ -253,9 +253,6 @@ def parse(text: str, path: str = "<string>") -> Spec:
     for grid, axes in zip(grids, setting_axes):
         grid.update(axes)
     events = _events(values.get("events", {}), module, constants, declared)
-    if events and device == "cuda" and module.SITES:
-        raise SpecError("device", f"a field of sites' events ({module.NAME}'s) are located on the CPU alone yet; "
-                                  f"run it with device = \"cpu\"")
     noise = _noise(values.get("observe", {}), save, module, events)
 
     spec = Spec(path=str(path), text=text, scene=scene, method=settings.get("method"), dt=settings.get("dt"),

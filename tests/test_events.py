@@ -396,5 +396,3 @@ def test_a_vector_without_index_and_an_event_function_of_the_wrong_signature_are
     refused(chain_runfile() + '[events.e]\nof = "x"\n', tmp_path, capsys, "events.e.index: 'x' is a vector over site")
     refused(chain_runfile() + '[events.e]\nof = "energy"\n', tmp_path, capsys,
             "events.e.of: unknown variable 'energy'; chain's events watch: x, v; energy cannot be watched yet")
-    refused(chain_runfile(device='"cuda"') + '[events.e]\nof = "v"\nindex = 1\n', tmp_path, capsys,
-            "device: a field of sites' events (chain's) are located on the CPU alone yet")

@@ -186,6 +186,37 @@ def test_a_tops_stopping_event_on_the_gpu_is_the_cpus(method):
     assert np.max(np.abs(gpu.stopped - cpu.stopped)) <= moved and moved < 1e-9
 
 
+@pytest.mark.parametrize("method, stop", [("verlet", False), ("rk4", True), ("dopri5", False), ("dopri5", True)])
+def test_a_chains_events_on_the_gpu_are_the_cpus(method, stop):
+    """A chain's events on the GPU (one thread to a member, however long the chain; a splitting's steps whole, not
+    merged): mass 1's crossings with the states kept there, mass 2's velocity turning (stopping its member where
+    `stop`), the samples, counts and statuses as on the CPU (test_chain_events' kernels), to rounding; a run in
+    segments, the bits of one call."""
+    from ensemble.engine import gpu_launch
+
+    from .test_chain_events import CHAIN, CROSS, TURN, pluck
+
+    events = (CROSS, TURN._replace(stop=stop))
+    cpu, gpu = pluck(method, events, slice(0, 2)), pluck(method, events, slice(0, 2), device="cuda")
+    assert np.array_equal(gpu.status, cpu.status) and np.array_equal(gpu.event_counts, cpu.event_counts)
+    assert np.all(cpu.status == (Status.STOPPED_BY_EVENT if stop else Status.OK)) and cpu.event_counts.min() > 0
+    assert np.array_equal(gpu.counts, cpu.counts) and np.all(np.isnan(gpu.failure_time))
+    for name in ("event_times", "event_states", "stopped", "samples"):
+        mine, theirs = getattr(gpu, name), getattr(cpu, name)
+        assert np.array_equal(np.isnan(mine), np.isnan(theirs)), name
+        assert np.allclose(mine, theirs, rtol=1e-11, atol=1e-12, equal_nan=True), name
+    if stop:  # in segments of 7 samples: each call goes on with the events where the last left them
+        original = gpu_launch.GpuLaunch.__init__
+        with pytest.MonkeyPatch.context() as patch:
+            patch.setattr(gpu_launch.GpuLaunch, "__init__", lambda self, *a, **k: original(self, *a, **k, segment=7))
+            parts = pluck(method, events, slice(0, 2), device="cuda")
+        for name in ("event_times", "event_counts", "event_states", "stopped", "samples", "counts", "status"):
+            assert np.array_equal(getattr(parts, name), getattr(gpu, name), equal_nan=True), name
+    long = {"n": 200, "boundary": "fixed"}
+    assert gpu_launch.layout(CHAIN, METHODS[method], long, ()).threads > 1
+    assert gpu_launch.layout(CHAIN, METHODS[method], long, (CROSS.source,)).threads == 1
+
+
 def test_chunks_and_resume_on_the_gpu_give_the_bits_of_one_run(tmp_path, monkeypatch):
     """device = "cuda" in the run file: a run in chunks of 1, and one interrupted after two chunks of 7 and
     resumed, give the bits of one run; the result names its device."""
@@ -416,7 +447,7 @@ def _example_error(module: str, family: str, step: float | None) -> float:
     status, failure_time, limit = np.zeros(members, np.int8), np.zeros(members), np.full(members, 1e6)
     works = np.zeros((rows, members))
     no_events = (np.zeros((0, 5)), np.zeros((0, 1, 1)), np.zeros((0, 1)), np.zeros((len(state0), 1)),
-                 np.zeros((0, 1, len(state0), 1))) if module == "gpu_kernels" else ()  # its example has none
+                 np.zeros((0, 1, len(state0), 1)))  # its example has none
     for start in (0, 1):
         samples = np.full((1, len(state0), members), np.nan)
         if family == "adaptive":

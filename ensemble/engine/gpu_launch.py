@@ -19,11 +19,12 @@ from .kernels import Layout, scene_identity
 def layout(scene, method: Method, constants: dict, events: tuple = ()) -> Layout:
     """The Layout of a scene's CUDA kernel for `method`: a thread per member, THREADS members to a block of
     threads, or a field of sites' threads per member (gpu_sites.site_threads), then a member to a block. events:
-    each one's results.Event.source (a member kernel's)."""
+    each one's results.Event.source (a field of sites with events takes one thread to a member)."""
     if scene.SITES:
         n = constants["n"]
-        threads = site_threads(n, method)
-        return Layout(1 if threads > 1 else THREADS, sites_work_rows(method, n), threads=threads)
+        threads = site_threads(n, method, events)
+        return Layout(1 if threads > 1 else THREADS, sites_work_rows(method, n, len(events)), threads=threads,
+                      events=tuple(events))
     D = scene.kernel_rows(constants)[0]
     return Layout(THREADS, member_work_rows(method, D, len(events)), events=tuple(events))
 
@@ -64,9 +65,9 @@ class GpuLaunch:
         self.kernel = kernel(scene, method, constants, precision, chosen)
         if self.events:
             self.event_spec = cuda.to_device(event_spec(self.events))
-        self.no_events = () if scene.SITES or self.events else tuple(cuda.to_device(np.zeros(shape)) for shape in (
+        self.no_events = () if self.events else tuple(cuda.to_device(np.zeros(shape)) for shape in (
             (0, 5), (0, 1, 1), (0, 1), (self.state_rows, 1), (0, 1, self.state_rows, 1)))  # a member kernel's
-        # event arguments where it has none
+        # (or a field of sites') event arguments where it has none
         self.limit = cuda.to_device(blowup_limits(state0, blowup_factor).astype(self.real))
         self.state0 = cuda.to_device(np.ascontiguousarray(state0, dtype=self.real))
         self.rate = cuda.to_device(np.ascontiguousarray(rate, dtype=self.real))

@@ -2,7 +2,8 @@
 embedded adaptive pair, one member to a thread's local arrays (T = 1) or to a block of T threads, each owning J
 sites (thread `lane` owns sites lane, lane + T, ...), the positions in shared memory and the threads meeting at a
 barrier after each kick and drift (each Runge-Kutta stage). Site q's position is x[q + 1]: x has a ghost site at
-rest at each end (0 and N + 1); the ends of a ring are each other's neighbours.
+rest at each end (0 and N + 1); the ends of a ring are each other's neighbours. A kernel with events (one thread
+to a member) watches them after each step with the member families' code (ensemble.engine.events).
 
 A kernel's file is the GPU kernels' header (ensemble.engine.gpu.HEADER: REAL, NAN, TINY, ZERO, the scene's
 `acceleration` as a device function, the step control), this module's imports, the names of the EXAMPLE section
@@ -16,8 +17,8 @@ import math
 from numba import cuda, float64
 
 from ensemble.engine.blocks import FIRST_LOG2_ERR_PREVIOUS
-from ensemble.engine.gpu import BLEW_UP, OK, UNDERFLOW
-from ensemble.engine.gpu_device import device_helpers, device_unrolled
+from ensemble.engine.gpu import BLEW_UP, OK, STOPPED, UNDERFLOW
+from ensemble.engine.gpu_device import device_events, device_helpers, device_tuples, device_unrolled
 from ensemble.engine.sites import KICK
 
 # ---------------------------------------------------------------- EXAMPLE: what a kernel file's header binds
@@ -42,9 +43,27 @@ CONTROLLER = (0.7 / 3 - 0.75 * 0.04, 0.04, 0.9, 0.2, 10.0)  # alpha, beta, safet
 STAGE_LOOP = device_unrolled(S)  # a Runge-Kutta step's stages, written out: each stage's coefficients constants
 SEQUENCE, FRACTIONS = (0, 1, 0), (REAL(0.5), REAL(1.0), REAL(0.5))  # piece numbers (KICK or drift), fractions
 PIECE_LOOP = device_unrolled(len(SEQUENCE))  # a splitting's pieces, written out likewise
-MERGED = True  # a step ends with the piece the next begins with (merged into one)
+MERGED = True  # a step ends with the piece the next begins with (merged into one; never in an event kernel)
+E, EVENT_ROWS = 0, (0,)  # events, and each one's row of the state (x; v): an event kernel's header binds them
+
+
+@cuda.jit(device=True, inline="always")
+def VALUES(t, y, p):
+    """Each event's value (float64) in a member's state y (x; v) (2N,): gpu_device.device_event_values."""
+    return ()
 
 # ---------------------------------------------------------------- CODE: copied into every kernel's file
+# Events (an event kernel: E > 0, one thread to a member, T = 1): after each step the watched rows' values are
+# compared with those at its start; where one crossed, `located` (ensemble.engine.events, as the CPU's) finds it
+# on the method's own step of s h from the step's start, kept in y0 before each step (`moved`: the step taken
+# again from y0 into the member's arrays, its state copied out into y1), then the step is taken again as it was.
+# The footer of an event kernel binds remember, watch_fixed, watch_adaptive, moved and family_step (a fixed step's);
+# a kernel without events keeps the no_ ones, which are nothing.
+
+_, _, _, repeated, tuple_setitem = device_tuples()
+crossed, located = device_events()
+LIKE_G = (0.0,) * E  # the events' values
+EVENT_STATE = 2 * N if E else 1  # a member's state (x; v), kept before each step where there are events
 
 
 @cuda.jit(device=True)
@@ -118,6 +137,108 @@ def over_lanes(value, scratch, largest):
         out = max(out, scratch[t]) if largest else out + scratch[t]
     cuda.syncthreads()
     return out
+
+
+@cuda.jit(device=True, inline="always")
+def kept(x, v, y):
+    """The member's state (x; v) into y (2N,); y."""
+    for q in range(N):
+        y[q], y[N + q] = x[q + 1], v[q]
+    return y
+
+
+@cuda.jit(device=True, inline="always")
+def restarted(x, v, y):
+    """The member's arrays x, v from its state y (x; v)."""
+    for q in range(N):
+        x[q + 1], v[q] = y[q], y[N + q]
+
+
+@cuda.jit(device=True, inline="always")
+def watched(x, v):
+    """Each event's value (float64) in the member's arrays: row r < N site r's x, else site r - N's v."""
+    g = repeated(0.0, LIKE_G)
+    for e in range(E):
+        r = EVENT_ROWS[e]
+        g = tuple_setitem(g, e, float64(x[r + 1] if r < N else v[r - N]))
+    return g
+
+
+@cuda.jit(device=True, inline="always")
+def watched_first(x, v, works, row, start, m):
+    """The events' values at a call's start: in x, v at t = 0, else where the last call left them (works rows
+    from `row`)."""
+    g = watched(x, v)
+    if start > 0:
+        for e in range(E):
+            g = tuple_setitem(g, e, works[row + e, m])
+    return g
+
+
+@cuda.jit(device=True, inline="always")
+def crossings(before, after, spec):
+    """(each event's crossed, whether any did): tuples of E values before and after a step."""
+    hit, any_hit = repeated(False, LIKE_G), False
+    for e in range(E):
+        crossing = crossed(before[e], after[e], spec[e, 0], spec[e, 1])
+        hit, any_hit = tuple_setitem(hit, e, crossing), any_hit or crossing
+    return hit, any_hit
+
+
+@cuda.jit(device=True, inline="always")
+def no_remember(x, v, y):
+    """A kernel without events: nothing kept before a step."""
+    return y
+
+
+@cuda.jit(device=True, inline="always")
+def no_fixed_watch(advance, context, events, y0, y1, g, t, h, step, steps_per_save, status, failure_time, m, alive):
+    return g, alive
+
+
+@cuda.jit(device=True, inline="always")
+def no_adaptive_watch(events, y1, g, t0, context, status, failure_time, m, alive):
+    return g, alive
+
+
+@cuda.jit(device=True, inline="always")
+def fixed_watch(advance, context, events, y0, y1, g, t, h, step, steps_per_save, status, failure_time, m, alive):
+    """After step `step` of h (s) from t (s), from the state kept in y0, of member m whose events had values g at
+    its start: their values at its end, and where one crossed, the member's events located and recorded; a member
+    stopped at one gets status STOPPED, its time in failure_time and a NaN state. Returns (values, alive)."""
+    x, v = context[0], context[1]
+    after = watched(x, v)
+    hit, any_hit = crossings(g, after, events[0])
+    if any_hit:
+        when = located(VALUES, moved, events, m, t, h, y0, (context, y1), g, after, hit)
+        restarted(x, v, y0)
+        if when == when:
+            status[m], failure_time[m] = STOPPED, when
+            fail(x, v)
+            return after, False
+        advance(h, step, steps_per_save, context)  # the step again, as it was
+    return after, alive
+
+
+@cuda.jit(device=True, inline="always")
+def adaptive_watch(events, y1, g, t0, context, status, failure_time, m, alive):
+    """fixed_watch for an accepted trial step from t0 (s), its state in zx, zv (context: stage's, the trial
+    step's), before it is accepted; a stopped member's state and trial state NaN."""
+    h, x, v, zx, zv = context[0], context[1], context[2], context[3], context[4]
+    after = watched(zx, zv)
+    hit, any_hit = crossings(g, after, events[0])
+    if any_hit:
+        when = located(VALUES, moved, events, m, t0, h, y1, (context, y1), g, after, hit)
+        if when == when:
+            status[m], failure_time[m] = STOPPED, when
+            fail(x, v)
+            fail(zx, zv)
+            return after, False
+        STAGE_LOOP(stage, 1, A, context)  # the trial step again, as it was
+    return after, alive
+
+
+remember, watch_fixed, watch_adaptive, moved, family_step = no_remember, no_fixed_watch, no_adaptive_watch, None, None
 
 
 @cuda.jit(device=True)
@@ -223,26 +344,50 @@ def checked(alive, x, v, limit, samples, status, failure_time, i, m, t):
 
 @cuda.jit(device=True, inline="always")
 def fixed_frame(advance, context, state0, rate, h, steps_per_save, limit, samples, status, failure_time, works,
-                start, m):
+                start, m, events, y0, y1):
     """A fixed-step kernel's member m from sample `start` on: advance(h, step, steps_per_save, context) takes it
-    one step; context begins with its x, v, cl and cr."""
+    one step; context begins with its x, v, cl and cr. Its events (if any) watched after each step."""
     x, v, cl, cr = context[0], context[1], context[2], context[3]
     alive = status[m] == OK
     loaded(x, v, cl, cr, state0, rate, works, start, m)
     sync()
+    g = watched_first(x, v, works, 2 * N, start, m)
     first = 0
     if start == 0:
         alive = checked(alive, x, v, limit, samples, status, failure_time, 0, m, 0.0)  # a start beyond its limit
         first = 1
     for i in range(first, samples.shape[0]):
-        if alive:
-            for step in range(steps_per_save):
+        for step in range(steps_per_save):
+            if alive:
+                y0 = remember(x, v, y0)
                 advance(h, step, steps_per_save, context)
+                g, alive = watch_fixed(advance, context, events, y0, y1, g, ((start + i - 1) * steps_per_save + step)
+                                       * h, h, step, steps_per_save, status, failure_time, m, alive)
         alive = checked(alive, x, v, limit, samples, status, failure_time, i, m, (start + i) * steps_per_save * h)
     for j in range(J):
         q = lane() + j * T
         if q < N:
             works[q, m], works[N + q, m] = x[q + 1], v[j]
+    for e in range(E):
+        works[2 * N + e, m] = g[e]
+
+
+@cuda.jit(device=True, inline="always")
+def fixed_moved(t0, h, y0, p):
+    """A member's step of h (s) (the family's, `family_step`) from its state y0 (x; v) (events.located's advance;
+    p: (context, y1)): its new state, in y1."""
+    context, y1 = p
+    restarted(context[0], context[1], y0)
+    family_step(REAL(h), 0, 1, context)
+    return kept(context[0], context[1], y1)
+
+
+@cuda.jit(device=True, inline="always")
+def adaptive_moved(t0, h, y0, p):
+    """As fixed_moved, the pair's trial step of h from the state in x, v (its last stage state: FSAL)."""
+    (_, x, v, zx, zv, kx, kv, cl, cr), y1 = p
+    STAGE_LOOP(stage, 1, A, (REAL(h), x, v, zx, zv, kx, kv, cl, cr))
+    return kept(zx, zv, y1)
 
 
 @cuda.jit(device=True, inline="always")
@@ -263,22 +408,24 @@ def runge_kutta_step(h, step, steps_per_save, context):
 
 
 @cuda.jit(fastmath=False, cache=True)
-def splitting_kernel(state0, rate, h, steps_per_save, limit, samples, status, failure_time, works, start, members):
+def splitting_kernel(state0, rate, h, steps_per_save, limit, samples, status, failure_time, works, start, members,
+                     spec, times, counts, stopped, states):
     """state0, rate (2N, members); limit (members,) -> samples (count, 2N, members) in REAL, status (members,),
-    failure_time (members,; s, set only where a member fails); works (2N, members): where a call leaves each
-    member for the next."""
+    failure_time (members,; s, set only where a member fails); works (2N + E, members): where a call leaves each
+    member for the next; spec .. states: its events' (ensemble.engine.events; empty where it has none)."""
     m = member()
     if m >= members:
         return
     x = cuda.shared.array(N2, REAL) if T > 1 else cuda.local.array(N2, REAL)
     context = (x, cuda.local.array(J, REAL), cuda.local.array(J, REAL), cuda.local.array(J, REAL))
     fixed_frame(split_step, context, state0, rate, REAL(h), steps_per_save, limit, samples, status, failure_time,
-                works, start, m)
+                works, start, m, (spec, times, counts, stopped, states), cuda.local.array(EVENT_STATE, REAL),
+                cuda.local.array(EVENT_STATE, REAL))
 
 
 @cuda.jit(fastmath=False, cache=True)
 def runge_kutta_kernel(state0, rate, h, steps_per_save, limit, samples, status, failure_time, works, start,
-                       members):
+                       members, spec, times, counts, stopped, states):
     """As splitting_kernel, for the tableau A (flat S x S), WEIGHTS: the stage state zx (shared by the chain's
     threads) and zv, and the stage slopes kx, kv (S J each) of this thread's sites."""
     m = member()
@@ -291,7 +438,8 @@ def runge_kutta_kernel(state0, rate, h, steps_per_save, limit, samples, status, 
     context = (x, cuda.local.array(J, REAL), cuda.local.array(J, REAL), cuda.local.array(J, REAL), zx,
                cuda.local.array(J, REAL), cuda.local.array(SJ, REAL), cuda.local.array(SJ, REAL))
     fixed_frame(runge_kutta_step, context, state0, rate, REAL(h), steps_per_save, limit, samples, status,
-                failure_time, works, start, m)
+                failure_time, works, start, m, (spec, times, counts, stopped, states),
+                cuda.local.array(EVENT_STATE, REAL), cuda.local.array(EVENT_STATE, REAL))
 
 
 @cuda.jit(device=True, inline="always")
@@ -366,10 +514,10 @@ def left(works, counts, m, x, v, kx, kv, controller, tally):
 
 @cuda.jit(fastmath=False, cache=True)
 def adaptive_kernel(state0, rate, control, save_dt, limit, samples, counts, status, failure_time, works, start,
-                    members):
+                    members, spec, times, counts_of_events, stopped, states):
     """As splitting_kernel, each member stepping to each saved time i save_dt (s) in trial steps its own controller
     sizes; control (3, members): first step (s; <= 0: guess it), rtol, atol -> counts (3, members): accepted,
-    rejected, right-hand-side evaluations; works (4N + 7, members)."""
+    rejected, right-hand-side evaluations; works (4N + 7 + E, members)."""
     m = member()
     if m >= members:
         return
@@ -385,6 +533,8 @@ def adaptive_kernel(state0, rate, control, save_dt, limit, samples, counts, stat
         zx[0], zx[N + 1] = REAL(0.0), REAL(0.0)
     loaded(x, v, cl, cr, state0, rate, works, start, m)
     sync()
+    g, y1 = watched_first(x, v, works, 4 * N + 7, start, m), cuda.local.array(EVENT_STATE, REAL)
+    events = (spec, times, counts_of_events, stopped, states)
     first = 0
     if start == 0:
         h = first_guess(x, v, cl, cr, kx, kv, scratch, rtol, atol, control[0, m], save_dt)
@@ -397,13 +547,16 @@ def adaptive_kernel(state0, rate, control, save_dt, limit, samples, counts, stat
     for i in range(first, samples.shape[0]):
         target = (start + i) * save_dt
         while alive and time < target:
-            step = min(h, REAL(target - time))
+            step, t0 = min(h, REAL(target - time)), time
             STAGE_LOOP(stage, 1, A, (step, x, v, zx, zv, kx, kv, cl, cr))  # FSAL: stage 0 is the last step's last
             err = error_norm(step, x, v, zx, zv, kx, kv, scratch, rtol, atol)
             accepted, underflowed, h_next, log2_previous, time, tally = counted(
                 err, step, h, log2_previous, rejected_last, time, target, tally, S - 1, CONTROLLER)
             h, rejected_last = REAL(h_next), not accepted  # h in REAL; time, as the controller's state, in float64
             if accepted:
+                g, alive = watch_adaptive(events, y1, g, t0, (step, x, v, zx, zv, kx, kv, cl, cr), status,
+                                          failure_time, m, alive)
+            if accepted and alive:
                 accept(x, v, zx, zv, kx, kv)
             elif underflowed:
                 alive = False
@@ -413,3 +566,5 @@ def adaptive_kernel(state0, rate, control, save_dt, limit, samples, counts, stat
         alive = checked(alive, x, v, limit, samples, status, failure_time, i, m, target)
     left(works, counts, m, x, v, kx, kv, (time, h, log2_previous, rejected_last),
          tally)
+    for e in range(E):
+        works[4 * N + 7 + e, m] = g[e]

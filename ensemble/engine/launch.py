@@ -88,8 +88,6 @@ def new_launch(scene, method: Method, values: dict[str, np.ndarray], constants: 
         from .gpu_launch import GpuLaunch
 
         settings.pop("block", None)  # a CPU kernel's layout
-        if settings.get("events") and scene.SITES:
-            raise EnsembleError("a field of sites' events are located on the CPU alone")  # refused before (spec)
         return GpuLaunch(scene, method, values, constants, **settings)
     return Launch(scene, method, values, constants, **settings)
 
