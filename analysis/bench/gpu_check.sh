@@ -15,8 +15,8 @@
 #            kernels (cuda.jit(cache=True))
 #   kernels  the full kernel figures of gpu.py: rates, crossover and float32's error (not in the     (300 s)
 #            default: a call of its own)
-#   events   analysis/bench/event_cost.py on the GPU: 2^22 tops with events that never fire against   (120 s)
-#            none (issue 52's cost; not in the default)
+#   events   analysis/bench/event_cost.py on the GPU: 2^22 tops with events that never fire against   (180 s)
+#            none, and 2^18 chains of 16 masses (issue 52's cost; not in the default)
 # Usage:
 #   OUT=gpu-out bash analysis/bench/gpu_check.sh [stage ...]
 #   TOPS="100000000" RATES_SECONDS=80 bash analysis/bench/gpu_check.sh rates     # tops of these sizes alone
@@ -96,7 +96,9 @@ for stage in "${STAGES[@]}"; do
                 | tee -a "$OUT/log.txt" ;;
         events)
             timeout 120 $PYTHON analysis/bench/event_cost.py --device cuda --members 4194304 --repeats 3 2>&1 \
-                | tee -a "$OUT/log.txt" ;;
+                | tee -a "$OUT/log.txt"
+            timeout 60 $PYTHON analysis/bench/event_cost.py --device cuda --sites 16 --methods verlet rk4 \
+                --members 262144 --repeats 3 2>&1 | tee -a "$OUT/log.txt" ;;
     esac
 done
 if [ -n "$TESTS" ]; then
