@@ -169,7 +169,8 @@ def compute_on(client, spec: Spec, todo: list[tuple[int, int]], parts, tally, ba
             job = jobs.running.pop(future)
             try:
                 result = future.result()
-            except SpecError:  # a member of the range breaks the scene's constraints: the run stops here
+            except SpecError:  # a member of the range breaks the scene's constraints: the run stops here, once
+                _settled(jobs.running)  # the tasks in flight are done (else they write into what the run deletes)
                 raise
             except Exception as e:  # a worker that kept dying (KilledWorker), or the task raised
                 failed.append((job.start, job.stop))
@@ -241,6 +242,14 @@ class _Jobs:
         for job in self.running.values():
             if job.writer is not None:
                 job.writer.abandon()
+
+
+def _settled(running: dict) -> None:
+    """Wait for the tasks in flight to end, whatever they return: a task running on a worker writes its range into
+    the store (or its segment files), which a stopped run deletes."""
+    from distributed import wait
+
+    wait(list(running))
 
 
 def _receipt(result) -> bool:
