@@ -39,7 +39,7 @@ from __future__ import annotations
 from functools import cache
 
 import numpy as np
-from numba import njit
+from numba import float64, njit
 from numba.cpython.unsafe.tuple import tuple_setitem
 
 from ..results import Status
@@ -58,7 +58,7 @@ def _inlined(function):
 def component(k: int, compiled=_inlined):
     """value(t, y, p) = y[k]: a state component."""
     def value(t, y, p):
-        return float(y[k])  # a float64 in a GPU's float32 kernel too, as every event's value
+        return float64(y[k])  # a float64 in a GPU's float32 kernel too (float() keeps a float32)
     return compiled(value)
 
 
@@ -67,10 +67,10 @@ def function_value(function, index: int, compiled=_inlined):
     """value(t, y, p) = function(t, *y, *p), or its value `index` where index >= 0 (a vector observable)."""
     if index < 0:
         def value(t, y, p):
-            return float(function(t, *y, *p))
+            return float64(function(t, *y, *p))
     else:
         def value(t, y, p):
-            return float(function(t, *y, *p)[index])
+            return float64(function(t, *y, *p)[index])
     return compiled(value)
 
 
@@ -103,10 +103,10 @@ def function_sign(function, index: int, compiled=_inlined):
     of an observable (EVENT_VALUES' third entry), of the sign of the observable's difference from the level."""
     if index < 0:
         def sign(t, y, p, level):
-            return float(function(t, *y, *p, level))
+            return float64(function(t, *y, *p, level))
     else:
         def sign(t, y, p, level):
-            return float(function(t, *y, *p, level)[index])
+            return float64(function(t, *y, *p, level)[index])
     return compiled(sign)
 
 

@@ -98,27 +98,44 @@ loaded = intrinsic(loaded_typing)
 
 
 def stored_typing(typingctx, work, first, B, j, values):
-    """values (a tuple, or a tuple of tuples, of the array's type) into member j's work rows from first on:
-    straight stores, as `loaded`. values may also be a 1-d array (a field of sites' state: too many values for a
-    tuple), stored by a loop."""
+    """values (a tuple, or a tuple of tuples) into member j's work rows from first on, each converted to the
+    array's type (a float32 GPU kernel's state into a float64 event array): straight stores, as `loaded`. values
+    may also be a 1-d array (a field of sites' state: too many values for a tuple), stored by a loop."""
     _contiguous(typingctx, work)
     if isinstance(values, types.Array):
-        def put(work, first, B, j, values):
-            flat = work.reshape(work.size)
-            for c in range(values.shape[0]):
-                flat[(first + c) * B + j] = values[c]
-        return types.none(work, first, B, j, values), lambda context, builder, signature, arguments: (
-            context.compile_internal(builder, put, signature, arguments))
+        return types.none(work, first, B, j, values), _stored_array
 
     def codegen(context, builder, signature, arguments):
         flat = _values(builder, arguments[4], values)
-        for value, pointer in zip(flat, _member_rows(context, builder, signature, arguments)):
-            builder.store(value, pointer)
+        for value, kind, pointer in zip(flat, _flat(values), _member_rows(context, builder, signature, arguments)):
+            builder.store(context.cast(builder, value, kind, work.dtype), pointer)
         return context.get_dummy_value()
     return types.none(work, first, B, j, values), codegen
 
 
 stored = intrinsic(stored_typing)
+
+
+def _stored_array(context, builder, signature, arguments):
+    """`stored` of a 1-d array's values, in a loop of pointers (a reshape of the work array calls a C helper of
+    Numba's, which a GPU does not have)."""
+    from numba.core import cgutils
+
+    work_type, first_type, B_type, j_type, values_type = signature.args
+    work, first, B, j, values = arguments
+    intp = types.intp
+    first, B, j = (context.cast(builder, value, kind, intp) for value, kind in zip((first, B, j),
+                                                                                     (first_type, B_type, j_type)))
+    data = context.make_array(work_type)(context, builder, value=work).data
+    source = context.make_array(values_type)(context, builder, value=values)
+    shape, strides = cgutils.unpack_tuple(builder, source.shape), cgutils.unpack_tuple(builder, source.strides)
+    with cgutils.for_range(builder, shape[0]) as loop:
+        value = builder.load(cgutils.get_item_pointer2(context, builder, source.data, shape, strides,
+                                                       values_type.layout, [loop.index]))
+        row = builder.add(first, loop.index)
+        builder.store(context.cast(builder, value, values_type.dtype, work_type.dtype),
+                      builder.gep(data, [builder.add(builder.mul(row, B), j)]))
+    return context.get_dummy_value()
 
 
 def converted_typing(typingctx, values, like):
