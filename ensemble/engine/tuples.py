@@ -35,17 +35,23 @@ def _flat(values_type) -> list:
     return [v for inner in values_type for v in (_flat(inner) if isinstance(inner, types.BaseTuple) else [inner])]
 
 
-def _member_rows(context, builder, signature, arguments):
-    """Pointers to member j's work rows first .. first + count - 1 (row r of member j at r B + j; count: the values
-    of the last argument, a tuple or a tuple of tuples)."""
-    work_type, first_type, B_type, j_type, values_type = signature.args
+def _row_pointer(context, builder, signature, arguments):
+    """pointer(c): a pointer to member j's work row first + c (c an intp value; row r of member j at r B + j), of
+    an intrinsic's arguments (work, first, B, j, values)."""
+    work_type, first_type, B_type, j_type, _ = signature.args
     work, first, B, j, _ = arguments
     intp = types.intp
     first, B, j = (context.cast(builder, value, kind, intp) for value, kind in zip((first, B, j),
                                                                                      (first_type, B_type, j_type)))
     data = context.make_array(work_type)(context, builder, value=work).data
-    return [builder.gep(data, [builder.add(builder.mul(builder.add(first, context.get_constant(intp, c)), B), j)])
-            for c in range(len(_flat(values_type)))]
+    return lambda c: builder.gep(data, [builder.add(builder.mul(builder.add(first, c), B), j)])
+
+
+def _member_rows(context, builder, signature, arguments):
+    """Pointers to member j's work rows first .. first + count - 1 (count: the values of the last argument, a tuple
+    or a tuple of tuples)."""
+    pointer = _row_pointer(context, builder, signature, arguments)
+    return [pointer(context.get_constant(types.intp, c)) for c in range(len(_flat(signature.args[4])))]
 
 
 def _values(builder, value, value_type) -> list:
@@ -121,20 +127,14 @@ def _stored_array(context, builder, signature, arguments):
     Numba's, which a GPU does not have)."""
     from numba.core import cgutils
 
-    work_type, first_type, B_type, j_type, values_type = signature.args
-    work, first, B, j, values = arguments
-    intp = types.intp
-    first, B, j = (context.cast(builder, value, kind, intp) for value, kind in zip((first, B, j),
-                                                                                     (first_type, B_type, j_type)))
-    data = context.make_array(work_type)(context, builder, value=work).data
-    source = context.make_array(values_type)(context, builder, value=values)
+    work_type, values_type = signature.args[0], signature.args[4]
+    pointer = _row_pointer(context, builder, signature, arguments)
+    source = context.make_array(values_type)(context, builder, value=arguments[4])
     shape, strides = cgutils.unpack_tuple(builder, source.shape), cgutils.unpack_tuple(builder, source.strides)
     with cgutils.for_range(builder, shape[0]) as loop:
         value = builder.load(cgutils.get_item_pointer2(context, builder, source.data, shape, strides,
                                                        values_type.layout, [loop.index]))
-        row = builder.add(first, loop.index)
-        builder.store(context.cast(builder, value, values_type.dtype, work_type.dtype),
-                      builder.gep(data, [builder.add(builder.mul(row, B), j)]))
+        builder.store(context.cast(builder, value, values_type.dtype, work_type.dtype), pointer(loop.index))
     return context.get_dummy_value()
 
 
