@@ -125,14 +125,27 @@ def signs_chain(functions: tuple, compiled=_inlined):
     return compiled(signs)
 
 
-def signs_of(sources: tuple, value_of, function_of, compiled=_inlined):
-    """signs_chain of events' sources (results.Event.source): the scene's watch where a function source names one
-    (its fourth entry), function_of(name) compiled as the kernel's; else the difference of value_of(source), the
-    source's value, from the level."""
+def source_value(source: tuple, function_of, compiled=_inlined):
+    """value(t, y, p) of an event's source (results.Event.source): ("state", k), the state's value k; ("function",
+    name, index[, watch]), the scene's function function_of(name) (compiled as the kernel's), its value `index`
+    if index >= 0."""
+    if source[0] == "state":
+        return component(source[1], compiled)
+    return function_value(function_of(source[1]), source[2], compiled)
+
+
+def values_of(sources: tuple, function_of, compiled=_inlined):
+    """values_chain of events' sources (`source_value`)."""
+    return values_chain(tuple(source_value(source, function_of, compiled) for source in sources), compiled)
+
+
+def signs_of(sources: tuple, function_of, compiled=_inlined):
+    """signs_chain of events' sources: the scene's watch where a function source names one (its fourth entry),
+    function_of(name); else the difference of the source's value (`source_value`) from the level."""
     watches = (source[3] if source[0] == "function" and len(source) > 3 else None for source in sources)
     return signs_chain(tuple(function_sign(function_of(watch), source[2], compiled) if watch else
-                             difference(value_of(source), compiled) for source, watch in zip(sources, watches)),
-                       compiled)
+                             difference(source_value(source, function_of, compiled), compiled)
+                             for source, watch in zip(sources, watches)), compiled)
 
 
 EVENT_STATE = ("event_times", "event_counts", "stopped", "event_states")  # what a run's events carry on

@@ -136,34 +136,23 @@ def device_functions(where: str, names: tuple[str, ...], expected: str) -> tuple
 
 @cache
 def device_event_values(where: str, sources: tuple, expected: str):
-    """values(t, y, p) -> each event's value (ensemble.engine.events.values_chain, kernels.event_values) of device
+    """values(t, y, p) -> each event's value (ensemble.engine.events.values_of, kernels.event_values) of device
     functions: a state component, or a scene's function (its physics module `where`, of identity `expected`)."""
     from . import events
 
     module, done = loaded(where, expected), {}
-    return events.values_chain(tuple(_device_event_value(module, source, done) for source in sources),
-                               device_inlined)
+    return events.values_of(sources, lambda name: device_function(getattr(module, name), done), device_inlined)
 
 
 @cache
 def device_event_signs(where: str, sources: tuple, expected: str):
-    """signs(t, y, p, levels) -> each event's sign against its level (ensemble.engine.events.signs_chain,
+    """signs(t, y, p, levels) -> each event's sign against its level (ensemble.engine.events.signs_of,
     kernels.event_signs) of device functions: a scene's watch where a function source names one, else the value's
     difference from the level."""
     from . import events
 
     module, done = loaded(where, expected), {}
-    return events.signs_of(sources, lambda source: _device_event_value(module, source, done),
-                           lambda name: device_function(getattr(module, name), done), device_inlined)
-
-
-def _device_event_value(module, source: tuple, done: dict):
-    """value(t, y, p) of an event's source as a device function (kernels._event_value)."""
-    from . import events
-
-    if source[0] == "state":
-        return events.component(source[1], device_inlined)
-    return events.function_value(device_function(getattr(module, source[1]), done), source[2], device_inlined)
+    return events.signs_of(sources, lambda name: device_function(getattr(module, name), done), device_inlined)
 
 
 @cache
