@@ -63,7 +63,7 @@ def VALUES(t, y, p):
 _, _, _, repeated, tuple_setitem = device_tuples()
 crossed, located = device_events()
 LIKE_G = (0.0,) * E  # the events' values
-EVENT_STATE = 2 * N if E else 1  # a member's state (x; v), kept before each step where there are events
+STATE_COPY = 2 * N if E else 1  # a member's state (x; v), kept before each step where there are events
 
 
 @cuda.jit(device=True)
@@ -168,10 +168,11 @@ def watched(x, v):
 def watched_first(x, v, works, row, start, m):
     """The events' values at a call's start: in x, v at t = 0, else where the last call left them (works rows
     from `row`)."""
-    g = watched(x, v)
-    if start > 0:
-        for e in range(E):
-            g = tuple_setitem(g, e, works[row + e, m])
+    if start == 0:
+        return watched(x, v)
+    g = repeated(0.0, LIKE_G)
+    for e in range(E):
+        g = tuple_setitem(g, e, works[row + e, m])
     return g
 
 
@@ -419,8 +420,8 @@ def splitting_kernel(state0, rate, h, steps_per_save, limit, samples, status, fa
     x = cuda.shared.array(N2, REAL) if T > 1 else cuda.local.array(N2, REAL)
     context = (x, cuda.local.array(J, REAL), cuda.local.array(J, REAL), cuda.local.array(J, REAL))
     fixed_frame(split_step, context, state0, rate, REAL(h), steps_per_save, limit, samples, status, failure_time,
-                works, start, m, (spec, times, counts, stopped, states), cuda.local.array(EVENT_STATE, REAL),
-                cuda.local.array(EVENT_STATE, REAL))
+                works, start, m, (spec, times, counts, stopped, states), cuda.local.array(STATE_COPY, REAL),
+                cuda.local.array(STATE_COPY, REAL))
 
 
 @cuda.jit(fastmath=False, cache=True)
@@ -439,7 +440,7 @@ def runge_kutta_kernel(state0, rate, h, steps_per_save, limit, samples, status, 
                cuda.local.array(J, REAL), cuda.local.array(SJ, REAL), cuda.local.array(SJ, REAL))
     fixed_frame(runge_kutta_step, context, state0, rate, REAL(h), steps_per_save, limit, samples, status,
                 failure_time, works, start, m, (spec, times, counts, stopped, states),
-                cuda.local.array(EVENT_STATE, REAL), cuda.local.array(EVENT_STATE, REAL))
+                cuda.local.array(STATE_COPY, REAL), cuda.local.array(STATE_COPY, REAL))
 
 
 @cuda.jit(device=True, inline="always")
@@ -533,7 +534,7 @@ def adaptive_kernel(state0, rate, control, save_dt, limit, samples, counts, stat
         zx[0], zx[N + 1] = REAL(0.0), REAL(0.0)
     loaded(x, v, cl, cr, state0, rate, works, start, m)
     sync()
-    g, y1 = watched_first(x, v, works, 4 * N + 7, start, m), cuda.local.array(EVENT_STATE, REAL)
+    g, y1 = watched_first(x, v, works, 4 * N + 7, start, m), cuda.local.array(STATE_COPY, REAL)
     events = (spec, times, counts_of_events, stopped, states)
     first = 0
     if start == 0:
