@@ -21,6 +21,7 @@ import numpy as np
 import xarray as xr
 
 from .errors import EXIT_BAD_INPUT, EnsembleError
+from .places import is_remote, place
 
 IN_MEMORY_BYTES = 2**30  # a result written to a temporary file is returned in memory up to this size
 
@@ -57,7 +58,7 @@ def run(spec, output=None, *, chunk: int | None = None, progress: bool = True, f
     if output is not None and (url := preflight.url_problem(str(output))):
         raise preflight.RunRefused(url)
     folder = Path(tempfile.mkdtemp(prefix="ensemble-")) if output is None else None
-    out = folder / "result.nc" if folder else Path(output)
+    out = folder / "result.nc" if folder else place(output)
     spec, rounded, problem = preflight.check(spec, out, runfile, device=device, chunk=chunk, force=force,
                                              resume=resume, precision=precision)
     if rounded != chunk:
@@ -125,9 +126,9 @@ def open(paths) -> xr.Dataset:  # noqa: A001 (ensemble.open, as xarray.open_data
     """Results of `ensemble run`: one file (a str or Path), opened lazily; several (a list, or a glob pattern
     such as "results/sweep_*.nc"), loaded and combined over `member` (ensemble.combine.open_results)."""
     from .combine import open_results
-    from .zarr_store import xarray_engine
+    from .zarr_store import xarray_source
 
-    if isinstance(paths, (str, Path)):
+    if isinstance(paths, (str, Path)) or is_remote(paths):
         found = sorted(glob.glob(str(paths))) if glob.has_magic(str(paths)) else [paths]
     else:
         found = list(paths)
@@ -135,8 +136,9 @@ def open(paths) -> xr.Dataset:  # noqa: A001 (ensemble.open, as xarray.open_data
         raise NotAResult(f"{paths}: no such results")
     if len(found) > 1:
         return open_results(found)
+    source, options = xarray_source(found[0])
     try:
-        ds = xr.open_dataset(found[0], engine=xarray_engine(found[0]))
+        ds = xr.open_dataset(source, **options)
     except (OSError, ValueError) as e:
         raise NotAResult(f"{found[0]}: {str(e).splitlines()[0]}") from None
     problem = not_a_result(ds)

@@ -29,3 +29,14 @@ def positive_float(text: str) -> float:
     if not 0 < value < float("inf"):
         raise argparse.ArgumentTypeError(f"must be a finite number > 0, got {text}")
     return value
+
+
+def location(text: str):
+    """An argparse type: a path, or an fsspec URL of a Zarr store (ensemble.places.place)."""
+    from .errors import EnsembleError
+    from .places import place
+
+    try:
+        return place(text)
+    except EnsembleError as e:
+        raise argparse.ArgumentTypeError(str(e)) from None

@@ -8,6 +8,7 @@ from pathlib import Path
 import numba
 import numpy as np
 
+from .places import is_remote
 from .store import fsync_path
 
 
@@ -43,7 +44,7 @@ def _mixed_sum(bits, member, offset):  # (members, values) uint64; the inner loo
 def file_crc32(path: Path) -> str:
     """The CRC-32 of a file's bytes, 8 hex digits."""
     crc = 0
-    with open(path, "rb") as file:
+    with path.open("rb") as file:
         for block in iter(lambda: file.read(2**20), b""):
             crc = zlib.crc32(block, crc)
     return f"{crc:08x}"
@@ -51,7 +52,10 @@ def file_crc32(path: Path) -> str:
 
 def write_atomically(path: Path, data: bytes, durable: bool = True) -> None:
     """Write `path` whole or not at all (a .tmp renamed); `durable`: on the disk before it is renamed, and the
-    rename too (fsync)."""
+    rename too (fsync). At a URL (ensemble.places) an object is put whole."""
+    if is_remote(path):
+        path.write_bytes(data)
+        return
     temporary = path.with_name(path.name + ".tmp")
     with open(temporary, "wb") as file:
         file.write(data)

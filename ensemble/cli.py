@@ -12,8 +12,9 @@ from pathlib import Path
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 from . import __version__
-from .arguments import OneLineParser, positive_int
+from .arguments import OneLineParser, location, positive_int
 from .errors import EXIT_BAD_INPUT, EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, EnsembleError
+from .places import place
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -61,7 +62,7 @@ def _parser() -> argparse.ArgumentParser:
                                   description="Write the Zarr store a run wrote (-o OUT.zarr) as one NetCDF file: the "
                                               "same variables, attributes and bits, in the layout `ensemble run` "
                                               "writes.")
-    convert.add_argument("source", type=Path, help="a Zarr store written by `ensemble run` (OUT.zarr)")
+    convert.add_argument("source", type=location, help="a Zarr store written by `ensemble run` (OUT.zarr)")
     convert.add_argument("target", type=Path, help="the NetCDF file to write (OUT.nc)")
     convert.add_argument("--force", action="store_true", help="replace an existing target")
     _analysis_parsers(commands)
@@ -93,11 +94,11 @@ def _analysis_parsers(commands) -> None:
     for sub, passes in ((fit, "a fitted sweep point disagrees with its reference"),
                         (stability, "a measured limit disagrees with theory (the table's `agree` column)")):
         sub.add_argument("--check", action="store_true", help=f"exit 1 when {passes}")
-    fit.add_argument("results", type=Path, nargs="+", metavar="RESULT",
+    fit.add_argument("results", type=location, nargs="+", metavar="RESULT",
                      help="result files written by `ensemble run`; several (of one scene) are combined and fitted "
                           "together, their fits written beside the first")
-    stability.add_argument("result", type=Path, help="a result file written by `ensemble run`")
-    work.add_argument("results", type=Path, nargs="+", metavar="RESULT",
+    stability.add_argument("result", type=location, help="a result file written by `ensemble run`")
+    work.add_argument("results", type=location, nargs="+", metavar="RESULT",
                       help="result files written by `ensemble run`, of one scene: several are charted together (a "
                            "line per method and precision or device where they differ); the table goes beside the "
                            "first")
@@ -201,10 +202,10 @@ def _run(args) -> int:
     from . import interrupts, preflight
 
     interrupts.remember()
-    from .interrupts import HeldInterrupts
     from .runner import run
     from .scenes import SceneError
     from .spec import SpecError, load
+    from .zarr_store import exists
 
     try:
         spec = load(args.runfile)
@@ -215,7 +216,7 @@ def _run(args) -> int:
         return EXIT_INTERRUPTED
     if args.output and (url := preflight.url_problem(args.output)):
         return _error(url)
-    out = Path(args.output) if args.output else Path("results") / f"{args.runfile.stem}.nc"
+    out = place(args.output) if args.output else Path("results") / f"{args.runfile.stem}.nc"
     try:
         spec, chunk, refusal = preflight.check(spec, out, args.runfile, device=args.device, chunk=args.chunk,
                                                force=args.force, resume=args.resume, chunk_option="--chunk",
@@ -228,7 +229,7 @@ def _run(args) -> int:
         print(f"ensemble: --chunk {args.chunk} is rounded up to {chunk}: whole kernel blocks (or every member), as a "
               f"block computes all its members however few the chunk has", file=sys.stderr)
     # the command that finishes an interrupted run: a run that replaces an earlier result needs --force again
-    resume = f"ensemble run {args.runfile} -o {out} --resume{' --force' if out.exists() else ''}"
+    resume = f"ensemble run {args.runfile} -o {out} --resume{' --force' if exists(out) else ''}"
     client, made = None, []
     try:
         if args.scheduler or args.workers:  # before anything is made: a cluster that cannot be had leaves nothing
@@ -251,7 +252,7 @@ def _run(args) -> int:
         if client is not None:
             from .cluster import close
 
-            with HeldInterrupts():  # a Ctrl-C while the cluster closes would leave its traceback
+            with interrupts.HeldInterrupts():  # a Ctrl-C while the cluster closes would leave its traceback
                 close(client)
     print(f"{'' if summary.complete_already else 'wrote '}{out}: {summary}")
     return 0

@@ -97,10 +97,10 @@ def _check_versions(client, where: str) -> None:
             raise ClusterError(f"{where}: worker {worker} has {differ}; install the same versions on every worker")
 
 
-def _reads(path: str, token: str) -> bool:
-    """On a worker: whether the probe file at `path` holds `token`."""
+def _reads(path, token: str) -> bool:
+    """On a worker: whether the probe file at `path` (a Path or a URL's UPath) holds `token`."""
     try:
-        return Path(path).read_text() == token
+        return path.read_text() == token
     except OSError:
         return False
 
@@ -112,12 +112,12 @@ def check_sees(client, folder: Path, what: str) -> None:
     probe = folder.resolve() / f"probe-{token}"
     probe.write_text(token)
     try:
-        blind = sorted(worker for worker, sees in client.run(_reads, str(probe), token).items() if not sees)
+        blind = sorted(worker for worker, sees in client.run(_reads, probe, token).items() if not sees)
     finally:
         probe.unlink(missing_ok=True)
     if blind:
-        raise ClusterError(f"{what}: worker {blind[0]} cannot read {folder.resolve()}; give an output on a path every "
-                           f"worker shares")
+        raise ClusterError(f"{what}: worker {blind[0]} cannot read {folder.resolve()}; give an output on a path or "
+                           f"URL every worker shares")
 
 
 class Collected:

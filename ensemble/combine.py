@@ -73,10 +73,11 @@ def open_results(paths) -> xr.Dataset:
 
 
 def _loaded(path: Path) -> xr.Dataset:
-    from .zarr_store import xarray_engine
+    from .zarr_store import xarray_source
 
+    source, options = xarray_source(path)
     try:
-        return xr.load_dataset(path, engine=xarray_engine(path))
+        return xr.load_dataset(source, **options)
     except (OSError, ValueError, RuntimeError) as e:
         said = str(e).splitlines()[0] if str(e) else repr(e)
         raise CombineError(f"{path}: cannot be read as a result ({said})") from None

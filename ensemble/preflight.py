@@ -4,16 +4,19 @@ from __future__ import annotations
 
 import dataclasses
 import os
-import re
 import shutil
 from pathlib import Path
 
 from .errors import DeviceUnavailable, EnsembleError
+from .places import URL, is_remote, place
 from .spec import DEVICES, PRECISIONS
 
 
 def make_folder(folder: Path) -> list[Path]:
-    """mkdir -p folder; returns the folders it made, innermost first (see remove_empty)."""
+    """mkdir -p folder; returns the folders it made, innermost first (see remove_empty). None at a URL (an
+    object store has no folders: its files make their prefixes)."""
+    if is_remote(folder):
+        return []
     made = []
     at = Path(folder)
     while not at.exists():
@@ -36,15 +39,23 @@ class RunRefused(EnsembleError):
     """A run refused before it started (nothing was computed or written); the message names what and where."""
 
 
-URL = re.compile(r"[A-Za-z][A-Za-z0-9+.-]*://")
-
-
 def url_problem(output: str) -> str | None:
-    """Why `output`, as the user wrote it, is not a path (None if it is): a URL (s3://, gs://, file://, ...), which
-    a path would quietly turn into a folder named after its scheme."""
-    if URL.match(output):
-        return (f"{output}: is a URL; ensemble writes to a path (a Zarr store on a file system every worker mounts "
-                f"at the same path): object stores (fsspec URLs) are not supported yet")
+    """Why `output`, as the user wrote it, cannot be written (None if it can): a URL (s3://, gs://, file://, ...)
+    of anything but a Zarr store, or without the zarr extra or the fsspec file system its scheme needs (a Path
+    would quietly turn it into a folder named after its scheme)."""
+    if not URL.match(output):
+        return None
+    from .zarr_store import is_zarr, zarr_problem
+
+    if not is_zarr(output):
+        return f"{output}: a URL takes a Zarr store (OUT.zarr); a NetCDF result is written to a path"
+    problem = zarr_problem()
+    if problem:
+        return f"{output}: {problem}"
+    try:
+        place(output).fs
+    except (ImportError, ValueError) as e:  # fsspec's: an unknown scheme, or its package missing
+        return f"{output}: {str(e).splitlines()[0]}"
     return None
 
 
@@ -116,7 +127,7 @@ def scratch_problem(out: Path, runfile: Path | None) -> str | None:
     from .parts import folder_of
     from .store import temporary_path
 
-    if runfile is None or not runfile.exists():
+    if runfile is None or not runfile.exists() or is_remote(out):
         return None
     runfile = runfile.resolve()
     for scratch in (temporary_path(out), OutputLock.path_of(out)):
@@ -130,6 +141,8 @@ def scratch_problem(out: Path, runfile: Path | None) -> str | None:
 def output_problem(out: Path, runfile: Path | None, force: bool) -> str | None:
     """Why `out` cannot be written (None if it can): the run file itself, a folder, an existing file without
     --force or not written by ensemble, a folder that cannot be made or written."""
+    if is_remote(out):
+        return remote_problem(out, force)
     if out.exists() and runfile is not None and runfile.exists() and out.resolve() == runfile.resolve():
         return "is the run file itself; choose another output"
     problem = scratch_problem(out, runfile)
@@ -147,6 +160,22 @@ def output_problem(out: Path, runfile: Path | None, force: bool) -> str | None:
     if not os.access(existing, os.W_OK):
         what = "write in" if existing == out.parent else "create"
         return f"cannot {what} the folder {out.parent} (permission denied in {existing})"
+    return None
+
+
+def remote_problem(out, force: bool) -> str | None:
+    """output_problem of a URL's store: one that cannot be reached, or exists without --force or not written by
+    ensemble. Its folders are not checked: an object store has none."""
+    from .zarr_store import exists
+
+    try:
+        here = exists(out)
+    except Exception as e:  # noqa: BLE001 (each file system raises its own: credentials, network, permissions)
+        return f"cannot be reached ({type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''})"
+    if here and not force:
+        return "exists; use --force to replace it (at a URL, the old store is deleted when the run starts)"
+    if here and not is_result(out):
+        return "exists and is not a result written by ensemble; not replacing it, even with --force"
     return None
 
 
@@ -185,6 +214,8 @@ def space_problem(out: Path, spec, resume: bool = False) -> str | None:
     from .store import output_bytes, record_values, temporary_path
     from .zarr_store import is_zarr
 
+    if is_remote(out):  # no free-space figure at a URL
+        return None
     need = output_bytes(spec) + (0 if is_zarr(out) else 8 * record_values(spec) * spec.n_members)
     if resume:
         made = [temporary_path(out), *(folder_of(out).iterdir() if folder_of(out).is_dir() else ())]
@@ -229,6 +260,8 @@ def cause(error: Exception, out: Path, spec) -> str:
 
     if isinstance(error, OSError) and error.strerror:
         return error.strerror
+    if is_remote(out):
+        return str(error).splitlines()[0] if str(error) else type(error).__name__
     folder = existing_folder(out.parent)
     limit = resource.getrlimit(resource.RLIMIT_FSIZE)[0]
     if shutil.disk_usage(folder).free < FULL:
@@ -243,7 +276,7 @@ def left_behind(out: Path, resume: str) -> str:
     """What an interrupted or failed run leaves, and how to finish it."""
     from .parts import Parts, folder_of
     from .store import temporary_path
-    from .zarr_store import Receipts, is_zarr
+    from .zarr_store import Receipts, is_zarr, unfinished
 
     folder = folder_of(out)
     finished = len([*folder.glob("members-*.nc"), *folder.glob("receipt-*.json")]) if folder.exists() else 0
@@ -252,7 +285,8 @@ def left_behind(out: Path, resume: str) -> str:
         return "no chunk had finished; nothing was kept"
     kept = [f"the {finished} chunk(s) finished so far"] if finished else []
     kept += [f"samples 0 to {end - 1} of members {start} to {stop - 1}" for start, stop, end in going]
-    return f"{' and '.join(kept)} are kept in {temporary_path(out)} and {folder}; {resume} finishes the run"
+    result = (unfinished if is_zarr(out) else temporary_path)(out)
+    return f"{' and '.join(kept)} are kept in {result} and {folder}; {resume} finishes the run"
 
 
 class OutputLocked(EnsembleError):
@@ -261,10 +295,11 @@ class OutputLocked(EnsembleError):
 
 class OutputLock:
     """An exclusive lock on OUT (the file OUT.lock, locked with flock: the lock ends with its process, so a
-    killed run leaves no stale lock), so that two runs never write the same output at once."""
+    killed run leaves no stale lock), so that two runs never write the same output at once. A URL's store has
+    none: an object store has no lock (docs/cluster.md)."""
 
     def __init__(self, out: Path):
-        self.path = self.path_of(out)
+        self.path = None if is_remote(out) else self.path_of(out)
 
     @staticmethod
     def path_of(out: Path) -> Path:
@@ -273,6 +308,8 @@ class OutputLock:
     def __enter__(self):
         import fcntl
 
+        if self.path is None:
+            return self
         self.file = open(self.path, "w")
         try:
             fcntl.flock(self.file, fcntl.LOCK_EX | fcntl.LOCK_NB)
@@ -282,6 +319,8 @@ class OutputLock:
         return self
 
     def __exit__(self, *exc):
+        if self.path is None:
+            return False
         self.path.unlink(missing_ok=True)
         self.file.close()
         return False

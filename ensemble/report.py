@@ -16,6 +16,7 @@ import xarray as xr
 from .api import not_a_result
 from .errors import EXIT_BAD_INPUT, EXIT_CHECK_FAILED, EXIT_OK
 from .fitting import FIT_TITLES, RTOL, Z_TOLERANCE, fitted_values, has_noise
+from .places import is_remote
 
 
 @dataclass(frozen=True)
@@ -185,10 +186,11 @@ def load_result(path: Path, fit_function):
     """(dataset, fit_function(dataset)) of a result file; None after one line on stderr for bad input: a file
     that is not NetCDF or not a result of `ensemble run`, a result without members, or one that lacks a variable
     its scene's results have (a `scene` attribute that does not say what the file holds)."""
-    from .zarr_store import xarray_engine
+    from .zarr_store import xarray_source
 
+    source, options = xarray_source(path)
     try:
-        ds = xr.load_dataset(path, engine=xarray_engine(path))
+        ds = xr.load_dataset(source, **options)
         problem = not_a_result(ds)
         if problem:
             raise ValueError(problem)
@@ -276,12 +278,23 @@ def _fit_charts(plt, ds, fits, table, stem, args) -> list[Path]:
     return [*paths, charts.draw_misses(plt, fits, stem, args.against, title, has_noise(ds))]
 
 
+def _to_netcdf(table: xr.Dataset, out: Path) -> None:
+    """table.to_netcdf(out), at a URL too (beside a result in an object store: written here, then put there)."""
+    if not is_remote(out):
+        return table.to_netcdf(out)
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as folder:
+        table.to_netcdf(Path(folder) / out.name)
+        out.write_bytes((Path(folder) / out.name).read_bytes())
+
+
 def _write(result: Path, charts: Path | None, table: xr.Dataset, name: str, what: str, draw) -> None:
     """Write `table` beside the result as RESULT_<name>.nc and, with --charts DIR (`charts`), draw(plt, stem)
     there."""
     out, stem = outputs(result, name, charts)
     try:
-        table.to_netcdf(out)
+        _to_netcdf(table, out)
     except OSError as e:
         return cannot_write(out.parent, e)
     print(f"{what}: {out}")

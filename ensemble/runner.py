@@ -24,12 +24,13 @@ from .interrupts import HeldInterrupts, LateInterrupt
 from .members import grid_points, point_settings
 from .methods import METHODS, Method
 from .parts import Parts
+from .places import place
 from .records import Record, kernel_seconds_per_step, measured_growth
 from .results import Outcome, Status
 from .spec import Spec, SpecError, members_table
 from .store import Writer, member_variables
 from .summary import ANNOUNCE_AFTER, Summary, Tally
-from .zarr_store import Receipts, ZarrWriter, is_zarr, task_members, zarr_problem
+from .zarr_store import Receipts, ZarrWriter, exists, is_zarr, task_members, zarr_problem
 
 CHUNK_BYTES = 32 * 2**20  # saved data held in memory per chunk
 CHUNK_MEMBER_STEPS = 2e9  # work per chunk: about two seconds at this project's kernel speeds
@@ -295,7 +296,7 @@ def run(spec: Spec, out: str | Path, *, chunk: int | None = None, progress: bool
     file's history (default: `ensemble run <run file>`). A run of few, long members here runs them in a smaller
     block (few_members_block; on a cluster the workers choose it)."""
     spec = replace(spec, kernel_block=None if client else few_members_block(spec))
-    return _run(spec, Path(out), chunk, progress, force, resume, command, client, task)
+    return _run(spec, place(out), chunk, progress, force, resume, command, client, task)
 
 
 def few_members_block(spec: Spec) -> int | None:
@@ -324,7 +325,7 @@ def _run(spec: Spec, out: Path, chunk: int | None, progress: bool, force: bool, 
     if resume and folder.left_complete(out, spec):
         folder.discard(out)
         return Summary(0, 0, 0.0, resumed=spec.n_members, complete_already=True)
-    if out.exists() and not force:
+    if exists(out) and not force:
         raise FileExistsError(f"{out}: exists; pass force=True to replace it")
     if force and not resume:
         folder.discard(out)

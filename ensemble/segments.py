@@ -13,17 +13,18 @@ from sample 0 (chains).
 """
 from __future__ import annotations
 
+import io
 import itertools
 import json
-import os
 import re
 import zipfile
+import zlib
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from .checksums import file_crc32, sample_sum
+from .checksums import file_crc32, sample_sum, write_atomically
 
 SEGMENT_NAME = re.compile(r"segment-(\d{12})-(\d{12})-(\d{12})-(\d{12})-([0-9a-f]{8})\.npz")
 
@@ -173,12 +174,11 @@ class SegmentLog:
         folder = self.owner.segment_folder
         folder.mkdir(exist_ok=True)
         name = f"segment-{self.start:012d}-{self.stop:012d}-{first:012d}-{end:012d}"
-        temporary = folder / f"{name}.tmp"
-        with open(temporary, "wb") as file:
-            np.savez(file, **state, **{k: v for k, v in record.items() if k != "noise"},
-                     noise=np.array(json.dumps(record["noise"])), inside=np.array(json.dumps(inside)))
-        path = folder / f"{name}-{file_crc32(temporary)}.npz"
-        os.replace(temporary, path)
+        file = io.BytesIO()
+        np.savez(file, **state, **{k: v for k, v in record.items() if k != "noise"},
+                 noise=np.array(json.dumps(record["noise"])), inside=np.array(json.dumps(inside)))
+        path = folder / f"{name}-{zlib.crc32(file.getbuffer()):08x}.npz"
+        write_atomically(path, file.getvalue(), durable=False)
         self.paths.append(path)
 
     def discard(self) -> None:
@@ -188,7 +188,7 @@ class SegmentLog:
 
 
 def _load(path: Path) -> dict[str, np.ndarray]:
-    with np.load(path, allow_pickle=False) as data:
+    with path.open("rb") as file, np.load(file, allow_pickle=False) as data:
         return dict(data)
 
 

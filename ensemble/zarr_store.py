@@ -25,13 +25,17 @@ write may leave a chunk behind): the rest is computed again, a range in
 segments from its last segment whose samples the store still gives. Once every member
 is in, the metadata is consolidated and OUT.zarr.tmp renamed to OUT.zarr.
 Every chunk and shard index carries a CRC32C codec.
+
+At an fsspec URL (ensemble.places: an object store has no rename) the store is
+written where it will stay, OUT.zarr itself, without its root's metadata, which
+waits in OUT.zarr.parts/group.json: until the run is whole, OUT.zarr opens as no
+Zarr group, and a run finishes by writing it there and consolidating.
 """
 from __future__ import annotations
 
 import json
 import math
 import os
-import shutil
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -41,6 +45,7 @@ import numpy as np
 from .checksums import record_sum, sample_sum, write_atomically
 from .errors import EnsembleError
 from .parts import MANIFEST, fingerprint, folder_of, gaps, open_folder, remove_folder, run_file_sha256
+from .places import is_remote, place, remove_tree, zarr_location
 from .segments import SEGMENT_NAME, Segment, SegmentLog, chains, inside_problem, segment_files, segments_left
 from .spec import Spec
 from .store import TIMES_AT_ONCE, described, fsync_path, temporary_path, written_by_ranges
@@ -49,11 +54,12 @@ from .summary import counts
 SUFFIX = ".zarr"
 CHUNK_BYTES = 2**24  # at most, a chunk: what a reader fetches at once; a task's range above it is sharded
 RECEIPT = "receipt-{:012d}-{:012d}.json"
+ROOT = "group.json"  # in the receipts folder: a URL's store's root metadata, until the store is whole
 
 
 def is_zarr(path: str | Path) -> bool:
     """Whether `path` names a Zarr store (OUT.zarr) rather than a NetCDF file."""
-    return Path(path).suffix == SUFFIX
+    return (path if is_remote(path) else Path(path)).suffix == SUFFIX
 
 
 def _zarr():
@@ -62,6 +68,29 @@ def _zarr():
     except ImportError:
         raise EnsembleError("a .zarr output needs zarr; install it with pip install 'ensemble[zarr]'") from None
     return zarr
+
+
+def _open_group(path, mode: str):
+    location, options = zarr_location(path)
+    return _zarr().open_group(location, mode=mode, zarr_format=3, storage_options=options or None)
+
+
+def _open_array(path, name: str, mode: str):
+    location, options = zarr_location(path)
+    return _zarr().open_array(location, path=name, mode=mode, storage_options=options or None)
+
+
+def unfinished(out):
+    """Where the store `out` is written until it is whole: OUT.zarr.tmp, or, at a URL, OUT.zarr itself."""
+    return out if is_remote(out) else temporary_path(out)
+
+
+def exists(out) -> bool:
+    """Whether `out` exists, but for a URL's store that a run of ours is still writing (no root metadata yet,
+    and our receipts folder beside it): that is OUT.zarr.tmp's part there."""
+    if is_remote(out) and not (out / "zarr.json").is_file() and (folder_of(out) / MANIFEST).is_file():
+        return False
+    return out.exists()
 
 
 def zarr_problem() -> str | None:
@@ -113,11 +142,10 @@ def create(path: Path, spec: Spec, command: str | None, task: tuple[int, int]) -
     ensemble.store.Description, the coordinates that are not over member with their values; what is over member
     (member variables, samples, records) is written later by tasks, `task` = (members, samples per segment) at a
     time. Its size does not grow with the members."""
-    zarr = _zarr()
     from xarray.backends.zarr import FillValueCoder
     from zarr.codecs import Crc32cCodec
 
-    group = zarr.open_group(path, mode="w-", zarr_format=3)
+    group = _open_group(path, "w-")
     nc = described(spec, command)
     try:
         group.attrs.update({name: _attribute(nc.getncattr(name)) for name in nc.ncattrs()})
@@ -148,8 +176,7 @@ def create(path: Path, spec: Spec, command: str | None, task: tuple[int, int]) -
 
 def task_members(path: Path, spec: Spec) -> int:
     """Members per task of the store at `path` (its chunks or shards of members): a resume continues them."""
-    zarr = _zarr()
-    array = zarr.open_group(path, mode="r")[spec.save[0] if spec.save else "status"]
+    array = _open_array(path, spec.save[0] if spec.save else "status", "r")
     return int((array.shards or array.chunks)[0])
 
 
@@ -188,7 +215,7 @@ class Region:
 
     def array(self, name: str):
         if name not in self.arrays:
-            self.arrays[name] = _zarr().open_array(self.path, path=name, mode="r+")
+            self.arrays[name] = _open_array(self.path, name, "r+")
         return self.arrays[name]
 
     def write_samples(self, start: int, first: int, data: dict[str, np.ndarray]) -> None:
@@ -237,12 +264,10 @@ class Region:
 def checked_sums(path: Path, spec: Spec, start: int, stop: int) -> dict[str, str] | None:
     """The checksums of members start .. stop - 1 as the store at `path` holds them now (as Region.receipt's);
     None when a chunk of theirs cannot be read (its CRC32C fails, or it is not a chunk)."""
-    zarr = _zarr()
     sums = {}
     try:
-        group = zarr.open_group(path, mode="r")
         for name in written_by_ranges(spec):
-            values = group[name][start:stop]
+            values = _open_array(path, name, "r")[start:stop]
             sums[name] = sample_sum(values, start, 0) if name in spec.save else record_sum(values, start)
     except (OSError, ValueError, KeyError):
         return None
@@ -267,7 +292,7 @@ class Receipts:
     def __init__(self, out: Path, spec: Spec, resume: bool = False, client=None):
         """`client`: a dask.distributed Client whose workers will write the store: each must see it where this
         process does (cluster.check_sees), and they check the receipts kept, reading the store where they are."""
-        self.store, self.folder, self.spec = temporary_path(out), folder_of(out), spec
+        self.store, self.folder, self.spec = unfinished(out), folder_of(out), spec
         self.segments = segments_folder(out)
         self.dropped: list[str] = []
         made = not self.folder.exists()
@@ -361,7 +386,8 @@ class Receipts:
     def left_complete(out: Path, spec: Spec) -> bool:
         """Whether OUT.zarr is this run's whole result with its receipts still beside it."""
         manifest = folder_of(out) / MANIFEST
-        if not (out / "zarr.json").is_file() or temporary_path(out).exists() or not manifest.is_file():
+        if not (out / "zarr.json").is_file() or not manifest.is_file() or (
+                not is_remote(out) and temporary_path(out).exists()):
             return False
         try:
             attributes = json.loads((out / "zarr.json").read_text()).get("attributes", {})
@@ -372,15 +398,20 @@ class Receipts:
 
     @staticmethod
     def discard(out: Path) -> None:
-        """Delete the receipts of `out` and its unfinished store, OUT.zarr.tmp (only when it is a Zarr store)."""
-        if (folder_of(out) / MANIFEST).is_file():
+        """Delete the receipts of `out` and its unfinished store (OUT.zarr.tmp, or at a URL OUT.zarr without its
+        root metadata: only beside our receipts)."""
+        ours = (folder_of(out) / MANIFEST).is_file()
+        if ours:
             for path in segments_folder(out).glob("segment-*"):
                 if SEGMENT_NAME.fullmatch(path.name) or path.suffix == ".tmp":
                     path.unlink()
             if segments_folder(out).is_dir():
                 segments_folder(out).rmdir()
-        remove_folder(folder_of(out), lambda name: name.startswith("receipt-"))
-        remove_store(temporary_path(out))
+        remove_folder(folder_of(out), lambda name: name.startswith("receipt-") or name == ROOT)
+        if not is_remote(out):
+            remove_store(temporary_path(out))
+        elif ours and out.exists() and not (out / "zarr.json").is_file():
+            remove_tree(out)
 
     @staticmethod
     def segments_left(out: Path) -> list[tuple[int, int, int]]:
@@ -410,21 +441,26 @@ def segments_folder(out: Path) -> Path:
 def remove_store(path: Path) -> None:
     """Delete the Zarr store at `path`, if there is one (a folder with its zarr.json)."""
     if (path / "zarr.json").is_file():
-        shutil.rmtree(path)
+        remove_tree(path)
 
 
 class ZarrWriter:
-    """The store OUT.zarr.tmp: its template made (or, on a resume, found); on success the metadata consolidated
-    and the store renamed to OUT.zarr. Members are written by Region, not through it. A record in segments is
-    written segment by segment as its range runs, and a stopped run continues an unfinished range from its last
-    segment (Region.log)."""
+    """The store OUT.zarr.tmp (at a URL, OUT.zarr without its root metadata): its template made (or, on a
+    resume, found); on success the metadata consolidated and the store renamed to OUT.zarr (at a URL, its root
+    metadata written). Members are written by Region, not through it. A record in segments is written segment
+    by segment as its range runs, and a stopped run continues an unfinished range from its last segment
+    (Region.log)."""
 
     def __init__(self, path: Path, spec: Spec, command: str | None, task: tuple[int, int], reopen: bool = False):
         """`task`: (members, samples per segment) a task writes at a time (create)."""
-        self.path, self.temporary = Path(path), temporary_path(Path(path))
+        self.path, self.temporary = path, unfinished(path)
+        self.root = folder_of(path) / ROOT
         if not reopen:
-            remove_store(self.temporary)
+            remove_store(self.temporary)  # at a URL, --force's store: there is no other place to write
             create(self.temporary, spec, command, task)
+            if is_remote(path):
+                write_atomically(self.root, (path / "zarr.json").read_bytes())
+                (path / "zarr.json").unlink()
 
     def sync(self) -> None:
         """Each chunk is a file of its own, written whole: nothing is held back."""
@@ -434,22 +470,26 @@ class ZarrWriter:
 
     def __exit__(self, kind, value, traceback):
         if kind is None:
-            zarr = _zarr()
+            if is_remote(self.path):
+                (self.path / "zarr.json").write_bytes(self.root.read_bytes())
             with warnings.catch_warnings():  # consolidated metadata is not in the v3 spec yet; xarray reads it
                 warnings.simplefilter("ignore")
-                zarr.consolidate_metadata(str(self.temporary))
-            remove_store(self.path)  # --force: the store this run replaces
-            os.replace(self.temporary, self.path)
-            fsync_path(self.path.parent)
+                _zarr().consolidate_metadata(_open_group(self.temporary, "r+").store)
+            if not is_remote(self.path):
+                remove_store(self.path)  # --force: the store this run replaces
+                os.replace(self.temporary, self.path)
+                fsync_path(self.path.parent)
         return False
 
 
-def xarray_engine(path: str | Path) -> str:
-    """The xarray backend that reads a result at `path`: "zarr" for a store, else "netcdf4"."""
-    if is_zarr(path):
-        _zarr()
-        return "zarr"
-    return "netcdf4"
+def xarray_source(path) -> tuple[str | Path, dict]:
+    """(what xarray opens, the keyword arguments it opens it with) for the result at `path`: a Zarr store (a path
+    or a URL, which may be a str) or a NetCDF file."""
+    if not is_zarr(path):
+        return path, {"engine": "netcdf4"}
+    _zarr()
+    location, options = zarr_location(place(path))
+    return location, {"engine": "zarr", **({"storage_options": options} if is_remote(place(path)) else {})}
 
 
 def convert(source: Path, target: Path, members_at_once: int | None = None) -> None:
@@ -459,8 +499,7 @@ def convert(source: Path, target: Path, members_at_once: int | None = None) -> N
     import netCDF4
     from xarray.backends.zarr import FillValueCoder
 
-    zarr = _zarr()
-    group = zarr.open_group(source, mode="r")
+    group = _open_group(source, "r")
     arrays = dict(group.arrays())
     if "member" not in arrays or "spec" not in group.attrs:
         raise EnsembleError(f"{source}: is not a result of `ensemble run` (no member variable or spec attribute)")

@@ -17,6 +17,7 @@ import xarray as xr
 from ensemble import cli, runner
 from ensemble.parts import folder_of
 from ensemble.spec import load
+from ensemble.zarr_store import xarray_source
 
 from .conftest import top_runfile
 
@@ -24,13 +25,19 @@ NOISY_TOPS = top_runfile(members=60, t_end=2.0, save_dt=0.01) + "[observe]\nnois
 
 
 def same_bits(a: Path, b: Path) -> None:
-    """Every variable of two results bitwise equal, and every attribute but the history (it carries a date)."""
-    with xr.open_dataset(a) as x, xr.open_dataset(b) as y:
+    """Every variable of two results (files, stores, or stores' URLs) bitwise equal, and every attribute but the
+    history (it carries a date)."""
+    with _opened(a) as x, _opened(b) as y:
         assert set(x.variables) == set(y.variables)
         for name in x.variables:
             assert x[name].values.tobytes() == y[name].values.tobytes(), name
         assert {k: v for k, v in x.attrs.items() if k != "history"} == {
             k: v for k, v in y.attrs.items() if k != "history"}
+
+
+def _opened(result) -> xr.Dataset:
+    source, options = xarray_source(result)
+    return xr.open_dataset(source, **options)
 
 
 def chunked_and_resumed_match_one_run(path: Path, folder: Path, monkeypatch) -> Path:

@@ -242,7 +242,7 @@ def test_a_worker_that_does_not_see_the_store_is_refused(reference, client, tmp_
     monkeypatch.setattr(Path, "write_text", lambda self, text, *a, **k: real(self, "elsewhere", *a, **k)
                         if self.name.startswith("probe-") else real(self, text, *a, **k))
     with pytest.raises(ensemble.cluster.ClusterError, match=r"cannot read .*blind\.zarr\.parts; give an output on a "
-                                                             r"path every worker shares"):
+                                                             r"path or URL every worker shares"):
         runner.run(load(path), out, chunk=7, progress=False, client=client)
     assert not Path(f"{out}.tmp").exists() and not folder_of(out).exists()
 
@@ -329,24 +329,6 @@ def test_a_bad_member_found_by_a_worker_stops_the_run_in_one_line(client, tmp_pa
     monkeypatch.undo()
     with pytest.raises(SpecError, match=r"^parameters\.tilt0: must lie in \[0, pi\]$"):
         parse(path.read_text(), str(path))  # every member of a run this small is checked before the start
-
-
-def test_an_object_store_url_is_refused_in_one_line(tmp_path, write_runfile, monkeypatch, capsys):
-    """`-o s3://bucket/run.zarr` was taken as a path: a folder named `s3:` was made beside the user. URLs are
-    refused (the command line and ensemble.run), and nothing is made."""
-    from ensemble.preflight import RunRefused
-
-    monkeypatch.chdir(tmp_path)
-    path = write_runfile(top_runfile())
-    for url in ("s3://bucket/run.zarr", "file:///tmp/run.nc"):
-        assert cli.main(["run", str(path), "-o", url]) == 2
-        line = capsys.readouterr().err.strip()
-        assert "\n" not in line and line.endswith(f"{url}: is a URL; ensemble writes to a path (a Zarr store on a "
-                                                  f"file system every worker mounts at the same path): object "
-                                                  f"stores (fsspec URLs) are not supported yet"), line
-    with pytest.raises(RunRefused, match="gs://b/x.zarr: is a URL"):
-        ensemble.run(path, "gs://b/x.zarr", progress=False)
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["run.toml"]
 
 
 def test_a_long_record_stopped_here_continues_on_the_cluster_from_its_last_good_segment(client, tmp_path,
