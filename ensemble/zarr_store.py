@@ -27,9 +27,10 @@ is in, the metadata is consolidated and OUT.zarr.tmp renamed to OUT.zarr.
 Every chunk and shard index carries a CRC32C codec.
 
 At an fsspec URL (ensemble.places: an object store has no rename) the store is
-written where it will stay, OUT.zarr itself, without its root's metadata, which
-waits in OUT.zarr.parts/group.json: until the run is whole, OUT.zarr opens as no
-Zarr group, and a run finishes by writing it there and consolidating.
+written where it will stay, OUT.zarr itself, its template without the result's
+attributes, then without its root's metadata, which waits in
+OUT.zarr.parts/group.json: until the run is whole, OUT.zarr opens as no result,
+and a run finishes by writing it there and consolidating.
 """
 from __future__ import annotations
 
@@ -86,11 +87,19 @@ def unfinished(out):
 
 
 def exists(out) -> bool:
-    """Whether `out` exists, but for a URL's store that a run of ours is still writing (no root metadata yet,
-    and our receipts folder beside it): that is OUT.zarr.tmp's part there."""
-    if is_remote(out) and not (out / "zarr.json").is_file() and (folder_of(out) / MANIFEST).is_file():
+    """Whether `out` exists, but for a URL's store that a run of ours is still writing (no result's root
+    metadata yet, and our receipts folder beside it): that is OUT.zarr.tmp's part there."""
+    if is_remote(out) and not whole(out) and (folder_of(out) / MANIFEST).is_file():
         return False
     return out.exists()
+
+
+def whole(store) -> bool:
+    """Whether the store's root metadata holds a result's attributes (a URL's store is given them last)."""
+    try:
+        return "members_written" in json.loads((store / "zarr.json").read_text()).get("attributes", {})
+    except (OSError, ValueError, AttributeError):
+        return False
 
 
 def zarr_problem() -> str | None:
@@ -137,18 +146,21 @@ def _attribute(value):
     return value.item() if isinstance(value, np.generic) else value
 
 
-def create(path: Path, spec: Spec, command: str | None, task: tuple[int, int]) -> None:
+def create(path: Path, spec: Spec, command: str | None, task: tuple[int, int], attributes: bool = True) -> dict:
     """Write the template of the result of `spec` at `path` (a new folder): every variable of
     ensemble.store.Description, the coordinates that are not over member with their values; what is over member
     (member variables, samples, records) is written later by tasks, `task` = (members, samples per segment) at a
-    time. Its size does not grow with the members."""
+    time. Its size does not grow with the members. Returns the result's attributes, which the root group gets
+    only with `attributes` (a URL's store gets them last: without them, it is no result)."""
     from xarray.backends.zarr import FillValueCoder
     from zarr.codecs import Crc32cCodec
 
     group = _open_group(path, "w-")
     nc = described(spec, command)
     try:
-        group.attrs.update({name: _attribute(nc.getncattr(name)) for name in nc.ncattrs()})
+        found = {name: _attribute(nc.getncattr(name)) for name in nc.ncattrs()}
+        if attributes:
+            group.attrs.update(found)
         filled_later = set(written_by_ranges(spec))
         for name, variable in nc.variables.items():
             shape, dims = variable.shape, variable.dimensions
@@ -172,6 +184,7 @@ def create(path: Path, spec: Spec, command: str | None, task: tuple[int, int]) -
                 array[...] = variable[...]
     finally:
         nc.close()
+    return found
 
 
 def task_members(path: Path, spec: Spec) -> int:
@@ -410,8 +423,8 @@ class Receipts:
         remove_folder(folder_of(out), lambda name: name.startswith("receipt-") or name == ROOT)
         if not is_remote(out):
             remove_store(temporary_path(out))
-        elif ours and out.exists() and not (out / "zarr.json").is_file():
-            remove_tree(out)
+        elif ours and not whole(out):
+            remove_store(out)
 
     @staticmethod
     def segments_left(out: Path) -> list[tuple[int, int, int]]:
@@ -439,8 +452,9 @@ def segments_folder(out: Path) -> Path:
 
 
 def remove_store(path: Path) -> None:
-    """Delete the Zarr store at `path`, if there is one (a folder with its zarr.json)."""
-    if (path / "zarr.json").is_file():
+    """Delete the Zarr store at `path`, if there is one (a folder with its zarr.json, or at a URL one whose root
+    metadata is not written yet: its arrays' are)."""
+    if (path / "zarr.json").is_file() or (is_remote(path) and any(path.glob("*/zarr.json"))):
         remove_tree(path)
 
 
@@ -457,9 +471,10 @@ class ZarrWriter:
         self.root = folder_of(path) / ROOT
         if not reopen:
             remove_store(self.temporary)  # at a URL, --force's store: there is no other place to write
-            create(self.temporary, spec, command, task)
-            if is_remote(path):
-                write_atomically(self.root, (path / "zarr.json").read_bytes())
+            attributes = create(self.temporary, spec, command, task, attributes=not is_remote(path))
+            if is_remote(path):  # the root's metadata as Zarr v3 writes it (NaN a bare token), put there last
+                root = {"attributes": attributes, "zarr_format": 3, "node_type": "group"}
+                write_atomically(self.root, json.dumps(root, indent=2).encode())
                 (path / "zarr.json").unlink()
 
     def sync(self) -> None:

@@ -86,6 +86,26 @@ def test_an_unfinished_store_at_a_url_opens_as_none_and_resumes_from_its_receipt
     assert json.loads((root / "zarr.json").read_text())["consolidated_metadata"] is not None
 
 
+def test_a_url_run_killed_while_its_template_is_made_leaves_no_result_and_resumes(reference, tmp_path):
+    """Killed between the template's arrays and its root's removal: the root is there, but without the result's
+    attributes (an object store's arrays take seconds to make), so it opens as no result; --resume starts it
+    over and gives the file's bits."""
+    from ensemble import zarr_store
+    from ensemble.places import place
+
+    path, nc = reference
+    url = f"memory://{tmp_path.name}/out.zarr"
+    spec = load(path)
+    zarr_store.Receipts(place(url), spec)  # the run's manifest, as the killed run left it
+    zarr_store.create(place(url), spec, None, (7, spec.n_save), attributes=False)
+    with pytest.raises(NotAResult, match="is not a result of `ensemble run`"), pytest.warns(RuntimeWarning,
+                                                                                           match="consolidated"):
+        ensemble.open(url)
+    assert not zarr_store.exists(place(url))  # ours, unfinished: --resume, not --force, continues it
+    runner.run(spec, url, chunk=7, progress=False, resume=True)
+    same_bits(url, nc)
+
+
 def test_a_store_in_s3_resumes_from_its_receipts_there(reference, tmp_path, monkeypatch):
     """An S3 bucket (moto's server, where moto and s3fs are installed; the test extras leave them out): a run
     stopped after three ranges leaves no root metadata, and its resume gives the bits of the file."""
