@@ -179,6 +179,23 @@ def crossed(before, after, level, direction):
 
 
 @njit(inline="always", **FAST)
+def straddles(before, after, level):
+    """Whether `before` and `after` lie on both sides of `level`, or one on it: every crossing `crossed` finds, in
+    either direction, and some it does not (a product that underflows): the watch's test after every step, two
+    operations cheaper, which `locate` narrows member by member with `crossed`. False for NaN."""
+    return (before - level) * (after - level) <= 0.0
+
+
+@njit(inline="always", **FAST)
+def any_straddles(before, after):
+    """Whether any of E signs (a tuple; `straddles` of 0) changed or is 0."""
+    hit = False
+    for e in range(len(before)):
+        hit |= before[e] * after[e] <= 0.0
+    return hit
+
+
+@njit(inline="always", **FAST)
 def user_state(to_user, y, p):
     """A member's state in the scene's coordinates (a splitting's from_pieces, or None: as it is)."""
     if to_user is None:
@@ -366,9 +383,10 @@ def fixed_watcher(values, signs, advance, to_user, first: int, E: int):
     begin(like_y, like_p, work, B, context) at t = 0. In a family's loop over a block's members, remember(work,
     B, j, y) keeps a member's state before its step (y, in the family's coordinates). After that loop,
     watch(like_y, like_p, work, B, t, h, context) evaluates every member's signs at its new state (to_user: a
-    splitting's from_pieces to the scene's coordinates, or None) in a loop of its own and counts those that
-    crossed (in an integer: a float sum, which LLVM may not reorder, kept the loop from vectorizing); where any
-    did, locate(like_y, like_p, work, B, t, h, context) takes each such member's values at both ends and locates
+    splitting's from_pieces to the scene's coordinates, or None) in a loop of its own and counts those that may
+    have crossed (`any_straddles`; in an integer: a float sum, which LLVM may not reorder, kept the loop from
+    vectorizing); where any did, locate(like_y, like_p, work, B, t, h, context) takes each member that crossed
+    (`crossed`), its values at both ends, and locates
     its events on advance(t0, h, y0, p), the family's step in the scene's coordinates (runge_kutta.advance_of,
     splitting.advance_of); the member stops at the first that stops it. steps: NO_STEPS with watch and locate
     (`watched_steps`). Rows are stored whole (a value selected against the row's became a masked store, slow on
@@ -384,8 +402,7 @@ def fixed_watcher(values, signs, advance, to_user, first: int, E: int):
     @njit(inline="always", **FAST)
     def watch(like_y, like_p, work, B, t, h, context):
         D = len(like_y)
-        levels, directions = levels_and_directions(context[0][0], like_g)  # loaded once: constants of the loops
-        zeros = repeated(0.0, like_g)
+        levels, _ = levels_and_directions(context[0][0], like_g)  # loaded once: constants of the loops
         hits = 0
         for j in range(B):
             p = loaded(work, D, B, j, like_p)
@@ -393,7 +410,7 @@ def fixed_watcher(values, signs, advance, to_user, first: int, E: int):
             after = signs(t + h, user_state(to_user, loaded(work, 0, B, j, like_y), p), p, levels)
             stored(work, G, B, j, after)
             stored(work, BEFORE, B, j, before)
-            hits += any_crossed(before, after, zeros, directions)
+            hits += any_straddles(before, after)
         return hits
 
     @njit(inline="always", **FAST)
@@ -441,7 +458,7 @@ def adaptive_watcher(values, signs, advance, first: int, E: int):
             after = signs(work[(C0 + TIME) * B + j], loaded(work, NEW, B, j, like_y), p, levels)
             for e in range(E):
                 work[(GNEW + e) * B + j] = select(accepted, after[e], before[e])
-            hits += accepted & any_crossed(before, after, zeros, directions)
+            hits += accepted & any_straddles(before, after)
         if hits:
             for j in range(B):
                 before, after = loaded(work, G, B, j, like_g), loaded(work, GNEW, B, j, like_g)

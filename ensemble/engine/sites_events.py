@@ -16,11 +16,11 @@ from ensemble.engine.blocks import CONTROL_ROWS, ERR, FAST, REJECTED_LAST, STEP,
 from ensemble.engine.events import (
     any_crossed,
     component,
-    crossed,
     crossed_each,
     levels_and_directions,
     locator,
     stop_member,
+    straddles,
     values_chain,
 )
 from ensemble.engine.sites import KICK, set_ghosts, stage_sums
@@ -157,16 +157,17 @@ def events_remember(work, B, n):
 def crossings(work, B, h, whole, context, value):
     """After a fixed step of h (s) (whole: whether the state is whole at its end): each member's events' values at
     the step's end (value(work, row, j, h, whole)) into rows G, those at its start into rows BEFORE; how many
-    crossed. context: (event arrays, status, failure_time, j0)."""
-    levels, directions = levels_and_directions(context[0][0], LIKE_G)
+    may have crossed (`straddles`: located_members finds which did). context: (event arrays, status,
+    failure_time, j0)."""
+    levels, _ = levels_and_directions(context[0][0], LIKE_G)
     hits = 0
     for e in range(E):  # a loop over a block's members inside: LLVM vectorizes it
-        row, level, direction = EVENT_ROWS[e], levels[e], directions[e]
+        row, level = EVENT_ROWS[e], levels[e]
         for j in range(B):
             before, after = work[(G + e) * B + j], value(work, row, j, h, whole)
             work[(BEFORE + e) * B + j] = before
             work[(G + e) * B + j] = after
-            hits += crossed(before, after, level, direction)
+            hits += straddles(before, after, level)
     return hits
 
 
@@ -273,7 +274,7 @@ def events_adaptive_watch(work, B, context):
         for e in range(E):
             before, after = work[(G + e) * B + j], work[(EVENT_ROWS[e] + ZX - X) * B + j]
             work[(BEFORE + e) * B + j] = select(accepted, after, before)
-            hits += accepted & crossed(before, after, levels[e], directions[e])
+            hits += accepted & straddles(before, after, levels[e])
     if hits:
         for j in range(B):
             before, after = loaded(work, G, B, j, LIKE_G), loaded(work, BEFORE, B, j, LIKE_G)
