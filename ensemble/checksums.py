@@ -50,7 +50,7 @@ def file_crc32(path: Path) -> str:
     return f"{crc:08x}"
 
 
-def write_atomically(path: Path, data: bytes, durable: bool = True) -> None:
+def write_atomically(path: Path, data: bytes | memoryview, durable: bool = True) -> None:
     """Write `path` whole or not at all (a .tmp renamed); `durable`: on the disk before it is renamed, and the
     rename too (fsync). At a URL (ensemble.places) an object is put whole."""
     if is_remote(path):

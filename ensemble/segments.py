@@ -177,8 +177,9 @@ class SegmentLog:
         file = io.BytesIO()
         np.savez(file, **state, **{k: v for k, v in record.items() if k != "noise"},
                  noise=np.array(json.dumps(record["noise"])), inside=np.array(json.dumps(inside)))
-        path = folder / f"{name}-{zlib.crc32(file.getbuffer()):08x}.npz"
-        write_atomically(path, file.getvalue(), durable=False)
+        data = file.getbuffer()  # no copy: a chunk's state may be tens of MB
+        path = folder / f"{name}-{zlib.crc32(data):08x}.npz"
+        write_atomically(path, data, durable=False)
         self.paths.append(path)
 
     def discard(self) -> None:
