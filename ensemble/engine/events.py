@@ -191,7 +191,7 @@ def any_straddles(before, after):
     """Whether any of E signs (a tuple; `straddles` of 0) changed or is 0."""
     hit = False
     for e in range(len(before)):
-        hit |= before[e] * after[e] <= 0.0
+        hit |= straddles(before[e], after[e], 0.0)
     return hit
 
 
