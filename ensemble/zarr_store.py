@@ -411,8 +411,8 @@ class Receipts:
 
     @staticmethod
     def discard(out: Path) -> None:
-        """Delete the receipts of `out` and its unfinished store (OUT.zarr.tmp, or at a URL OUT.zarr without its
-        root metadata: only beside our receipts)."""
+        """Delete the receipts of `out` and its unfinished store (OUT.zarr.tmp, or at a URL OUT.zarr while it is
+        not whole: only beside our receipts)."""
         ours = (folder_of(out) / MANIFEST).is_file()
         if ours:
             for path in segments_folder(out).glob("segment-*"):
@@ -421,10 +421,8 @@ class Receipts:
             if segments_folder(out).is_dir():
                 segments_folder(out).rmdir()
         remove_folder(folder_of(out), lambda name: name.startswith("receipt-") or name == ROOT)
-        if not is_remote(out):
-            remove_store(temporary_path(out))
-        elif ours and not whole(out):
-            remove_store(out)
+        if not is_remote(out) or (ours and not whole(out)):
+            remove_store(unfinished(out))
 
     @staticmethod
     def segments_left(out: Path) -> list[tuple[int, int, int]]:
