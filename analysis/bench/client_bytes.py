@@ -41,6 +41,13 @@ entry()
 """
 
 
+def sweep(folder: Path, members: int) -> Path:
+    """The run file of the measured sweep in `folder`: tops saving tilt and omega every 2 ms for 3 s."""
+    runfile = folder / "sweep.toml"
+    runfile.write_text(TOPS.format(t_end=3.0, save_dt=2e-3, members=members, save='["tilt", "omega"]'))
+    return runfile
+
+
 def io_of(pid: int) -> dict[str, int]:
     with open(f"/proc/{pid}/io") as file:
         return {key: int(value) for key, value in (line.split(": ") for line in file)}
@@ -96,8 +103,7 @@ def main() -> None:
     print(host())
     with tempfile.TemporaryDirectory() as name:
         folder = Path(name)
-        runfile = folder / "sweep.toml"
-        runfile.write_text(TOPS.format(t_end=3.0, save_dt=2e-3, members=args.members, save='["tilt", "omega"]'))
+        runfile = sweep(folder, args.members)
         address, started = cluster(folder, args.workers)
         try:
             found = {"nc": [], "zarr": []}

@@ -23,11 +23,13 @@ import time
 from pathlib import Path
 
 import xarray as xr
-from benchmark import TOPS
-from client_bytes import cluster, measured
+from client_bytes import cluster, measured, sweep
 from hostinfo import host
 
 import ensemble
+from ensemble.places import place
+from ensemble.spec import load
+from ensemble.zarr_store import task_members
 
 BUCKET = "runs"
 
@@ -88,8 +90,7 @@ def main() -> None:
     server = moto(port)
     with tempfile.TemporaryDirectory() as name:
         folder = Path(name)
-        runfile = folder / "sweep.toml"
-        runfile.write_text(TOPS.format(t_end=3.0, save_dt=2e-3, members=args.members, save='["tilt", "omega"]'))
+        runfile = sweep(folder, args.members)
         address, started = cluster(folder, args.workers)
         try:
             nc, url = folder / "out.nc", f"s3://{BUCKET}/sweep.zarr"
@@ -97,10 +98,8 @@ def main() -> None:
                 m = measured(runfile, out, address, folder)
                 print(f"{out}: client received {m['received'] / 1e6:.3f} MB on sockets, wall {m['wall']:.2f} s")
             print(f"{url} holds the file's bits: {same_bits(url, nc)}")
-            from ensemble.spec import load
-
             spec = load(runfile)
-            ranges = -(-spec.n_members // ensemble.zarr_store.task_members(ensemble.places.place(url), spec))
+            ranges = -(-spec.n_members // task_members(place(url), spec))
             again = f"s3://{BUCKET}/killed.zarr"
             wall = killed_and_resumed(runfile, again, address, ranges)
             print(f"{again}: resumed in {wall:.2f} s; holds the file's bits: {same_bits(again, nc)}")
