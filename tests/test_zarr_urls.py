@@ -12,7 +12,7 @@ import pytest
 import xarray as xr
 
 import ensemble
-from ensemble import cli, runner
+from ensemble import cli, runner, zarr_store
 from ensemble.api import NotAResult
 from ensemble.spec import load
 
@@ -90,7 +90,6 @@ def test_a_url_run_killed_while_its_template_is_made_leaves_no_result_and_resume
     """Killed between the template's arrays and its root's removal: the root is there, but without the result's
     attributes (an object store's arrays take seconds to make), so it opens as no result; --resume starts it
     over and gives the file's bits."""
-    from ensemble import zarr_store
     from ensemble.places import place
 
     path, nc = reference
@@ -170,7 +169,7 @@ def test_workers_write_a_store_at_a_url_they_see_and_refuse_one_they_do_not(refe
 
 
 def test_a_url_that_cannot_take_a_result_is_refused_in_one_line(tmp_path, write_runfile, monkeypatch, capsys):
-    """A NetCDF file at a URL, a scheme fsspec does not know, one whose package is missing: one line, exit status
+    """A NetCDF file at a URL, a scheme fsspec does not know, a store that cannot be reached: one line, exit status
     2, nothing made (a Path would have made a folder named after the scheme)."""
     from ensemble.preflight import RunRefused
 
@@ -183,4 +182,13 @@ def test_a_url_that_cannot_take_a_result_is_refused_in_one_line(tmp_path, write_
         assert capsys.readouterr().err.strip() == f"ensemble: error: {url}: {why}"
     with pytest.raises(RunRefused, match=r"^gs://b/run\.nc: a URL takes a Zarr store"):
         ensemble.run(path, "gs://b/run.nc", progress=False)
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["run.toml"]
+
+    def denied(out):
+        raise PermissionError("Access Denied")
+
+    monkeypatch.setattr(zarr_store, "exists", denied)  # as an object store without the credentials
+    url = f"memory://{tmp_path.name}/run.zarr"
+    assert cli.main(["run", str(path), "-o", url]) == 2
+    assert capsys.readouterr().err.strip() == (f"ensemble: error: {url}: cannot be reached (PermissionError: "
+                                               f"Access Denied)")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["run.toml"] and not upath.UPath(url).parent.exists()
