@@ -1,7 +1,7 @@
 """Benchmark: what events that never fire cost a kernel (issue: at most 5% of its rate).
 
     python analysis/bench/event_cost.py [--repeats 5] [--members 32768] [--methods rk4 split4 dopri5]
-                                        [--device cuda]   (on a GPU: give it 10^6 members or more)
+                                        [--device cuda --t-end 5]   (on a GPU: 10^6 members or more)
     python analysis/bench/event_cost.py --sites 16 [--methods verlet rk4 dopri5]   (chains of 16 masses)
 
 Aerobie tops (spin 60 rad/s, tilts drawn in 0.02..0.2 rad) integrate 0.5 s with each method: without events,
@@ -64,6 +64,8 @@ def main() -> None:
     parser.add_argument("--methods", nargs="+", default=["rk4", "split4", "dopri5"])
     parser.add_argument("--device", choices=("cpu", "cuda"), default="cpu")
     parser.add_argument("--sites", type=int, default=0, help="chains of this many masses instead of tops")
+    parser.add_argument("--t-end", type=float, default=0.5, help="each launch's span (s; steps of 1e-3 s): on a "
+                        "GPU, long enough that the kernel outlasts the transfers")
     args = parser.parse_args()
     print(host())
     if args.device == "cuda":
@@ -78,7 +80,7 @@ def main() -> None:
         rates = {label: [] for label in watched}
         for _ in range(args.repeats):
             for label, events in watched.items():
-                rates[label].append(rate(method, values, events, device=args.device, sites=args.sites))
+                rates[label].append(rate(method, values, events, args.t_end, args.device, args.sites))
         for label, measured in rates.items():
             ratio = statistics.median(r / base for r, base in zip(measured, rates["none"]))
             print(f"{method:7s} {label:14s} {statistics.median(measured):.3e} member-steps/s   x {ratio:.3f}")

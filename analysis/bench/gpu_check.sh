@@ -7,7 +7,7 @@
 #   rates    analysis/bench/gpu.py's kernel rates (quick sizes): chains of 16 to 1024 masses, (190 s)
 #            in both layouts from 32 on (a block of threads, one thread per chain), tops up to 10^8
 #   whole    `ensemble run --device cuda` of 10^7 tops (10^6 steps, 11 samples) against its kernel      (90 s)
-#   tests    the CUDA kernels' tests against the CPU's, on the real GPU. It times nothing, so it runs   (150 s)
+#   tests    the CUDA kernels' tests against the CPU's, on the real GPU. It times nothing, so it runs   (360 s)
 #            beside the stages after it
 #   float32  runs/work_precision_top.toml in float64 and float32, their table (chart them where          (120 s)
 #            matplotlib is: ensemble work-precision OUT/wp_float64.nc OUT/wp_float32.nc --charts DIR)
@@ -15,8 +15,9 @@
 #            kernels (cuda.jit(cache=True))
 #   kernels  the full kernel figures of gpu.py: rates, crossover and float32's error (not in the     (300 s)
 #            default: a call of its own)
-#   events   analysis/bench/event_cost.py on the GPU: 2^22 tops with events that never fire against   (180 s)
-#            none, and 2^18 chains of 16 masses (issue 52's cost; not in the default)
+#   events   analysis/bench/event_cost.py on the GPU: 2^22 tops with events that never fire against   (300 s)
+#            none, and 2^18 chains of 16 masses (issue 52's cost); then 10^7 tops keeping one tilt event
+#            and no samples, written to NetCDF and to Zarr (not in the default)
 # Usage:
 #   OUT=gpu-out bash analysis/bench/gpu_check.sh [stage ...]
 #   TOPS="100000000" RATES_SECONDS=80 bash analysis/bench/gpu_check.sh rates     # tops of these sizes alone
@@ -69,7 +70,7 @@ for stage in "${STAGES[@]}"; do
             timeout 90 $PYTHON analysis/bench/gpu.py --only whole --whole-steps 1000000 --whole-samples 11 \
                 --json "$OUT/whole.json" 2>&1 | tee -a "$OUT/log.txt" ;;
         tests)
-            ENSEMBLE_TEST_GPU=1 NUMBA_ENABLE_CUDASIM=0 timeout ${TESTS_SECONDS:-150} $PYTHON -m pytest -q -n 8 -p no:cacheprovider \
+            ENSEMBLE_TEST_GPU=1 NUMBA_ENABLE_CUDASIM=0 timeout ${TESTS_SECONDS:-360} $PYTHON -m pytest -q -n 14 -p no:cacheprovider \
                 tests/test_gpu.py > "$OUT/tests.log" 2>&1 &
             TESTS=$! ;;
         float32)
@@ -95,10 +96,43 @@ for stage in "${STAGES[@]}"; do
             timeout 300 $PYTHON analysis/bench/gpu.py --only kernels --json "$OUT/gpu.json" 2>&1 \
                 | tee -a "$OUT/log.txt" ;;
         events)
-            timeout 120 $PYTHON analysis/bench/event_cost.py --device cuda --members 4194304 --repeats 3 2>&1 \
-                | tee -a "$OUT/log.txt"
+            timeout 150 $PYTHON analysis/bench/event_cost.py --device cuda --members 4194304 --repeats 3 --t-end 5 \
+                2>&1 | tee -a "$OUT/log.txt"
             timeout 60 $PYTHON analysis/bench/event_cost.py --device cuda --sites 16 --methods verlet rk4 \
-                --members 262144 --repeats 3 2>&1 | tee -a "$OUT/log.txt" ;;
+                --members 262144 --repeats 3 --t-end 5 2>&1 | tee -a "$OUT/log.txt"
+            fresh=$(mktemp -d)  # 10^7 prolate tops keeping the time their tilt rises through 0.6 rad, no samples
+            cat > "$fresh/tip.toml" <<'TOML'
+scene = "top"
+method = "rk4"
+dt = 1e-3
+t_end = 5.0
+save_dt = 5.0
+save = []
+members = 10000000
+seed = 7
+
+[parameters]
+lambda1 = 1.0e-3
+lambda3 = 0.5e-3
+c = 1.0e-4
+spin0 = 60.0
+tilt0 = { uniform = [0.5, 0.6] }
+azimuth0 = { uniform = [0.0, 6.283185307179586] }
+
+[events.tip]
+of = "tilt"
+value = 0.6
+direction = "up"
+TOML
+            for out in tip.nc tip.zarr; do  # the Zarr store's path on the GPU too
+                start=$(date +%s%N)
+                timeout 90 $PYTHON -m ensemble run "$fresh/tip.toml" --device cuda --quiet -o "$fresh/$out" 2>&1 | tail -3
+                echo "events: 10^7 tops, 5000 rk4 steps, a tilt event, no samples, to $out:" \
+                    "$(( ($(date +%s%N) - start) / 1000000 )) ms in all, $(du -sb "$fresh/$out" | cut -f1) bytes"
+                $PYTHON -c "import sys, xarray as x; d = x.open_dataset(sys.argv[1], engine=None if sys.argv[1]\
+.endswith('nc') else 'zarr'); print('  tip_count sum', int(d.tip_count.sum()), 'tip_time median',\
+float(d.tip_time.median()))" "$fresh/$out"
+            done 2>&1 | tee -a "$OUT/log.txt" ;;
     esac
 done
 if [ -n "$TESTS" ]; then
