@@ -156,14 +156,19 @@ def event_spec(events: tuple) -> np.ndarray:
     return np.array([(e.level, e.sign, float(e.stop), e.count, float(bool(e.keep))) for e in events]).reshape(-1, 5)
 
 
-def started(events: tuple, state_rows: int, members: int) -> dict[str, np.ndarray]:
-    """The EVENT_STATE arrays of `events` at a run's start (above): no times (NaN), no counts, no stopped states,
-    no kept states; the kept states of one member where no event keeps them (the kernel's argument type is the
-    same)."""
+def start_values(events: tuple, state_rows: int, members: int) -> dict[str, tuple[tuple[int, ...], float]]:
+    """Each EVENT_STATE array's (shape, value) at a run's start (above): no times (NaN), no counts, no stopped
+    states, no kept states; the kept states of one member where no event keeps them (the kernel's argument type
+    is the same)."""
     E, kept = len(events), max(e.count for e in events)
     states = (E, kept, state_rows, members) if any(e.keep for e in events) else (E, 1, state_rows, 1)
-    return {"event_times": np.full((E, kept, members), np.nan), "event_counts": np.zeros((E, members)),
-            "stopped": np.full((state_rows, members), np.nan), "event_states": np.full(states, np.nan)}
+    return {"event_times": ((E, kept, members), np.nan), "event_counts": ((E, members), 0.0),
+            "stopped": ((state_rows, members), np.nan), "event_states": (states, np.nan)}
+
+
+def started(events: tuple, state_rows: int, members: int) -> dict[str, np.ndarray]:
+    """The EVENT_STATE arrays of `events` at a run's start (float64; start_values)."""
+    return {name: np.full(shape, value) for name, (shape, value) in start_values(events, state_rows, members).items()}
 
 
 # ---------------------------------------------------------------- one member's crossings

@@ -3,10 +3,11 @@
 from __future__ import annotations
 
 import numpy as np
+from numba import cuda
 
 from ..methods import Method
 from ..results import DEFAULT_BLOWUP_FACTOR, Outcome, Status
-from .events import EVENT_STATE, event_spec, started
+from .events import EVENT_STATE, event_spec, start_values, started
 from .gpu import THREADS, GpuKernel, member_kernel, require_gpu
 from .gpu import work_rows as member_work_rows
 from .gpu_device import PRECISIONS
@@ -14,6 +15,19 @@ from .gpu_sites import site_threads, sites_kernel
 from .gpu_sites import work_rows as sites_work_rows
 from .inputs import adaptive_control, blowup_limits, fixed_counts
 from .kernels import Layout, scene_identity
+
+
+@cuda.jit(cache=True)
+def fill(flat, value):
+    i = cuda.grid(1)
+    if i < flat.size:
+        flat[i] = value
+
+
+def filled(array, value, stream) -> None:
+    """Sets every element of a C-ordered device array to value, on the GPU."""
+    if array.size:
+        fill[-(-array.size // THREADS), THREADS, stream](array.reshape(array.size), value)
 
 
 def layout(scene, method: Method, constants: dict, events: tuple = ()) -> Layout:
@@ -50,8 +64,6 @@ class GpuLaunch:
     def __init__(self, scene, method: Method, values: dict[str, np.ndarray], constants: dict, *, n_save: int,
                  save_dt: float, dt=None, rtol=None, atol=None, blowup_factor: float = DEFAULT_BLOWUP_FACTOR,
                  segment: int | None = None, precision: str = "float64", events: tuple = ()):
-        from numba import cuda
-
         require_gpu()
         self.scene, self.method, self.n_save, self.save_dt, self.dt = scene, method, n_save, save_dt, dt
         self.events = tuple(events)
@@ -82,16 +94,11 @@ class GpuLaunch:
         """As launch.Launch.segments (threads is ignored): yields (first, samples) per kernel call, samples()
         returning (count, state rows, members) float64 in host memory. Segment k + 1 integrates while the caller
         handles segment k, whose samples are overwritten by segment k + 2: the caller copies what it keeps."""
-        from numba import cuda
-
         n = self.members
         compute, copy = cuda.stream(), cuda.stream()
-        adaptive = {"counts": np.zeros((3, n))} if self.method.adaptive else {}
-        start = {"status": np.zeros(n, np.int8), "failure_time": np.full(n, np.nan),
-                 "works": np.zeros((self.kernel.rows, n)), **adaptive, **self._event_start(),
-                 **(resume[1] if resume else {})}
-        for name, value in start.items():
-            setattr(self, name, cuda.to_device(value))
+        start = self._started(compute) if resume is None else dict(resume[1])
+        for name, value in start.items() if resume else ():
+            setattr(self, name, cuda.to_device(value, stream=compute))
         tail = ((self.counts,) if self.method.adaptive else ()) + (self.status, self.failure_time, self.works)
         watched = (self.event_spec, *(getattr(self, name) for name in EVENT_STATE)) if self.events else self.no_events
         chosen = self.kernel.layout
@@ -104,8 +111,8 @@ class GpuLaunch:
                 copied[k - 2].wait(compute)  # its buffer is copied out before this segment overwrites it
             samples = self._buffer(("device", k % 2, shape), lambda: cuda.device_array(shape, dtype=self.real))
             self.kernel.function[grid, block, compute](*self.head, samples, *tail, first, n, *watched)
-            snapshot = {name: getattr(self, name).copy_to_host(
-                self._buffer(("state", k % 2, name), lambda name=name: cuda.pinned_array_like(start[name])),
+            snapshot = {name: getattr(self, name).copy_to_host(self._buffer(
+                ("state", k % 2, name), lambda name=name: cuda.pinned_array(start[name].shape, start[name].dtype)),
                 stream=compute) for name in start} if self.segment < self.n_save else {}  # state() of a
             # segment handed on; a record in one call is never continued, and needs no copy of its kernel state
             integrated = cuda.event()
@@ -121,6 +128,22 @@ class GpuLaunch:
         if waiting is not None:
             yield self._handed(waiting, watch)
         cuda.synchronize()
+
+    def _started(self, stream) -> dict[str, object]:
+        """The kernel's state at a run's start, made on the GPU (uploading 10^7 members' zeros would cost as much
+        as integrating them): no status, no failure time (NaN), no steps counted, the events' start_values."""
+        n = self.members
+        made = {"status": ((n,), np.int8, 0), "failure_time": ((n,), np.float64, np.nan),
+                "works": ((self.kernel.rows, n), np.float64, 0.0),
+                **({"counts": ((3, n), np.float64, 0.0)} if self.method.adaptive else {}),
+                **({name: (shape, np.float64, value) for name, (shape, value)
+                    in start_values(self.events, self.state_rows, n).items()} if self.events else {})}
+        start = {}
+        for name, (shape, dtype, value) in made.items():
+            start[name] = cuda.device_array(shape, dtype, stream=stream)
+            filled(start[name], value, stream)
+            setattr(self, name, start[name])
+        return start
 
     def _event_start(self) -> dict[str, np.ndarray]:
         """The events' arrays at a run's start (ensemble.engine.events; none without events)."""
