@@ -96,12 +96,13 @@ def chain_values(n: int, members: int) -> dict[str, np.ndarray]:
     return {name: np.resize(v, (members, v.shape[1])) for name, v in base.items()}
 
 
-def timed(scene, method, values, constants, *, dt, t_end, device, repeats, **tolerances) -> tuple[float, object]:
+def timed(scene, method, values, constants, *, dt, t_end, device, repeats, **settings) -> tuple[float, object]:
     """(median seconds of a launch over t_end, its outcome); inputs are laid out once, outside the timing. A timed
     launch is the kernel and its two samples (start and end) copied to the host as the device hands them on: not
-    converted to float64 (as Launch.run does for a float32 run's samples)."""
+    converted to float64 (as Launch.run does for a float32 run's samples). settings: the launch's others
+    (tolerances, precision, events)."""
     call = launch.new_launch(scene, method, values, constants, n_save=2, save_dt=t_end, dt=dt, device=device,
-                         **tolerances)
+                             **settings)
     call.run()  # compiles
     seconds = []
     for _ in range(repeats):
