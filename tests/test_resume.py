@@ -24,15 +24,15 @@ from .conftest import top_runfile
 NOISY_TOPS = top_runfile(members=60, t_end=2.0, save_dt=0.01) + "[observe]\nnoise = { tilt = 0.01 }\n"
 
 
-def same_bits(a: Path, b: Path) -> None:
-    """Every variable of two results (files, stores, or stores' URLs) bitwise equal, and every attribute but the
-    history (it carries a date)."""
+def same_bits(a: Path, b: Path, differing: tuple[str, ...] = ("history",)) -> None:
+    """Every variable of two results (files, stores, or stores' URLs) bitwise equal, and every attribute but those
+    `differing` (the history carries a date)."""
     with _opened(a) as x, _opened(b) as y:
         assert set(x.variables) == set(y.variables)
         for name in x.variables:
             assert x[name].values.tobytes() == y[name].values.tobytes(), name
-        assert {k: v for k, v in x.attrs.items() if k != "history"} == {
-            k: v for k, v in y.attrs.items() if k != "history"}
+        assert {k: v for k, v in x.attrs.items() if k not in differing} == {
+            k: v for k, v in y.attrs.items() if k not in differing}
 
 
 def _opened(result) -> xr.Dataset:

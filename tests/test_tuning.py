@@ -9,6 +9,7 @@ import subprocess
 import sys
 
 import pytest
+import xarray as xr
 
 from ensemble import cli, runner, tuner, tuning
 from ensemble.engine import kernels, launch
@@ -86,7 +87,7 @@ def _has_avx512() -> bool:
 @pytest.mark.skipif(not _has_avx512(), reason="the vector width is a choice only where 512-bit vectors exist")
 def test_tuned_512_bit_vectors_reach_numba_and_give_the_same_bits(tmp_path, write_runfile):
     """In processes of their own (the width is fixed at Numba's first compile): a run tuned to 512-bit vectors
-    compiles with LLVM told so, and writes the bits of a run with LLVM's own choice."""
+    compiles with LLVM told so, writes the bits of a run with LLVM's own choice, and says which it compiled for."""
     path = write_runfile(TOPS)
     wide = tmp_path / "wide.json"
     tuning.save(tuning.Tuning(vector_bits=512), {}, wide)
@@ -98,7 +99,9 @@ def test_tuned_512_bit_vectors_reach_numba_and_give_the_same_bits(tmp_path, writ
     for name, environment in (("llvm.nc", os.environ), ("wide.nc", env)):
         subprocess.run([sys.executable, "-m", "ensemble", "run", str(path), "-o", str(tmp_path / name), "--quiet"],
                        env=environment, check=True)
-    same_bits(tmp_path / "wide.nc", tmp_path / "llvm.nc")
+    same_bits(tmp_path / "wide.nc", tmp_path / "llvm.nc", differing=("history", "compile_target"))
+    targets = [xr.open_dataset(tmp_path / name).attrs["compile_target"] for name in ("wide.nc", "llvm.nc")]
+    assert ",-prefer-256-bit;" in targets[0] and ",-prefer-256-bit;" not in targets[1], targets
 
 
 def test_a_width_tuned_after_numba_started_is_said_and_not_claimed(fresh):
