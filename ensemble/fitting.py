@@ -24,6 +24,7 @@ from scipy.optimize import least_squares
 from scipy.signal import find_peaks
 from scipy.signal.windows import blackmanharris
 
+from . import libm
 from .errors import EnsembleError
 from .methods import METHODS
 from .results import Status
@@ -141,7 +142,7 @@ class _VariableProjection:
 
     def design(self, w):
         phase = np.outer(self.tc, w)
-        return np.hstack((np.ones((self.tc.size, 1)), self.tc[:, None], np.cos(phase), np.sin(phase)))
+        return np.hstack((np.ones((self.tc.size, 1)), self.tc[:, None], libm.cos(phase), libm.sin(phase)))
 
     def solve(self, w):
         """Least-squares amplitudes for frequencies w: orthonormal basis Q, amplitudes, residual."""
@@ -160,8 +161,8 @@ class _VariableProjection:
         tc, (times, sites), k = self.tc, self.x.shape, w.size
         phase = np.outer(tc, w)  # (times, k)
         # d design / d w_k times the amplitudes: (times, sites, k)
-        derivative = (-(tc[:, None] * np.sin(phase))[:, None, :] * amplitudes[2:2 + k].T[None, :, :]
-                      + (tc[:, None] * np.cos(phase))[:, None, :] * amplitudes[2 + k:].T[None, :, :])
+        derivative = (-(tc[:, None] * libm.sin(phase))[:, None, :] * amplitudes[2:2 + k].T[None, :, :]
+                      + (tc[:, None] * libm.cos(phase))[:, None, :] * amplitudes[2 + k:].T[None, :, :])
         flat = derivative.reshape(times, sites * k)
         projected = flat - q @ (q.T @ flat)
         return -projected.reshape(times * sites, k)
@@ -304,11 +305,11 @@ def _crossing(t, spin, after, sigma):
 
     def residual(p):
         u = u0 - p[2]
-        return p[0] * np.tanh(p[1] * u + p[3] * u**3) - spin[chosen]
+        return p[0] * libm.tanh(p[1] * u + p[3] * u**3) - spin[chosen]
 
     def jacobian(p):
         u = u0 - p[2]
-        shape = np.tanh(p[1] * u + p[3] * u**3)
+        shape = libm.tanh(p[1] * u + p[3] * u**3)
         bend = p[0] * (1 - shape**2)
         return np.stack((shape, bend * u, -bend * (p[1] + 3 * p[3] * u**2), bend * u**3), axis=1)
 
@@ -441,7 +442,7 @@ def convergence_order(table: xr.Dataset, line: str) -> tuple[float, int]:
     usable = np.isfinite(error) & (error < ASYMPTOTIC) & (error > ROUNDOFF * eps * np.sqrt(steps))
     if usable.sum() < 3:
         return np.nan, int(usable.sum())
-    return float(np.polyfit(np.log(dt[usable]), np.log(error[usable]), 1)[0]), int(usable.sum())
+    return float(np.polyfit(libm.log(dt[usable]), libm.log(error[usable]), 1)[0]), int(usable.sum())
 
 
 def fitted_values(fits: xr.Dataset) -> list[str]:

@@ -65,7 +65,9 @@ class Distribution:
             from scipy.special import ndtri
 
             return lo + hi * ndtri(((bits.random_raw(count) >> 12) + 0.5) * 2.0**-52)  # 52 bits, never 0 or 1
-        return np.exp(np.random.Generator(bits).uniform(math.log(lo), math.log(hi), count))
+        from . import libm  # imports Numba: a run file is checked without it
+
+        return libm.exp(np.random.Generator(bits).uniform(math.log(lo), math.log(hi), count))
 
 
 def type_name(kind) -> str:

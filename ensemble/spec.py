@@ -10,8 +10,8 @@ values per member: 1, or one per mass or spring) of a PCG64 stream seeded by
 any range of members is drawn in time proportional to its length. A value is
 a pure function of (seed, parameter, member index): never of chunk size,
 thread count, worker, or the order of keys in the file. Each value uses one
-64-bit output: uniform as numpy's Generator.uniform, loguniform its exp of a
-uniform, normal the inverse normal CDF of a uniform on (0, 1).
+64-bit output: uniform as numpy's Generator.uniform, loguniform the C library's
+exp of a uniform (ensemble.libm), normal the inverse normal CDF of a uniform on (0, 1).
 (Observation noise is drawn where it is added, in the runner.)
 
 Parsing imports no Numba: a run file is checked before any kernel is loaded.

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import xarray as xr
 
-from ... import fitting
+from ... import fitting, libm
 from ...fitting import MIN_SAMPLES
 from . import model as body
 
@@ -47,7 +47,7 @@ def body_rates(ds: xr.Dataset, max_tilt: float = BODY_MAX_TILT) -> xr.Dataset:
     damping = values["c"] * (1 / lam[i, np.arange(k.size)] + 1 / lam[j, np.arange(k.size)]) / 2
     growing = np.abs(body.transverse_exponents(values, constants)[0].imag) == 0  # a saddle: real exponents
 
-    spin0 = values["spin0"] * np.cos(values["tilt0"])
+    spin0 = values["spin0"] * libm.cos(values["tilt0"])
     fitted = np.array([_small_tilt_fit(t, omega[m], k[m], spin0[m], damping[m], growing[m], sigma, max_tilt)
                        for m in range(omega.shape[0])]).reshape(-1, 3).T
     estimate, stderr, used = fitted
@@ -122,7 +122,7 @@ def _small_tilt_fit(t, omega, k, spin0, damping, growing, sigma, max_tilt):
     """
     across, spin = omega[:, [(k + 1) % 3, (k + 2) % 3]], omega[:, k]
     clock = fitting.integral(t, spin) / spin0
-    end = _linear_end(np.arctan2(np.hypot(across[:, 0], across[:, 1]), spin), max_tilt)
+    end = _linear_end(libm.arctan2(libm.hypot(across[:, 0], across[:, 1]), spin), max_tilt)
     for _ in range(3 if sigma > 0 else 1):
         if end < MIN_SAMPLES:
             return np.nan, np.nan, end
@@ -131,7 +131,7 @@ def _small_tilt_fit(t, omega, k, spin0, damping, growing, sigma, max_tilt):
         if sigma == 0:
             break
         model = motion.basis(motion.p, t, clock) @ motion.amplitudes(motion.p)
-        end, before = _linear_end(np.arctan2(np.hypot(model[:, 0], model[:, 1]), np.abs(spin)), max_tilt), end
+        end, before = _linear_end(libm.arctan2(libm.hypot(model[:, 0], model[:, 1]), np.abs(spin)), max_tilt), end
         if end == before:
             break
     return estimate, stderr, end
@@ -153,17 +153,17 @@ class _SmallTilt:
         self.p = self._start()
 
     def basis(self, p, t, clock):
-        decay = np.exp(-self.damping * t)
+        decay = libm.exp(-self.damping * t)
         if self.growing:
-            return decay[:, None] * np.stack((np.exp(p * clock), np.exp(-p * clock)), axis=1)
-        return decay[:, None] * np.stack((np.cos(p * clock), np.sin(p * clock)), axis=1)
+            return decay[:, None] * np.stack((libm.exp(p * clock), libm.exp(-p * clock)), axis=1)
+        return decay[:, None] * np.stack((libm.cos(p * clock), libm.sin(p * clock)), axis=1)
 
     def basis_derivative(self, p):
         t, clock = self.t, self.clock
-        decay = np.exp(-self.damping * t) * clock
+        decay = libm.exp(-self.damping * t) * clock
         if self.growing:
-            return decay[:, None] * np.stack((np.exp(p * clock), -np.exp(-p * clock)), axis=1)
-        return decay[:, None] * np.stack((-np.sin(p * clock), np.cos(p * clock)), axis=1)
+            return decay[:, None] * np.stack((libm.exp(p * clock), -libm.exp(-p * clock)), axis=1)
+        return decay[:, None] * np.stack((-libm.sin(p * clock), libm.cos(p * clock)), axis=1)
 
     def amplitudes(self, p):
         return np.linalg.lstsq(self.basis(p, self.t, self.clock), self.across, rcond=None)[0]
@@ -174,12 +174,12 @@ class _SmallTilt:
         half = self.t.size // 2
         if self.growing:
             with np.errstate(divide="ignore"):
-                size = np.log(np.hypot(self.across[half:, 0], self.across[half:, 1]))
+                size = libm.log(libm.hypot(self.across[half:, 0], self.across[half:, 1]))
             slope = np.polyfit(self.clock[half:], size, 1)[0] if half >= 2 and np.all(np.isfinite(size)) else np.nan
             return slope + self.damping if np.isfinite(slope) and slope + self.damping > 0 else 1.0 / self.t[-1]
-        scaled = self.across * np.exp(self.damping * self.t)[:, None]
+        scaled = self.across * libm.exp(self.damping * self.t)[:, None]
         scaled = scaled / np.sqrt(np.mean(scaled**2, axis=0))
-        angle = np.unwrap(np.arctan2(scaled[:, 1], scaled[:, 0]))
+        angle = np.unwrap(libm.arctan2(scaled[:, 1], scaled[:, 0]))
         return abs(np.polyfit(self.clock, angle, 1)[0])
 
     def _projected_jacobian(self, p):

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ... import libm
 from ...inertia import Body
 from ...methods import AXIS_ROTATIONS, Method
 from ...parameter import Parameter, ParameterError
@@ -136,9 +137,9 @@ def initial_state(values: dict[str, np.ndarray], constants: dict) -> np.ndarray:
     k, i, j = spin_axes(values["spin_axis"])
     members = np.arange(spin.shape[0])
     state = np.empty((3, spin.shape[0]))
-    state[i, members] = spin * np.sin(tilt) * np.cos(azimuth)
-    state[j, members] = spin * np.sin(tilt) * np.sin(azimuth)
-    state[k, members] = spin * np.cos(tilt)
+    state[i, members] = spin * libm.sin(tilt) * libm.cos(azimuth)
+    state[j, members] = spin * libm.sin(tilt) * libm.sin(azimuth)
+    state[k, members] = spin * libm.cos(tilt)
     return state
 
 
@@ -180,7 +181,7 @@ def exact(values: dict[str, np.ndarray], constants: dict, t: np.ndarray) -> np.n
         a1 = np.sqrt(to_dn / np.abs(lam_f[0] * (lam_f[2] - lam_f[0])))
         a2 = np.sqrt(to_dn / np.abs(lam_f[1] * (lam_f[2] - lam_f[1])))
         a3 = np.sqrt(to_cn / np.abs(lam_f[2] * (lam_f[2] - lam_f[0])))
-        phi0 = np.arctan2(np.where(a2 > 0, w[1] / a2, 0.0), np.where(a1 > 0, w[0] / a1, 0.0))
+        phi0 = libm.arctan2(np.where(a2 > 0, w[1] / a2, 0.0), np.where(a1 > 0, w[0] / a1, 0.0))
     sense = np.where(w[2] < 0, -1.0, 1.0) * np.sign(lam_f[2] - lam_f[1])
     moving = np.isfinite(rate) & (rate > 0) & np.isfinite(m)
     u0 = ellipkinc(phi0, np.where(moving, m, 0.0))
@@ -239,7 +240,7 @@ def tilt(w: np.ndarray, spin_axis) -> np.ndarray:
     """Angle (rad) between omega and the spin axis: w (3, ..., members) rad/s; spin_axis 1, 2 or 3, one or per
     member."""
     k, i, j = spin_axes(spin_axis)
-    return np.arctan2(np.hypot(_pick(w, i), _pick(w, j)), _pick(w, k))
+    return libm.arctan2(libm.hypot(_pick(w, i), _pick(w, j)), _pick(w, k))
 
 
 def kinetic_energy(omega: np.ndarray, lam: np.ndarray) -> np.ndarray:
@@ -288,7 +289,7 @@ def transverse_exponents(values: dict[str, np.ndarray], constants: dict) -> np.n
     _, i, j = spin_axes(values["spin_axis"])
     a, r = np.split(rates(values)[:6], 2)
     a_i, a_j, r_i, r_j = _pick(a, i), _pick(a, j), _pick(r, i), _pick(r, j)
-    wk = values["spin0"] * np.cos(values["tilt0"])
+    wk = values["spin0"] * libm.cos(values["tilt0"])
     root = np.sqrt((((r_i - r_j) / 2) ** 2 + a_i * a_j * wk**2).astype(complex))
     return np.stack((-(r_i + r_j) / 2 + root, -(r_i + r_j) / 2 - root))
 
@@ -316,7 +317,7 @@ def _linear_split_step(method: Method, values, constants, h) -> np.ndarray:
     lambda_a)."""
     k, i, j = spin_axes(values["spin_axis"])
     lam = _moments(values)
-    spin_l = _pick(lam, k) * values["spin0"] * np.cos(values["tilt0"])
+    spin_l = _pick(lam, k) * values["spin0"] * libm.cos(values["tilt0"])
     n = spin_l.shape[0]
     zero, one = np.zeros(n), np.ones(n)
     step = np.broadcast_to(np.eye(2)[:, :, None], (2, 2, n)).copy()
@@ -324,13 +325,13 @@ def _linear_split_step(method: Method, values, constants, h) -> np.ndarray:
         tau = h * fraction
         name = method.splitting.pieces[piece]
         if name == "drag":
-            decay = np.exp(-values["c"] * tau / lam)
+            decay = libm.exp(-values["c"] * tau / lam)
             piece_map = np.array([[_pick(decay, i), zero], [zero, _pick(decay, j)]])
             spin_l = spin_l * _pick(decay, k)
         else:
             axis = int(name[-1]) - 1
             angle = spin_l * tau / lam[axis]
-            turn = np.array([[np.cos(angle), np.sin(angle)], [-np.sin(angle), np.cos(angle)]])
+            turn = np.array([[libm.cos(angle), libm.sin(angle)], [-libm.sin(angle), libm.cos(angle)]])
             piece_map = np.where(axis == k, turn, np.where(axis == i, np.array([[one, zero], [angle, one]]),
                                                            np.array([[one, -angle], [zero, one]])))
         step = np.einsum("abm,bcm->acm", piece_map, step)
@@ -375,4 +376,4 @@ def amplitudes(samples: np.ndarray, values: dict[str, np.ndarray], constants: di
     """The tilt's two motions: |rates across the spin axis| and |rate along it| (rad/s), (members, 2, samples)."""
     w = samples.transpose(1, 0, 2)
     k, i, j = spin_axes(values["spin_axis"])
-    return np.stack((np.hypot(_pick(w, i), _pick(w, j)), np.abs(_pick(w, k)))).transpose(2, 0, 1)
+    return np.stack((libm.hypot(_pick(w, i), _pick(w, j)), np.abs(_pick(w, k)))).transpose(2, 0, 1)

@@ -5,7 +5,7 @@ import numpy as np
 import xarray as xr
 from scipy.optimize import linear_sum_assignment
 
-from ... import fitting
+from ... import fitting, libm
 from . import model as chain
 
 
@@ -32,7 +32,7 @@ def mode_frequencies(ds: xr.Dataset) -> xr.Dataset:
     sigma = fitting.noise_of(ds["x"])
     theory, shapes = chain.normal_modes(ds["m"].values, ds["k"].values, boundary)
     amplitude, excited = _mode_amplitudes(ds, theory, shapes)
-    method = fitting.method_prediction(ds, theory, lambda m, dt, chosen: np.angle(
+    method = fitting.method_prediction(ds, theory, lambda m, dt, chosen: _angle(
         chain.step_eigenvalue(m, theory[chosen], dt)) / dt)
     frequency = np.full(theory.shape, np.nan)
     stderr = np.full(theory.shape, np.nan)
@@ -76,6 +76,11 @@ def _mode_amplitudes(ds: xr.Dataset, omega: np.ndarray, shapes: np.ndarray):
     a = np.einsum("mij,mi->mj", shapes, mass * x0)
     b = np.einsum("mij,mi->mj", shapes, mass * v0)
     with np.errstate(divide="ignore", invalid="ignore"):
-        amplitude = np.where(omega > 0, np.hypot(a, b / omega), np.nan)
+        amplitude = np.where(omega > 0, libm.hypot(a, b / omega), np.nan)
     largest = np.nanmax(np.where(np.isfinite(amplitude), amplitude, 0.0), axis=1, keepdims=True)
     return amplitude, np.isfinite(amplitude) & (amplitude > EXCITED * largest)
+
+
+def _angle(z: np.ndarray) -> np.ndarray:
+    """np.angle(z) (rad), through the C library's atan2 (ensemble.libm)."""
+    return libm.arctan2(z.imag, z.real)

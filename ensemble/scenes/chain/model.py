@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ... import libm
 from ...methods import KICK_DRIFT, Method
 from ...parameter import Mode, Parameter, ParameterError
 from ..closed_form import times_by_members
@@ -279,8 +280,8 @@ def exact(values: dict[str, np.ndarray], constants: dict, t: np.ndarray) -> np.n
     wt = omega[:, None, :] * t  # (M, T, n)
     moving = omega[:, None, :] > 0
     safe = np.where(moving, omega[:, None, :], 1.0)
-    q = q0[:, None] * np.cos(wt) + p0[:, None] * np.where(moving, np.sin(wt) / safe, t)
-    qdot = -q0[:, None] * omega[:, None, :] * np.sin(wt) + p0[:, None] * np.cos(wt)
+    q = q0[:, None] * libm.cos(wt) + p0[:, None] * np.where(moving, libm.sin(wt) / safe, t)
+    qdot = -q0[:, None] * omega[:, None, :] * libm.sin(wt) + p0[:, None] * libm.cos(wt)
     x = np.einsum("mij,mtj->tim", shapes, q)
     v = np.einsum("mij,mtj->tim", shapes, qdot)
     return np.concatenate((x, v), axis=1)

@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 import xarray as xr
 
-from ... import fitting
+from ... import fitting, libm
 from ...fitting import MIN_SAMPLES
 from . import model as top
 
@@ -59,8 +59,8 @@ def _tilt_fit_events(ds: xr.Dataset, events: list[str]):
     member, its stderr from their residuals (0 with two points, whose line is exact: its error is the method's,
     which a check against theory judges)."""
     times = [np.zeros((ds.sizes["member"], 1))] + [ds[name].values for name in events]
-    logs = [np.log(np.tan(ds["tilt0"].values))[:, None]] + [
-        np.full(ds[name].shape, np.log(np.tan(ds[name].attrs["event_value"]))) for name in events]
+    logs = [libm.log(libm.tan(ds["tilt0"].values))[:, None]] + [
+        np.full(ds[name].shape, libm.log(libm.tan(ds[name].attrs["event_value"]))) for name in events]
     t, y = np.concatenate(times, axis=1), np.concatenate(logs, axis=1)
     a, rate, rss, count, sxx = fitting.masked_line(t, y, np.isfinite(t) & np.isfinite(y))
     with np.errstate(invalid="ignore", divide="ignore"):
@@ -73,7 +73,7 @@ def _tilt_fit_events(ds: xr.Dataset, events: list[str]):
 def _tilt_fit_clean(t, tilt):
     """Noise-free: ordinary least squares of log tan(tilt) on t; stderr from the residuals."""
     with np.errstate(invalid="ignore", divide="ignore"):
-        y = np.log(np.tan(tilt))
+        y = libm.log(libm.tan(tilt))
     mask = np.isfinite(y) & (tilt > TILT_FLOOR) & (tilt < np.pi / 2)
     a, rate, rss, count, sxx = fitting.masked_line(t, y, mask)
     with np.errstate(invalid="ignore", divide="ignore"):
@@ -95,11 +95,11 @@ def _tilt_fit_noisy(t, tilt, sigma, iterations=12):
     lo, hi = NOISE_WINDOW * sigma, np.pi / 2 - NOISE_WINDOW * sigma
     with np.errstate(invalid="ignore", divide="ignore"):
         start = finite & (tilt > 2 * lo) & (tilt < np.pi / 2 - 2 * lo)
-        a, rate, _, _, _ = fitting.masked_line(t, np.log(np.tan(tilt)), start)
+        a, rate, _, _, _ = fitting.masked_line(t, libm.log(libm.tan(tilt)), start)
     for _ in range(iterations):
-        model = np.arctan(np.exp(a[:, None] - rate[:, None] * t))
+        model = libm.arctan(libm.exp(a[:, None] - rate[:, None] * t))
         mask = finite & (model > lo) & (model < hi)
-        slope = np.where(mask, 0.5 * np.sin(2 * model), 0.0)  # d model / d a
+        slope = np.where(mask, 0.5 * libm.sin(2 * model), 0.0)  # d model / d a
         res = np.where(mask, tilt - model, 0.0)
         ja, jr = slope, -t * slope  # d model / d (a, rate)
         saa, sar, srr = (ja * ja).sum(1), (ja * jr).sum(1), (jr * jr).sum(1)

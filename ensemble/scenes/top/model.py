@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ... import libm
 from ...inertia import EQUAL_RTOL, Body
 from ...methods import DRAG_ROTATION, Method
 from ...parameter import Parameter, ParameterError
@@ -109,7 +110,7 @@ def initial_state(values: dict[str, np.ndarray]) -> np.ndarray:
     """Body rates at t = 0 from spin0, tilt0, azimuth0; shape (3, members), rad/s."""
     spin, tilt, azimuth = values["spin0"], values["tilt0"], values["azimuth0"]
     return np.stack(
-        (spin * np.sin(tilt) * np.cos(azimuth), spin * np.sin(tilt) * np.sin(azimuth), spin * np.cos(tilt))
+        (spin * libm.sin(tilt) * libm.cos(azimuth), spin * libm.sin(tilt) * libm.sin(azimuth), spin * libm.cos(tilt))
     )
 
 
@@ -147,26 +148,26 @@ def closed_form(state0: np.ndarray, rate: np.ndarray, t: np.ndarray) -> np.ndarr
     t = times_by_members(t)
     w10, w20, w30 = (x[None, :] for x in state0)
     with np.errstate(divide="ignore", invalid="ignore"):
-        spun_time = np.where(r3 > 0, -np.expm1(-r3 * t) / r3, t)  # integral of exp(-r3 t)
+        spun_time = np.where(r3 > 0, -libm.expm1(-r3 * t) / r3, t)  # integral of exp(-r3 t)
     theta = p * w30 * spun_time
-    decay = np.exp(-r1 * t)
-    cos, sin = np.cos(theta), np.sin(theta)
+    decay = libm.exp(-r1 * t)
+    cos, sin = libm.cos(theta), libm.sin(theta)
     w1 = decay * (w10 * cos - w20 * sin)
     w2 = decay * (w10 * sin + w20 * cos)
-    w3 = w30 * np.exp(-r3 * t)
+    w3 = w30 * libm.exp(-r3 * t)
     return np.stack((w1, w2, w3), axis=1)
 
 
 def tilt(state: np.ndarray, axis: int) -> np.ndarray:
     """Angle (rad) between omega and e3; `axis` is the axis of `state` holding (w1, w2, w3)."""
     w1, w2, w3 = np.moveaxis(state, axis, 0)
-    return np.arctan2(np.hypot(w1, w2), w3)
+    return libm.arctan2(libm.hypot(w1, w2), w3)
 
 
 def tilt_theory(values: dict[str, np.ndarray], t: np.ndarray) -> np.ndarray:
     """The course's tilt law atan(tan(tilt0) exp(-c (1/lambda1 - 1/lambda3) t)), shape (members, len(t))."""
     rate = values["c"] * (1 / values["lambda1"] - 1 / values["lambda3"])
-    return np.arctan(np.tan(values["tilt0"])[:, None] * np.exp(-rate[:, None] * np.asarray(t)[None, :]))
+    return libm.arctan(libm.tan(values["tilt0"])[:, None] * libm.exp(-rate[:, None] * np.asarray(t)[None, :]))
 
 
 def tilt_rate_method(method: Method, values: dict[str, np.ndarray], h: float, t: np.ndarray) -> np.ndarray:
@@ -184,10 +185,10 @@ def tilt_rate_method(method: Method, values: dict[str, np.ndarray], h: float, t:
     if tableau is None:
         return (r1 - r3)[:, 0]
     t = np.asarray(t, dtype=float)
-    w3 = initial_state(values)[2][:, None] * np.exp(-r3 * t[None, :])
+    w3 = initial_state(values)[2][:, None] * libm.exp(-r3 * t[None, :])
     transverse = np.abs(tableau.stability(h * (1j * p * w3 - r1)))
     axial = np.abs(tableau.stability(-h * r3))
-    rate = -np.log(transverse / axial) / h
+    rate = -libm.log(transverse / axial) / h
     log_tan = -np.concatenate((np.zeros((rate.shape[0], 1)), np.cumsum(
         0.5 * (rate[:, 1:] + rate[:, :-1]) * np.diff(t), axis=1)), axis=1)
     return -np.polyfit(t, log_tan.T, 1)[0]
@@ -207,7 +208,7 @@ def _amplification(method: Method, z: np.ndarray) -> np.ndarray:
     """|factor| per step on w' = (z / h) w: |R(z)| for a tableau; exact and split methods solve the rotation and
     the decay exactly (each split piece has total fraction 1), so exp(Re z)."""
     tableau = method.tableau
-    return np.abs(tableau.stability(z)) if tableau is not None else np.exp(np.real(z))
+    return np.abs(tableau.stability(z)) if tableau is not None else libm.exp(np.real(z))
 
 
 def axis_growth(method: Method, axis: str, x: np.ndarray) -> np.ndarray:
@@ -236,7 +237,7 @@ def step_growth(method: Method, values: dict[str, np.ndarray], constants: dict, 
     rates (w1 + i w2 times R(h (i Omega - r1))) and of w3 (R(-h r3)); motions at zero amplitude do not count."""
     p, r1, r3 = rates(values)
     w = initial_state(values)
-    transverse = np.where(np.hypot(w[0], w[1]) > 0, _amplification(method, h * (1j * p * w[2] - r1)), 0.0)
+    transverse = np.where(libm.hypot(w[0], w[1]) > 0, _amplification(method, h * (1j * p * w[2] - r1)), 0.0)
     axial = np.where(w[2] != 0, _amplification(method, -h * r3 + 0j), 0.0)
     return np.maximum(transverse, axial)
 
