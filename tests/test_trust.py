@@ -410,7 +410,8 @@ def test_a_damaged_numba_cache_file_is_compiled_again_in_one_line(tmp_path, dama
     naming no cache) until the cache was emptied by hand."""
     _scene(tmp_path, 1.0)
     runfile = _runfile(tmp_path, "rk4")
-    env = {**os.environ, "ENSEMBLE_KERNEL_DIR": str(tmp_path / "kernels")}
+    env = {**{k: v for k, v in os.environ.items() if k != "NUMBA_CACHE_DIR"},  # Numba's cache beside the kernel
+           "ENSEMBLE_KERNEL_DIR": str(tmp_path / "kernels")}
 
     def run(out):
         return subprocess.run([sys.executable, "-m", "ensemble", "run", str(runfile), "-o", str(out), "--quiet"],
