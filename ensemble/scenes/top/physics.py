@@ -79,14 +79,15 @@ def value_tilt(t, w1, w2, w3, p, r1, r3):
 
 def watch_tilt(t, w1, w2, w3, p, r1, r3, level):
     """Of the sign of value_tilt - level (rad) at a fraction of its cost, for the kernels' watch of a tilt event
-    (ensemble.engine.events): |w| sin(tilt - level) = |(w1, w2)| cos(level) - w3 sin(level) off the spin axis,
-    (0 or pi) - level on it, +-1 for a level the tilt never reaches, NaN where a rate is."""
-    transverse = math.sqrt(w1 * w1 + w2 * w2)
-    off_axis = transverse * math.cos(level) - w3 * math.sin(level)
-    on_axis = (math.pi if math.copysign(1.0, w3) < 0.0 else 0.0) - level
-    sign = off_axis if transverse > 0.0 else on_axis
-    sign = sign if 0.0 <= level <= math.pi else (1.0 if level < 0.0 else -1.0)
-    return sign if transverse == transverse and w3 == w3 else math.nan
+    (ensemble.engine.events). Off the spin axis |w| sin(tilt - level) = a - b, a = |(w1, w2)| cos(level) and
+    b = w3 sin(level), has that sign, and so has a|a| - b|b| (x|x| rises with x), which needs no square root;
+    (0 or pi) - level on the axis, +-1 for a level the tilt never reaches, NaN where a rate is."""
+    transverse2 = w1 * w1 + w2 * w2
+    c, s = math.cos(level), math.sin(level)
+    off_axis = transverse2 * (c * abs(c)) - w3 * abs(w3) * (s * abs(s))
+    on_axis = (math.pi if math.copysign(1.0, w3) < 0.0 else 0.0) - level + 0.0 * w3  # NaN with w3
+    sign = off_axis if transverse2 != 0.0 else on_axis
+    return sign if 0.0 <= level <= math.pi else (1.0 if level < 0.0 else -1.0)
 
 
 @njit(cache=True, nogil=True, **OBSERVING)
