@@ -7,7 +7,7 @@ from numba import cuda
 
 from ..methods import Method
 from ..results import DEFAULT_BLOWUP_FACTOR, Outcome, Status
-from .events import EVENT_STATE, event_spec, start_values, started
+from .events import EVENT_STATE, event_spec, start_values
 from .gpu import THREADS, GpuKernel, member_kernel, require_gpu
 from .gpu import work_rows as member_work_rows
 from .gpu_device import PRECISIONS
@@ -129,25 +129,25 @@ class GpuLaunch:
             yield self._handed(waiting, watch)
         cuda.synchronize()
 
-    def _started(self, stream) -> dict[str, object]:
-        """The kernel's state at a run's start, made on the GPU (uploading 10^7 members' zeros would cost as much
-        as integrating them): no status, no failure time (NaN), no steps counted, the events' start_values."""
+    def _start_values(self) -> dict[str, tuple[tuple[int, ...], type, float]]:
+        """Each kernel-state array's (shape, dtype, value at a run's start): no status, no failure time (NaN), no
+        steps counted, the events' start_values."""
         n = self.members
-        made = {"status": ((n,), np.int8, 0), "failure_time": ((n,), np.float64, np.nan),
+        return {"status": ((n,), np.int8, 0), "failure_time": ((n,), np.float64, np.nan),
                 "works": ((self.kernel.rows, n), np.float64, 0.0),
                 **({"counts": ((3, n), np.float64, 0.0)} if self.method.adaptive else {}),
                 **({name: (shape, np.float64, value) for name, (shape, value)
                     in start_values(self.events, self.state_rows, n).items()} if self.events else {})}
+
+    def _started(self, stream) -> dict[str, object]:
+        """The kernel's state at a run's start (_start_values), made on the GPU: uploading 10^7 members' zeros
+        would cost as much as integrating them."""
         start = {}
-        for name, (shape, dtype, value) in made.items():
+        for name, (shape, dtype, value) in self._start_values().items():
             start[name] = cuda.device_array(shape, dtype, stream=stream)
             filled(start[name], value, stream)
             setattr(self, name, start[name])
         return start
-
-    def _event_start(self) -> dict[str, np.ndarray]:
-        """The events' arrays at a run's start (ensemble.engine.events; none without events)."""
-        return started(self.events, self.state_rows, self.members) if self.events else {}
 
     def _buffer(self, key, make):
         """A buffer kept for later segments and runs of this launch: allocating pinned memory costs about as much
@@ -170,11 +170,8 @@ class GpuLaunch:
         return {name: value.copy() for name, value in self._state.items()}
 
     def takes(self, state: dict[str, np.ndarray]) -> bool:
-        n, rows = self.members, self.kernel.rows
-        mine = {"status": ((n,), np.int8), "failure_time": ((n,), np.float64), "works": ((rows, n), np.float64),
-                **({"counts": ((3, n), np.float64)} if self.method.adaptive else {}),
-                **{name: (value.shape, value.dtype) for name, value in self._event_start().items()}}
-        return mine.keys() == state.keys() and all((v.shape, v.dtype) == mine[k] for k, v in state.items())
+        mine = self._start_values()
+        return mine.keys() == state.keys() and all((v.shape, v.dtype) == mine[k][:2] for k, v in state.items())
 
     def run(self, threads: int | None = None, watch=None) -> None:
         keep = np.array if self.segment < self.n_save else np.asarray  # segments share two buffers: copies
