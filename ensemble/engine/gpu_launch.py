@@ -140,11 +140,12 @@ class GpuLaunch:
                     in start_values(self.events, self.state_rows, n).items()} if self.events else {})}
 
     def _started(self, stream) -> dict[str, object]:
-        """The kernel's state at a run's start (_start_values), made on the GPU: uploading 10^7 members' zeros
-        would cost as much as integrating them."""
+        """The kernel's state at a run's start (_start_values), made on the GPU in arrays kept for the launch's
+        later runs: uploading 10^7 members' zeros would cost as much as integrating them."""
         start = {}
         for name, (shape, dtype, value) in self._start_values().items():
-            start[name] = cuda.device_array(shape, dtype, stream=stream)
+            start[name] = self._buffer(("start", name), lambda shape=shape, dtype=dtype: cuda.device_array(
+                shape, dtype))
             filled(start[name], value, stream)
             setattr(self, name, start[name])
         return start
