@@ -167,11 +167,13 @@ def test_a_prolate_tops_tilt_reaches_its_level_at_the_closed_forms_time():
 
 def test_the_tops_watch_has_the_sign_of_its_tilt_minus_the_level():
     """physics.watch_tilt, which the kernels evaluate instead of the tilt itself, has the sign of value_tilt -
-    level (numpy's arctan2 of |(w1, w2)| and w3), on and off the spin axis, for levels in and beyond [0, pi]."""
+    level (numpy's arctan2 of |(w1, w2)| and w3), on and off the spin axis, for levels in and beyond [0, pi], and
+    for rates from 1e-150 to 1e150 rad/s (its squares neither overflow nor lose their bits there)."""
     from ensemble.scenes.top.physics import watch_tilt
 
     rng = np.random.default_rng(5)
     rates = np.concatenate([rng.normal(size=(4000, 3)) * 10.0 ** rng.uniform(-3, 3, (4000, 1)),
+                            rng.normal(size=(1000, 3)) * 10.0 ** rng.uniform(-150, 150, (1000, 1)),
                             [[0, 0, 5], [0, 0, -5], [0, 0, 0.0], [0, 0, -0.0], [1e-3, 0, -7], [0, -2, 0]]])
     levels = np.concatenate([[-0.5, 0.0, 1e-9, 0.6, math.pi / 2, math.pi - 1e-9, math.pi, 3.5],
                              rng.uniform(0, math.pi, 8)])
