@@ -343,13 +343,13 @@ def NO_STEPS(members_step, like_y, like_p, work, B, i, h, steps_per_save, rememb
 
 @njit(inline="always", **FAST)
 def watched_steps(members_step, like_y, like_p, work, B, i, h, steps_per_save, remember, watch, locate, context):
-    """NO_STEPS with events: after each step, watch counts the members whose events crossed, and where any did,
+    """NO_STEPS with events: after each step, watch says whether any member's events crossed, and where any did,
     the loop of steps stops for `locate` to find them, then goes on (a call in that loop, even one never made,
     cost a chain's verlet a third of its rate, and a top's rk4 a tenth)."""
     n = 0
     while n < steps_per_save:
-        hits = 0
-        while hits == 0 and n < steps_per_save:
+        hits = False
+        while not hits and n < steps_per_save:
             t = ((i - 1) * steps_per_save + n) * h
             members_step(like_y, like_p, work, B, h, t, remember)
             hits = watch(like_y, like_p, work, B, t, h, context)
@@ -388,11 +388,11 @@ def fixed_watcher(values, signs, advance, to_user, first: int, E: int):
     begin(like_y, like_p, work, B, context) at t = 0. In a family's loop over a block's members, remember(work,
     B, j, y) keeps a member's state before its step (y, in the family's coordinates). After that loop,
     watch(like_y, like_p, work, B, t, h, context) evaluates every member's signs at its new state (to_user: a
-    splitting's from_pieces to the scene's coordinates, or None) in a loop of its own and counts those that may
-    have crossed (`any_straddles`; in an integer: a float sum, which LLVM may not reorder, kept the loop from
-    vectorizing); where any did, locate(like_y, like_p, work, B, t, h, context) takes each member that crossed
-    (`crossed`), its values at both ends, and locates
-    its events on advance(t0, h, y0, p), the family's step in the scene's coordinates (runge_kutta.advance_of,
+    splitting's from_pieces to the scene's coordinates, or None) in a loop of its own and says whether any may
+    have crossed (`any_straddles`, in a boolean, which LLVM keeps in a vector's mask: a float sum, which it may
+    not reorder, kept the loop from vectorizing); where any did, locate(like_y, like_p, work, B, t, h, context)
+    takes each member that crossed (`crossed`), its values at both ends, and locates its events on advance(t0,
+    h, y0, p), the family's step in the scene's coordinates (runge_kutta.advance_of,
     splitting.advance_of); the member stops at the first that stops it. steps: NO_STEPS with watch and locate
     (`watched_steps`). Rows are stored whole (a value selected against the row's became a masked store, slow on
     AMD Zen 3) at rows fixed when compiled (else LLVM cannot prove a block's members apart); watched in the step's
@@ -408,14 +408,14 @@ def fixed_watcher(values, signs, advance, to_user, first: int, E: int):
     def watch(like_y, like_p, work, B, t, h, context):
         D = len(like_y)
         levels, _ = levels_and_directions(context[0][0], like_g)  # loaded once: constants of the loops
-        hits = 0
+        hits = False
         for j in range(B):
             p = loaded(work, D, B, j, like_p)
             before = loaded(work, G, B, j, like_g)
             after = signs(t + h, user_state(to_user, loaded(work, 0, B, j, like_y), p), p, levels)
             stored(work, G, B, j, after)
             stored(work, BEFORE, B, j, before)
-            hits += any_straddles(before, after)
+            hits |= any_straddles(before, after)
         return hits
 
     @njit(inline="always", **FAST)

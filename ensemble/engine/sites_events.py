@@ -156,18 +156,23 @@ def events_remember(work, B, n):
 @njit(inline="always", **FAST)
 def crossings(work, B, h, whole, context, value):
     """After a fixed step of h (s) (whole: whether the state is whole at its end): each member's events' values at
-    the step's end (value(work, row, j, h, whole)) into rows G, those at its start into rows BEFORE; how many
+    the step's end (value(work, row, j, h, whole)) into rows G, those at its start into rows BEFORE; whether any
     may have crossed (`straddles`: located_members finds which did). context: (event arrays, status,
-    failure_time, j0)."""
+    failure_time, j0).
+
+    The loop over a block's members runs to min(B, len(work)), which is B, but not to LLVM: a loop of a known
+    16 it unrolled into scalar code (a chain's verlet lost a tenth of its rate), this one it vectorizes; `hits`
+    is a boolean, which it keeps in a vector's mask."""
     levels, _ = levels_and_directions(context[0][0], LIKE_G)
-    hits = 0
-    for e in range(E):  # a loop over a block's members inside: LLVM vectorizes it
+    hits = False
+    members = min(B, len(work))
+    for e in range(E):
         row, level = EVENT_ROWS[e], levels[e]
-        for j in range(B):
+        for j in range(members):
             before, after = work[(G + e) * B + j], value(work, row, j, h, whole)
             work[(BEFORE + e) * B + j] = before
             work[(G + e) * B + j] = after
-            hits += straddles(before, after, level)
+            hits |= straddles(before, after, level)
     return hits
 
 
@@ -205,7 +210,7 @@ def runge_kutta_start(work, j, n, h, kinds, taus):
 
 @njit(inline="always", **FAST)
 def runge_kutta_watch(work, B, h, context, whole):
-    """After a Runge-Kutta step of h (s): how many of the block's members' events crossed (`crossings`)."""
+    """After a Runge-Kutta step of h (s): whether any of the block's members' events crossed (`crossings`)."""
     return crossings(work, B, h, whole, context, row_value)
 
 
@@ -250,7 +255,7 @@ def splitting_start(work, j, n, h, kinds, taus):
 @njit(inline="always", **FAST)
 def splitting_watch(work, B, h, context, whole):
     """After a splitting's step of h (s) (whole: whether its last piece was its own, not merged into the next
-    step's first): how many of the block's members' events crossed (`crossings`)."""
+    step's first): whether any of the block's members' events crossed (`crossings`)."""
     return crossings(work, B, h, whole, context, splitting_value)
 
 

@@ -142,13 +142,13 @@ def pieces(work, kinds, taus, first, end):
 def watched_steps(step, work, save, h, steps_per_save, kinds, taus, context, remember, watch, locate):
     """A save interval's steps with events (as ensemble.engine.events.watched_steps for a member family):
     step(work, n, h, kinds, taus, steps_per_save) takes the block through step n of h (s) and says whether its
-    state is whole at the end; after each, watch counts the members whose events crossed, and where any did, the
+    state is whole at the end; after each, watch says whether any member's events crossed, and where any did, the
     loop of steps stops for `locate` to find them, then goes on (a call in that loop, even one never made, cost a
     chain's verlet a third of its rate). remember(work, B, n) before each step."""
     n = 0
     while n < steps_per_save:
-        hits = 0
-        while hits == 0 and n < steps_per_save:
+        hits = False
+        while not hits and n < steps_per_save:
             remember(work, B, n)
             hits = watch(work, B, h, context, step(work, n, h, kinds, taus, steps_per_save))
             n += 1
@@ -391,7 +391,7 @@ def no_remember(work, B, n):
 @njit(inline="always", **FAST)
 def no_watch(work, B, h, context, whole):
     """A kernel without events: no event crossed in a fixed step."""
-    return 0
+    return False
 
 
 @njit(inline="always", **FAST)
