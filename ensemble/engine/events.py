@@ -350,10 +350,9 @@ def watched_steps(members_step, like_y, like_p, work, B, i, h, steps_per_save, r
     while n < steps_per_save:
         hits = False
         while not hits and n < steps_per_save:
-            t = ((i - 1) * steps_per_save + n) * h
-            members_step(like_y, like_p, work, B, h, t, remember)
-            hits = watch(like_y, like_p, work, B, t, h, context)
+            members_step(like_y, like_p, work, B, h, ((i - 1) * steps_per_save + n) * h, remember)
             n += 1
+            hits = watch(like_y, like_p, work, B, ((i - 1) * steps_per_save + n) * h, context)
         if hits:
             locate(like_y, like_p, work, B, ((i - 1) * steps_per_save + n - 1) * h, h, context)
 
@@ -382,39 +381,39 @@ def beginning(signs, first: int, E: int):
 def fixed_watcher(values, signs, advance, to_user, first: int, E: int):
     """(begin, remember, steps) for a fixed-step kernel (ensemble.engine.frames.fixed_step) whose E events' rows
     start at `first`: their signs (`signs_chain`: the sign of each value's difference from its level, or of a
-    scene's cheaper watch of it) at the step's end and start (E rows each) and the state at the step's start (D
-    rows). Levels and directions are read once per step, before the members' loop (in it, a tenth of rk4's rate).
+    scene's cheaper watch of it) at the last step's end (E rows) and the state at the step's start (D rows).
+    Levels and directions are read once per step, before the members' loop (in it, a tenth of rk4's rate).
 
     begin(like_y, like_p, work, B, context) at t = 0. In a family's loop over a block's members, remember(work,
     B, j, y) keeps a member's state before its step (y, in the family's coordinates). After that loop,
-    watch(like_y, like_p, work, B, t, h, context) evaluates every member's signs at its new state (to_user: a
-    splitting's from_pieces to the scene's coordinates, or None) in a loop of its own and says whether any may
-    have crossed (`any_straddles`, in a boolean, which LLVM keeps in a vector's mask: a float sum, which it may
-    not reorder, kept the loop from vectorizing); where any did, locate(like_y, like_p, work, B, t, h, context)
-    takes each member that crossed (`crossed`), its values at both ends, and locates its events on advance(t0,
-    h, y0, p), the family's step in the scene's coordinates (runge_kutta.advance_of,
-    splitting.advance_of); the member stops at the first that stops it. steps: NO_STEPS with watch and locate
-    (`watched_steps`). Rows are stored whole (a value selected against the row's became a masked store, slow on
-    AMD Zen 3) at rows fixed when compiled (else LLVM cannot prove a block's members apart); watched in the step's
-    own loop, a top's tilt kept it from vectorizing. context: (events, status, failure_time, j0) from frames."""
+    watch(like_y, like_p, work, B, t1, context) evaluates every member's signs at its new state at t1 (s, the
+    step's end; to_user: a splitting's from_pieces to the scene's coordinates, or None) in a loop of its own and
+    says whether any may have crossed (`any_straddles`, in a boolean, which LLVM keeps in a vector's mask: a
+    float sum, which it may not reorder, kept the loop from vectorizing); where any did, locate(like_y, like_p,
+    work, B, t, h, context) takes each member that crossed (`crossed`; its signs at the step's start made anew from
+    its state there), its values at both ends, and locates its events on advance(t0, h, y0, p), the family's step in
+    the scene's coordinates (runge_kutta.advance_of, splitting.advance_of); the member stops at the first that stops
+    it. steps: NO_STEPS with watch and locate (`watched_steps`). Rows are stored whole (a value selected against the
+    row's became a masked store, slow on AMD Zen 3) at rows fixed when compiled (else LLVM cannot prove a block's
+    members apart); watched in the step's own loop, a top's tilt kept it from vectorizing. context: (events, status,
+    failure_time, j0) from frames."""
     located, like_g, begin = locator(values, advance), (0.0,) * E, beginning(signs, first, E)
-    G, BEFORE, OLD = first, first + E, first + 2 * E
+    G, OLD = first, first + E
 
     @njit(inline="always", **FAST)
     def remember(work, B, j, y):
         stored(work, OLD, B, j, y)
 
     @njit(inline="always", **FAST)
-    def watch(like_y, like_p, work, B, t, h, context):
+    def watch(like_y, like_p, work, B, t1, context):
         D = len(like_y)
         levels, _ = levels_and_directions(context[0][0], like_g)  # loaded once: constants of the loops
         hits = False
         for j in range(B):
             p = loaded(work, D, B, j, like_p)
             before = loaded(work, G, B, j, like_g)
-            after = signs(t + h, user_state(to_user, loaded(work, 0, B, j, like_y), p), p, levels)
+            after = signs(t1, user_state(to_user, loaded(work, 0, B, j, like_y), p), p, levels)
             stored(work, G, B, j, after)
-            stored(work, BEFORE, B, j, before)
             hits |= any_straddles(before, after)
         return hits
 
@@ -422,13 +421,13 @@ def fixed_watcher(values, signs, advance, to_user, first: int, E: int):
     def locate(like_y, like_p, work, B, t, h, context):
         arrays, status, failure_time, j0 = context
         D = len(like_y)
-        _, directions = levels_and_directions(arrays[0], like_g)
+        levels, directions = levels_and_directions(arrays[0], like_g)
         zeros = repeated(0.0, like_g)
         for j in range(B):
-            before, after = loaded(work, BEFORE, B, j, like_g), loaded(work, G, B, j, like_g)
+            p = loaded(work, D, B, j, like_p)
+            y0 = user_state(to_user, loaded(work, OLD, B, j, like_y), p)
+            before, after = signs(t, y0, p, levels), loaded(work, G, B, j, like_g)  # as the last watch had them
             if any_crossed(before, after, zeros, directions):
-                p = loaded(work, D, B, j, like_p)
-                y0 = user_state(to_user, loaded(work, OLD, B, j, like_y), p)
                 y1 = user_state(to_user, loaded(work, 0, B, j, like_y), p)
                 when = located(arrays, j0 + j, t, h, y0, p, values(t, y0, p), values(t + h, y1, p),
                                crossed_each(before, after, zeros, directions))
