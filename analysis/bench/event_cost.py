@@ -4,13 +4,14 @@
                                         [--device cuda --t-end 5]   (on a GPU: 10^6 members or more)
     python analysis/bench/event_cost.py --sites 16 [--methods verlet rk4 dopri5]   (chains of 16 masses)
 
-Aerobie tops (spin 60 rad/s, tilts drawn in 0.02..0.2 rad) integrate 0.5 s with each method: without events,
+Aerobie tops (spin 60 rad/s, tilts drawn in 0.02..0.2 rad) integrate 2 s (--t-end) with each method: without events,
 with an event on a state component (omega[2] rising to 1e6 rad/s) and with one on an observable (the tilt
 rising to 1.5 rad: watched through the top's watch_tilt, as a run file's, and, "unwatched", through its value
 alone), none of which occurs. With --sites n, chains of n unit masses between walls (unit springs,
 x0 drawn in -0.1..0.1 m), without events and with one on mass 1's x rising to 1e6 m. Prints each kernel's
-member-steps/s on all threads (median of the repeats, the kernels alternated) and the median of the repeats'
-ratios to the kernel without events.
+member-steps/s on all threads (median of the repeats, the kernels alternated) and the median and quartiles of
+the repeats' ratios to the kernel without events. Two threads on two cores of a shared host spread these ratios
+by several points; one thread on one core (NUMBA_NUM_THREADS=1 taskset -c 1 python ...) by about one.
 """
 from __future__ import annotations
 
@@ -71,7 +72,7 @@ def main() -> None:
     parser.add_argument("--methods", nargs="+", default=["rk4", "split4", "dopri5"])
     parser.add_argument("--device", choices=("cpu", "cuda"), default="cpu")
     parser.add_argument("--sites", type=int, default=0, help="chains of this many masses instead of tops")
-    parser.add_argument("--t-end", type=float, default=0.5, help="each launch's span (s; steps of 1e-3 s): on a "
+    parser.add_argument("--t-end", type=float, default=2.0, help="each launch's span (s; steps of 1e-3 s): on a "
                         "GPU, long enough that the kernel outlasts the transfers")
     args = parser.parse_args()
     print(host())
@@ -89,8 +90,10 @@ def main() -> None:
             for label, events in watched.items():
                 rates[label].append(rate(method, values, events, args.t_end, args.device, args.sites))
         for label, measured in rates.items():
-            ratio = statistics.median(r / base for r, base in zip(measured, rates["none"]))
-            print(f"{method:7s} {label:14s} {statistics.median(measured):.3e} member-steps/s   x {ratio:.3f}")
+            ratios = [r / base for r, base in zip(measured, rates["none"])]
+            low, _, high = statistics.quantiles(ratios, n=4) if len(ratios) > 1 else ratios * 3
+            print(f"{method:7s} {label:14s} {statistics.median(measured):.3e} member-steps/s   "
+                  f"x {statistics.median(ratios):.3f} (quartiles {low:.3f} {high:.3f})")
 
 
 if __name__ == "__main__":
