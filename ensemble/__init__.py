@@ -5,8 +5,14 @@ own), stored as NetCDF, and their fits against theory.
     ds = ensemble.run("runs/aerobie.toml")   # an xarray.Dataset
     fits = ensemble.fit(ds)                  # fitted rates against c (1/lambda1 - 1/lambda3)
 """
-from . import tuning as _tuning
-from .version import __version__
+import os as _os
+
+# Intel's SVML (a Numba whose LLVM has it, with icc_rt installed) would vectorize the kernels' sin, exp, ... with
+# functions of its own: other bits than the C library's on every other host. Read when Numba is imported.
+_os.environ.setdefault("NUMBA_DISABLE_INTEL_SVML", "1")
+
+from . import tuning as _tuning  # noqa: E402
+from .version import __version__  # noqa: E402
 
 _tuning.prepare()  # this machine's `ensemble tune` choices, before any Numba function of ours is made
 

@@ -516,3 +516,19 @@ def test_ctrl_c_while_compiling_stops_at_once(tmp_path, monkeypatch, capfd):
     finally:
         signal.signal(signal.SIGINT, previous)
     assert "Exception ignored" not in capfd.readouterr().err
+
+
+@pytest.mark.parametrize("asked", [None, "0"])
+def test_intel_svml_is_off_unless_the_user_asks_for_it(asked):
+    """Importing ensemble before Numba sets NUMBA_DISABLE_INTEL_SVML=1 (SVML's sin and exp are not the C library's
+    bits); a user's own setting stands. compile_target says which Numba ran with. (This host's LLVM has no SVML,
+    so Numba's USING_SVML stays False either way: what is checked is the switch Numba reads.)"""
+    env = {name: value for name, value in os.environ.items() if name != "NUMBA_DISABLE_INTEL_SVML"}
+    if asked is not None:
+        env["NUMBA_DISABLE_INTEL_SVML"] = asked
+    code = ("import ensemble, numba; from ensemble.engine.kernels import compile_target; "
+            "print(numba.config.DISABLE_INTEL_SVML, numba.config.USING_SVML, compile_target().split('; ')[-1])")
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True).stdout
+    disabled, using, said = out.split(maxsplit=2)
+    assert disabled == ("0" if asked == "0" else "1")
+    assert said.strip() == ("svml on" if using == "True" else "svml off")

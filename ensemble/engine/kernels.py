@@ -67,14 +67,17 @@ def scene_identity(scene) -> str:
 @cache
 def compile_target() -> str:
     """What Numba compiles the CPU kernels for and with: LLVM's CPU name and features (NUMBA_CPU_NAME and
-    NUMBA_CPU_FEATURES, or the tuning's, or the host's), Numba's version, the fast-math flags."""
+    NUMBA_CPU_FEATURES, or the tuning's, or the host's), Numba's version, the fast-math flags, and whether Intel's
+    SVML vectorizes math functions (off unless Numba was imported before ensemble with it on, or
+    NUMBA_DISABLE_INTEL_SVML=0 asks for it: its bits are not the C library's)."""
     from llvmlite import binding
     from numba import __version__ as numba_version
     from numba.core import config
 
     name = config.CPU_NAME or binding.get_host_cpu_name()
     features = config.CPU_FEATURES if config.CPU_FEATURES is not None else binding.get_host_cpu_features().flatten()
-    return f"cpu {name}; features {features}; numba {numba_version}; fastmath {sorted(FAST['fastmath'])}"
+    return (f"cpu {name}; features {features}; numba {numba_version}; fastmath {sorted(FAST['fastmath'])}; "
+            f"svml {'on' if config.USING_SVML else 'off'}")
 
 
 def factor_counts(where: str, pieces: tuple[str, ...], parameters: int) -> dict[str, int]:
