@@ -149,8 +149,8 @@ def work_rows(method: Method, n: int, periodic: bool, tiled: bool, events: int =
 
 
 def event_rows(method: Method, n: int, events: int) -> int:
-    """Work rows of a kernel's events (sites_kernels's G, BEFORE, OLD): their values at a step's ends (2 per
-    event) and, for fixed steps, the state at the step's start (2n + 1 rows, a ghost among them)."""
+    """Work rows of a kernel's events (sites_events's G, BEFORE, CHECK): their values at a step's ends (2 per
+    event) and, for fixed steps, the state at the last checkpoint (2n + 1 rows, a ghost among them)."""
     if not events:
         return 0
     return 2 * events + (0 if method.adaptive else 2 * n + 1)
