@@ -96,9 +96,12 @@ class GpuLaunch:
         handles segment k, whose samples are overwritten by segment k + 2: the caller copies what it keeps."""
         n = self.members
         compute, copy = cuda.stream(), cuda.stream()
-        start = self._started(compute) if resume is None else dict(resume[1])
-        for name, value in start.items() if resume else ():
-            setattr(self, name, cuda.to_device(value, stream=compute))
+        if resume is None:
+            start = self._started(compute)
+        else:
+            start = dict(resume[1])
+            for name, value in start.items():
+                setattr(self, name, cuda.to_device(value, stream=compute))
         tail = ((self.counts,) if self.method.adaptive else ()) + (self.status, self.failure_time, self.works)
         watched = (self.event_spec, *(getattr(self, name) for name in EVENT_STATE)) if self.events else self.no_events
         chosen = self.kernel.layout

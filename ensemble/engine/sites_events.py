@@ -161,7 +161,7 @@ def crossings(work, B, h, whole, context, value):
     failure_time, j0).
 
     The loop over a block's members runs to min(B, len(work)), which is B, but not to LLVM: a loop of a known
-    16 it unrolled into scalar code (a chain's verlet lost a tenth of its rate), this one it vectorizes; `hits`
+    16 it unrolled into scalar code (six points of a chain's verlet's rate), this one it vectorizes; `hits`
     is a boolean, which it keeps in a vector's mask."""
     levels, _ = levels_and_directions(context[0][0], LIKE_G)
     hits = False
