@@ -26,6 +26,7 @@ from ensemble.parts import folder_of
 from ensemble.results import Status
 from ensemble.spec import load
 
+from .conftest import top_runfile
 from .test_resume import _interrupted
 
 # x' = -a x: x(t) = x0 exp(-a t); euler's x_n = x0 (1 - a dt)^n. EDIT replaces the rate.
@@ -532,3 +533,24 @@ def test_intel_svml_is_off_unless_the_user_asks_for_it(asked):
     disabled, using, said = out.split(maxsplit=2)
     assert disabled == ("0" if asked == "0" else "1")
     assert said.strip() == ("svml on" if using == "True" else "svml off")
+
+
+def test_numbas_inliner_without_its_spare_copies_compiles_the_same_code(tmp_path):
+    """ensemble.inlining edits two lines of Numba's inliner (a third off each kernel's compile): a top's euler kernel
+    with a tilt event, made anew with Numba's inliner as ensemble edits it and as Numba ships it
+    (ENSEMBLE_NUMBA_INLINER=unedited), is the same optimized LLVM IR to the byte. The package's own functions are
+    loaded from Numba's cache by both (this process ran the same first), so each compiles the same functions."""
+    text = top_runfile(members=3, t_end=0.2, save_dt=0.1, method="euler") + '[events.tip]\nof = "tilt"\nvalue = 0.3\n'
+    ensemble.run(text, progress=False)
+    code = ("import sys, ensemble; from ensemble import inlining; print('applied', inlining.applied, file=sys.stderr);"
+            f" ensemble.run({text!r}, progress=False)")
+    dumps = {}
+    for inliner in ("edited", "unedited"):
+        env = {**os.environ, "ENSEMBLE_NUMBA_INLINER": inliner, "ENSEMBLE_KERNEL_DIR": str(tmp_path / inliner),
+               "NUMBA_DUMP_OPTIMIZED": "1"}
+        done = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=600)
+        assert done.returncode == 0, done.stderr[-2000:]
+        assert f"applied {inliner == 'edited'}" in done.stderr
+        dumps[inliner] = done.stdout
+    assert "OPTIMIZED DUMP kernel" in dumps["edited"] and len(dumps["edited"]) > 100_000
+    assert dumps["edited"] == dumps["unedited"]

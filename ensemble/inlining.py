@@ -1,0 +1,74 @@
+"""Numba's inliner without its two spare copies of each inlined function's IR.
+
+Every kernel is written as functions inlined into its loops (njit(inline="always")), and Numba compiles each
+call site by re-making the callee's IR, then deep-copying it twice in InlineWorker.inline_ir: once to mutate, once
+to return an unmutated original that Numba's own callers discard (numba issue #8989, numba-cuda #688 and #689).
+Those copies were a third of a kernel's compile time. `apply` edits two lines of the installed Numba's inline_ir
+(and inline_function, whose IR is made for the one call): the original returned is the callee's IR as it came,
+and IR made for the one call is not copied. The compiled code is the same to the byte (tests/test_trust.py); a
+Numba whose lines differ is left as it is (`applied` False)."""
+from __future__ import annotations
+
+import inspect
+import textwrap
+
+from numba.core import inline_closurecall
+
+_WORKER = inline_closurecall.InlineWorker
+ORIGINAL = {"inline_ir": _WORKER.inline_ir, "inline_function": _WORKER.inline_function}
+_COPY = "    callee_ir = copy_ir(callee_ir)\n"
+_SPARE = "    callee_ir_original = copy_ir(callee_ir)\n"
+_KEPT = ("    callee_ir_original = callee_ir  # ensemble.inlining: as it came, not a copy\n"
+         "    callee_ir = callee_ir if getattr(callee_ir, '_made_for_this_call', False) else copy_ir(callee_ir)\n")
+applied = False
+
+
+def _edited_inline_ir():
+    """Numba's inline_ir with the two edits, or None where its source is not the one they were made for."""
+    try:
+        source = textwrap.dedent(inspect.getsource(ORIGINAL["inline_ir"]))
+    except (OSError, TypeError):
+        return None
+    if source.count(_COPY) != 1 or source.count(_SPARE) != 1:
+        return None
+    names = {}
+    exec(compile(source.replace(_COPY, _KEPT).replace(_SPARE, ""), inline_closurecall.__file__, "exec"),
+         vars(inline_closurecall), names)
+    return names["inline_ir"]
+
+
+def _inline_function(self, caller_ir, block, i, function, arg_typs=None):
+    """Numba's InlineWorker.inline_function, its callee's IR marked as made for this one call."""
+    callee_ir = self.run_untyped_passes(function)
+    callee_ir._made_for_this_call = True
+    return self.inline_ir(caller_ir, block, i, callee_ir, function.__code__.co_freevars, arg_typs=arg_typs)
+
+
+def _statements(function) -> list[str]:
+    """A function's source lines after its docstring, stripped, or [] where it has no source."""
+    try:
+        source = inspect.getsource(function)
+    except (OSError, TypeError):
+        return []
+    return [line.strip() for line in source.split('"""')[-1].splitlines() if line.strip()]
+
+
+def _inline_function_is_numbas() -> bool:
+    """Whether the installed inline_function is the lines _inline_function repeats, and the IR it inlines is made
+    anew for each call (run_untyped_passes ends by running the passes and returning their IR, cached nowhere)."""
+    made = _statements(_WORKER.run_untyped_passes)
+    return (_statements(ORIGINAL["inline_function"]) == [
+        "callee_ir = self.run_untyped_passes(function)", "freevars = function.__code__.co_freevars",
+        "return self.inline_ir(caller_ir, block, i, callee_ir, freevars,", "arg_typs=arg_typs)"]
+        and made[-2:] == ["pm.run(state)", "return state.func_ir"] and not any("cache" in line for line in made))
+
+
+def apply() -> bool:
+    """Edit the installed Numba's inliner, once; whether it is edited."""
+    global applied
+    if not applied:
+        inline_ir = _edited_inline_ir()
+        if inline_ir is not None and _inline_function_is_numbas():
+            _WORKER.inline_ir, _WORKER.inline_function = inline_ir, _inline_function
+            applied = True
+    return applied
