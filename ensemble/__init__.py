@@ -11,11 +11,6 @@ import os as _os
 # functions of its own: other bits than the C library's on every other host. Read when Numba is imported.
 _os.environ.setdefault("NUMBA_DISABLE_INTEL_SVML", "1")
 
-if _os.environ.get("ENSEMBLE_NUMBA_INLINER") != "unedited":  # a third off every kernel's compile, the same code
-    from . import inlining as _inlining
-
-    _inlining.apply()
-
 from . import tuning as _tuning  # noqa: E402
 from .version import __version__  # noqa: E402
 

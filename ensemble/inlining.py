@@ -6,10 +6,12 @@ to return an unmutated original that Numba's own callers discard (numba issue #8
 Those copies were a third of a kernel's compile time. `apply` edits two lines of the installed Numba's inline_ir
 (and inline_function, whose IR is made for the one call): the original returned is the callee's IR as it came,
 and IR made for the one call is not copied. The compiled code is the same to the byte (tests/test_trust.py); a
-Numba whose lines differ is left as it is (`applied` False)."""
+Numba whose lines differ is left as it is (`applied` False). Applied when ensemble.engine.kernels, which makes
+the kernels, is imported, unless ENSEMBLE_NUMBA_INLINER=unedited."""
 from __future__ import annotations
 
 import inspect
+import os
 import textwrap
 
 from numba.core import inline_closurecall
@@ -64,9 +66,9 @@ def _inline_function_is_numbas() -> bool:
 
 
 def apply() -> bool:
-    """Edit the installed Numba's inliner, once; whether it is edited."""
+    """Edit the installed Numba's inliner, once, unless ENSEMBLE_NUMBA_INLINER=unedited; whether it is edited."""
     global applied
-    if not applied:
+    if not applied and os.environ.get("ENSEMBLE_NUMBA_INLINER") != "unedited":
         inline_ir = _edited_inline_ir()
         if inline_ir is not None and _inline_function_is_numbas():
             _WORKER.inline_ir, _WORKER.inline_function = inline_ir, _inline_function

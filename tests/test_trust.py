@@ -542,8 +542,8 @@ def test_numbas_inliner_without_its_spare_copies_compiles_the_same_code(tmp_path
     loaded from Numba's cache by both (this process ran the same first), so each compiles the same functions."""
     text = top_runfile(members=3, t_end=0.2, save_dt=0.1, method="euler") + '[events.tip]\nof = "tilt"\nvalue = 0.3\n'
     ensemble.run(text, progress=False)
-    code = ("import sys, ensemble; from ensemble import inlining; print('applied', inlining.applied, file=sys.stderr);"
-            f" ensemble.run({text!r}, progress=False)")
+    code = (f"import sys, ensemble; ensemble.run({text!r}, progress=False); from ensemble import inlining;"
+            " print('applied', inlining.applied, file=sys.stderr)")
     dumps = {}
     for inliner in ("edited", "unedited"):
         env = {**os.environ, "ENSEMBLE_NUMBA_INLINER": inliner, "ENSEMBLE_KERNEL_DIR": str(tmp_path / inliner),
