@@ -3,7 +3,7 @@
 Every kernel is written as functions inlined into its loops (njit(inline="always")), and Numba compiles each
 call site by re-making the callee's IR, then deep-copying it twice in InlineWorker.inline_ir: once to mutate, once
 to return an unmutated original that Numba's own callers discard (numba issue #8989, numba-cuda #688 and #689).
-Those copies were a third of a kernel's compile time. `apply` edits two lines of the installed Numba's inline_ir
+Those copies were up to a third of a kernel's compile time. `apply` edits two lines of the installed Numba's inline_ir
 (and inline_function, whose IR is made for the one call): the original returned is the callee's IR as it came,
 and IR made for the one call is not copied. The compiled code is the same to the byte (tests/test_trust.py); a
 Numba whose lines differ is left as it is (`applied` False). Applied when ensemble.engine.kernels, which makes

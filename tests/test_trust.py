@@ -536,7 +536,7 @@ def test_intel_svml_is_off_unless_the_user_asks_for_it(asked):
 
 
 def test_numbas_inliner_without_its_spare_copies_compiles_the_same_code(tmp_path):
-    """ensemble.inlining edits two lines of Numba's inliner (a third off each kernel's compile): a top's euler kernel
+    """ensemble.inlining edits two lines of Numba's inliner (up to a third off a kernel's compile): a top's euler kernel
     with a tilt event, made anew with Numba's inliner as ensemble edits it and as Numba ships it
     (ENSEMBLE_NUMBA_INLINER=unedited), is the same optimized LLVM IR to the byte. The package's own functions are
     loaded from Numba's cache by both (this process ran the same first), so each compiles the same functions."""

@@ -34,7 +34,7 @@ from ..tuning import KernelFolderError, Tuning, applied, private_kernel_folder
 from . import sites
 from .blocks import CONTROL_ROWS, FAST, HELPERS, Kernel, adaptive_constants
 
-inlining.apply()  # a third off each kernel's compile, the same code (ensemble.inlining)
+inlining.apply()  # up to a third off each kernel's compile, the same code (ensemble.inlining)
 
 BLOCK = 128  # members per block of a scene whose kernel_rows are its whole state (rows of B floats each)
 
