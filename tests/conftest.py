@@ -24,19 +24,6 @@ if "ENSEMBLE_TUNING_FILE" not in os.environ:  # runs under test keep the engine'
     tuning.save(tuning.Tuning(), {})
     tuning.pending_line()  # the untuned hint of the import, before the file was there
 
-# The test modules that take longest on a cold cache (mostly Numba compiling), longest first. pytest-xdist hands
-# a free worker the next whole module (--dist loadfile, --no-loadscope-reorder: collection order), so these go
-# first and the short ones fill in at the end; its own order (most tests first) left test_targets' two
-# 45-second tests for last, one worker idle for a minute and a half.
-LONGEST_FIRST = ("test_gpu", "test_chain", "test_targets", "test_user_sites", "test_stability", "test_tuning",
-                 "test_trust", "test_chain_events", "test_events", "test_zarr")
-
-
-def pytest_collection_modifyitems(items):
-    """Modules in LONGEST_FIRST's order, then the rest as collected; each module's tests keep their order."""
-    rank = {name: i for i, name in enumerate(LONGEST_FIRST)}
-    items.sort(key=lambda item: rank.get(item.path.stem, len(rank)))
-
 
 def _toml_value(value) -> str:
     if isinstance(value, str):
