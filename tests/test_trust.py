@@ -554,3 +554,15 @@ def test_numbas_inliner_without_its_spare_copies_compiles_the_same_code(tmp_path
         dumps[inliner] = done.stdout
     assert "OPTIMIZED DUMP kernel" in dumps["edited"] and len(dumps["edited"]) > 100_000
     assert dumps["edited"] == dumps["unedited"]
+
+
+def test_a_numba_whose_inliner_reads_otherwise_is_left_alone(monkeypatch):
+    """The edit is made only to the lines it was written for: an inline_ir or inline_function whose source differs
+    (another Numba's) leaves the installed inliner as it is."""
+    from ensemble import inlining
+
+    assert inlining.apply()  # the installed Numba's lines are those the edit was written for
+    monkeypatch.setitem(inlining.ORIGINAL, "inline_ir", inlining.apply)
+    assert inlining._edited_inline_ir() is None
+    monkeypatch.setitem(inlining.ORIGINAL, "inline_function", inlining._inline_function)
+    assert not inlining._inline_function_is_numbas()
