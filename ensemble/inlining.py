@@ -3,18 +3,20 @@
 Every kernel is written as functions inlined into its loops (njit(inline="always")), and Numba compiles each
 call site by re-making the callee's IR, then deep-copying it twice in InlineWorker.inline_ir: once to mutate, once
 to return an unmutated original that Numba's own callers discard (numba issue #8989, numba-cuda #688 and #689).
-Those copies were up to a third of a kernel's compile time. `apply` edits two lines of the installed Numba's inline_ir
-(and inline_function, whose IR is made for the one call): the original returned is the callee's IR as it came,
-and IR made for the one call is not copied. The compiled code is the same to the byte (tests/test_trust.py); a
-Numba whose lines differ is left as it is (`applied` False). Applied when ensemble.engine.kernels, which makes
-the kernels, is imported, unless ENSEMBLE_NUMBA_INLINER=unedited."""
+Those copies were up to a third of a kernel's compile time. `apply` edits two lines of the installed Numba's
+inline_ir (and inline_function, whose IR is made for the one call): the original returned is the callee's IR as
+it came, and IR made for the one call is not copied. The compiled code is the same to the byte
+(tests/test_trust.py); a Numba whose lines differ, or whose passes keep that original, is left as it is
+(`applied` False). Applied when ensemble.engine.kernels, which makes the kernels, is imported, unless
+ENSEMBLE_NUMBA_INLINER=unedited."""
 from __future__ import annotations
 
 import inspect
 import os
+import re
 import textwrap
 
-from numba.core import inline_closurecall
+from numba.core import inline_closurecall, typed_passes, untyped_passes
 
 _WORKER = inline_closurecall.InlineWorker
 ORIGINAL = {"inline_ir": _WORKER.inline_ir, "inline_function": _WORKER.inline_function}
@@ -65,12 +67,27 @@ def _inline_function_is_numbas() -> bool:
         and made[-2:] == ["pm.run(state)", "return state.func_ir"] and not any("cache" in line for line in made))
 
 
+def discards_the_original(source: str) -> bool:
+    """Whether a module's source calls inline_worker.inline_ir or inline_function, each time throwing away the
+    original they return first (`_, _, _, new_blocks = ...`)."""
+    calls = re.findall(r"([^\n]*\n?[^\n]*)inline_worker\.inline_(?:ir|function)\(", source)
+    return bool(calls) and all(re.search(r"_, _, _, new_blocks =\s*\\?\s*$", before) for before in calls)
+
+
+def _callers_discard_the_original() -> bool:
+    """Whether both of Numba's passes that inline (untyped_passes, typed_passes) discard that original."""
+    try:
+        return all(discards_the_original(inspect.getsource(module)) for module in (untyped_passes, typed_passes))
+    except (OSError, TypeError):
+        return False
+
+
 def apply() -> bool:
     """Edit the installed Numba's inliner, once, unless ENSEMBLE_NUMBA_INLINER=unedited; whether it is edited."""
     global applied
     if not applied and os.environ.get("ENSEMBLE_NUMBA_INLINER") != "unedited":
         inline_ir = _edited_inline_ir()
-        if inline_ir is not None and _inline_function_is_numbas():
+        if inline_ir is not None and _inline_function_is_numbas() and _callers_discard_the_original():
             _WORKER.inline_ir, _WORKER.inline_function = inline_ir, _inline_function
             applied = True
     return applied

@@ -558,7 +558,7 @@ def test_numbas_inliner_without_its_spare_copies_compiles_the_same_code(tmp_path
 
 def test_a_numba_whose_inliner_reads_otherwise_is_left_alone(monkeypatch):
     """The edit is made only to the lines it was written for: an inline_ir or inline_function whose source differs
-    (another Numba's) leaves the installed inliner as it is."""
+    (another Numba's), or a pass that keeps the original inline_ir returns, leaves the installed inliner as it is."""
     from ensemble import inlining
 
     assert inlining.apply()  # the installed Numba's lines are those the edit was written for
@@ -566,3 +566,7 @@ def test_a_numba_whose_inliner_reads_otherwise_is_left_alone(monkeypatch):
     assert inlining._edited_inline_ir() is None
     monkeypatch.setitem(inlining.ORIGINAL, "inline_function", inlining._inline_function)
     assert not inlining._inline_function_is_numbas()
+    discarded = "            _, _, _, new_blocks = \\\n                inline_worker.inline_function(state.func_ir,\n"
+    assert inlining.discards_the_original(discarded)
+    assert not inlining.discards_the_original(discarded.replace("_, _, _, new_blocks", "kept, _, _, new_blocks"))
+    assert not inlining.discards_the_original("no inlining here\n")
