@@ -7,8 +7,8 @@ Those copies were up to a third of a kernel's compile time. `apply` edits two li
 inline_ir (and inline_function, whose IR is made for the one call): the original returned is the callee's IR as
 it came, and IR made for the one call is not copied. The compiled code is the same to the byte
 (tests/test_trust.py); a Numba whose lines differ, or whose passes keep that original, is left as it is
-(`applied` False). Applied when ensemble.engine.kernels, which makes the kernels, is imported, unless
-ENSEMBLE_NUMBA_INLINER=unedited."""
+(`applied` False). Applied by ensemble.engine.kernels.load_source before it makes a kernel's module, unless
+ENSEMBLE_NUMBA_INLINER=unedited (any other value than it and 'edited' is an EnsembleError)."""
 from __future__ import annotations
 
 import inspect
@@ -17,6 +17,8 @@ import re
 import textwrap
 
 from numba.core import inline_closurecall, typed_passes, untyped_passes
+
+from .errors import EnsembleError
 
 _WORKER = inline_closurecall.InlineWorker
 ORIGINAL = {"inline_ir": _WORKER.inline_ir, "inline_function": _WORKER.inline_function}
@@ -85,7 +87,11 @@ def _callers_discard_the_original() -> bool:
 def apply() -> bool:
     """Edit the installed Numba's inliner, once, unless ENSEMBLE_NUMBA_INLINER=unedited; whether it is edited."""
     global applied
-    if not applied and os.environ.get("ENSEMBLE_NUMBA_INLINER") != "unedited":
+    asked = os.environ.get("ENSEMBLE_NUMBA_INLINER") or "edited"
+    if asked not in ("edited", "unedited"):
+        raise EnsembleError(f"ENSEMBLE_NUMBA_INLINER={asked!r}: set it to 'unedited' to leave Numba's inliner as "
+                            "it is, or to 'edited' (the default)")
+    if not applied and asked == "edited":
         inline_ir = _edited_inline_ir()
         if inline_ir is not None and _inline_function_is_numbas() and _callers_discard_the_original():
             _WORKER.inline_ir, _WORKER.inline_function = inline_ir, _inline_function

@@ -34,8 +34,6 @@ from ..tuning import KernelFolderError, Tuning, applied, private_kernel_folder
 from . import sites
 from .blocks import CONTROL_ROWS, FAST, HELPERS, Kernel, adaptive_constants
 
-inlining.apply()  # up to a third off each kernel's compile, the same code (ensemble.inlining)
-
 BLOCK = 128  # members per block of a scene whose kernel_rows are its whole state (rows of B floats each)
 
 
@@ -352,7 +350,9 @@ def _called(function):
 
 def load_source(source: str, label: str) -> ModuleType:
     """Import generated `source`, headed by the compile target, from its file in the kernel folder: written first
-    if it is not there, written again (one line said) if its text is not `source`."""
+    if it is not there, written again (one line said) if its text is not `source`. Numba's inliner is edited
+    first (ensemble.inlining: up to a third off the kernel's compile, the same code)."""
+    inlining.apply()
     source = f"# compiled for: {compile_target()}\n{source}"
     name = f"ensemble_kernel_{label}_{hashlib.sha256(source.encode()).hexdigest()[:16]}"
     if name in sys.modules:
