@@ -8,7 +8,8 @@ inline_ir (and inline_function, whose IR is made for the one call): the original
 it came, and IR made for the one call is not copied. The compiled code is the same to the byte
 (tests/test_trust.py); a Numba whose lines differ, or whose passes keep that original, is left as it is
 (`applied` False). Applied by ensemble.engine.kernels.load_source before it makes a kernel's module, unless
-ENSEMBLE_NUMBA_INLINER=unedited (any other value than it and 'edited' is an EnsembleError)."""
+ENSEMBLE_NUMBA_INLINER=unedited (read once, before the process's first kernel is made; any other value than it
+and 'edited' is an EnsembleError)."""
 from __future__ import annotations
 
 import inspect
@@ -27,6 +28,7 @@ _SPARE = "    callee_ir_original = copy_ir(callee_ir)\n"
 _KEPT = ("    callee_ir_original = callee_ir  # ensemble.inlining: as it came, not a copy\n"
          "    callee_ir = callee_ir if getattr(callee_ir, '_made_for_this_call', False) else copy_ir(callee_ir)\n")
 applied = False
+decided = False  # apply reads ENSEMBLE_NUMBA_INLINER once
 
 
 def _edited_inline_ir():
@@ -85,15 +87,19 @@ def _callers_discard_the_original() -> bool:
 
 
 def apply() -> bool:
-    """Edit the installed Numba's inliner, once, unless ENSEMBLE_NUMBA_INLINER=unedited; whether it is edited."""
-    global applied
+    """Edit the installed Numba's inliner unless ENSEMBLE_NUMBA_INLINER=unedited, deciding at the first call only;
+    whether it is edited."""
+    global applied, decided
+    if decided:
+        return applied
     asked = os.environ.get("ENSEMBLE_NUMBA_INLINER") or "edited"
     if asked not in ("edited", "unedited"):
         raise EnsembleError(f"ENSEMBLE_NUMBA_INLINER={asked!r}: set it to 'unedited' to leave Numba's inliner as "
                             "it is, or to 'edited' (the default)")
-    if not applied and asked == "edited":
+    if asked == "edited":
         inline_ir = _edited_inline_ir()
         if inline_ir is not None and _inline_function_is_numbas() and _callers_discard_the_original():
             _WORKER.inline_ir, _WORKER.inline_function = inline_ir, _inline_function
             applied = True
+    decided = True
     return applied

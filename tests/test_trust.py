@@ -572,12 +572,15 @@ def test_a_numba_whose_inliner_reads_otherwise_is_left_alone(monkeypatch):
     assert not inlining.discards_the_original("no inlining here\n")
 
 
-def test_an_unknown_inliner_setting_is_one_line_and_exit_2_with_nothing_written(tmp_path, monkeypatch, capsys):
-    """ENSEMBLE_NUMBA_INLINER takes 'edited' (the default) or 'unedited'; a typo is named, not taken for either."""
+def test_an_unknown_inliner_setting_is_one_line_and_exit_2_with_nothing_written(tmp_path):
+    """ENSEMBLE_NUMBA_INLINER takes 'edited' (the default) or 'unedited', read once, before a process's first kernel
+    is made: a typo is named, not taken for either."""
     runfile = tmp_path / "run.toml"
     runfile.write_text(top_runfile(members=3, t_end=0.2, save_dt=0.1))
-    monkeypatch.setenv("ENSEMBLE_NUMBA_INLINER", "off")
-    assert cli.main(["run", str(runfile), "-o", str(tmp_path / "out" / "run.nc")]) == 2
-    err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "ENSEMBLE_NUMBA_INLINER='off'" in err[0] and "'unedited'" in err[0], err
+    command = [sys.executable, "-m", "ensemble", "run", str(runfile), "-o", str(tmp_path / "out" / "run.nc")]
+    done = subprocess.run(command, env={**os.environ, "ENSEMBLE_NUMBA_INLINER": "off"}, capture_output=True,
+                          text=True)
+    err = done.stderr.strip().splitlines()
+    assert done.returncode == 2 and len(err) == 1, done.stderr
+    assert "ENSEMBLE_NUMBA_INLINER='off'" in err[0] and "'unedited'" in err[0], err
     assert not (tmp_path / "out").exists()
