@@ -63,8 +63,11 @@ def component(k: int, compiled=_inlined):
 
 
 @cache
-def function_value(function, index: int, compiled=_inlined):
-    """value(t, y, p) = function(t, *y, *p), or its value `index` where index >= 0 (a vector observable)."""
+def function_value(function, index: int, compiled=_inlined, counts: tuple | None = None):
+    """value(t, y, p) = function(t, *y, *p), or its value `index` where index >= 0 (a vector observable); with
+    counts (D, P), the call written out (`written_out`)."""
+    if counts:
+        return written_out(function, counts, "", index, compiled)
     if index < 0:
         def value(t, y, p):
             return float64(function(t, *y, *p))
@@ -72,6 +75,21 @@ def function_value(function, index: int, compiled=_inlined):
         def value(t, y, p):
             return float64(function(t, *y, *p)[index])
     return compiled(value)
+
+
+@cache
+def written_out(function, counts: tuple, rest: str, index: int, compiled=_inlined):
+    """call(t, y, p<rest>) = function(t, y[0], .., y[D - 1], p[0], .., p[P - 1]<rest>) as a float64 (its value
+    `index` where index >= 0), counts = (D, P): a call Numba inlines where `function` is compiled to be inlined
+    (it inlines no call with *args). A kernel's watch calls a scene's function so (kernels.event_signs): called
+    as a function of its own, the top's tilt watch cost rk4 three points more of its rate, and the same arithmetic
+    on a state variable eight more."""
+    D, P = counts
+    arguments = ", ".join(["t", *(f"y[{i}]" for i in range(D)), *(f"p[{i}]" for i in range(P))]) + rest
+    picked = f"[{index}]" if index >= 0 else ""
+    namespace = {"function": function, "float64": float64}
+    exec(f"def call(t, y, p{rest}):\n    return float64(function({arguments}){picked})\n", namespace)
+    return compiled(namespace["call"])
 
 
 @cache
@@ -98,9 +116,12 @@ def difference(value, compiled=_inlined):
 
 
 @cache
-def function_sign(function, index: int, compiled=_inlined):
+def function_sign(function, index: int, compiled=_inlined, counts: tuple | None = None):
     """sign(t, y, p, level) = function(t, *y, *p, level), or its value `index` where index >= 0: a scene's watch
-    of an observable (EVENT_VALUES' third entry), of the sign of the observable's difference from the level."""
+    of an observable (EVENT_VALUES' third entry), of the sign of the observable's difference from the level; with
+    counts (D, P), the call written out (`written_out`)."""
+    if counts:
+        return written_out(function, counts, ", level", index, compiled)
     if index < 0:
         def sign(t, y, p, level):
             return float64(function(t, *y, *p, level))
@@ -125,13 +146,13 @@ def signs_chain(functions: tuple, compiled=_inlined):
     return compiled(signs)
 
 
-def source_value(source: tuple, function_of, compiled=_inlined):
+def source_value(source: tuple, function_of, compiled=_inlined, counts: tuple | None = None):
     """value(t, y, p) of an event's source (results.Event.source): ("state", k), the state's value k; ("function",
     name, index[, watch]), the scene's function function_of(name) (compiled as the kernel's), its value `index`
-    if index >= 0."""
+    if index >= 0 (counts: function_value's)."""
     if source[0] == "state":
         return component(source[1], compiled)
-    return function_value(function_of(source[1]), source[2], compiled)
+    return function_value(function_of(source[1]), source[2], compiled, counts)
 
 
 def values_of(sources: tuple, function_of, compiled=_inlined):
@@ -139,12 +160,13 @@ def values_of(sources: tuple, function_of, compiled=_inlined):
     return values_chain(tuple(source_value(source, function_of, compiled) for source in sources), compiled)
 
 
-def signs_of(sources: tuple, function_of, compiled=_inlined):
+def signs_of(sources: tuple, function_of, compiled=_inlined, counts: tuple | None = None):
     """signs_chain of events' sources: the scene's watch where a function source names one (its fourth entry),
-    function_of(name); else the difference of the source's value (`source_value`) from the level."""
+    function_of(name); else the difference of the source's value (`source_value`) from the level. counts (D, P):
+    the scene's functions are called written out (`written_out`), function_of's compiled to be inlined."""
     watches = (source[3] if source[0] == "function" and len(source) > 3 else None for source in sources)
-    return signs_chain(tuple(function_sign(function_of(watch), source[2], compiled) if watch else
-                             difference(source_value(source, function_of, compiled), compiled)
+    return signs_chain(tuple(function_sign(function_of(watch), source[2], compiled, counts) if watch else
+                             difference(source_value(source, function_of, compiled, counts), compiled)
                              for source, watch in zip(sources, watches)), compiled)
 
 
@@ -342,23 +364,30 @@ def NO_STEPS(members_step, like_y, like_p, work, B, i, h, steps_per_save, rememb
 
 
 @njit(inline="always", **FAST)
-def watched_steps(members_step, like_y, like_p, work, B, i, h, steps_per_save, remember, watch, locate, context):
-    """NO_STEPS with events: after each step, watch says whether any member's events crossed, and where any did,
-    the loop of steps stops for `locate` to find them, then goes on (a call in that loop, even one never made,
-    cost a chain's verlet a third of its rate, and a top's rk4 a tenth)."""
+def watched_steps(members_step, like_y, like_p, work, B, i, h, steps_per_save, remember, watch, locate, levels,
+                  context):
+    """NO_STEPS with events: after each step, watch says whether any member's events crossed their levels (a
+    tuple), and where any did, the loop of steps stops for `locate` to find them, then goes on (a call in that
+    loop, even one never made, cost a chain's verlet a third of its rate, and a top's rk4 a tenth)."""
     n = 0
     while n < steps_per_save:
         hits = False
         while not hits and n < steps_per_save:
             members_step(like_y, like_p, work, B, h, ((i - 1) * steps_per_save + n) * h, remember)
             n += 1
-            hits = watch(like_y, like_p, work, B, ((i - 1) * steps_per_save + n) * h, context)
+            hits = watch(like_y, like_p, work, B, ((i - 1) * steps_per_save + n) * h, levels, context)
         if hits:
             locate(like_y, like_p, work, B, ((i - 1) * steps_per_save + n - 1) * h, h, context)
 
 
 @njit(inline="always", **FAST)
-def NO_ADAPTIVE_WATCH(like_y, like_p, work, B, K, NEW, C0, S, context):
+def NO_LEVELS(context):
+    """An adaptive kernel without events: no levels."""
+    return ()
+
+
+@njit(inline="always", **FAST)
+def NO_ADAPTIVE_WATCH(like_y, like_p, work, B, K, NEW, C0, S, levels, context):
     """An adaptive kernel without events: nothing after a step's control."""
 
 
@@ -382,13 +411,13 @@ def fixed_watcher(values, signs, advance, to_user, first: int, E: int):
     """(begin, remember, steps) for a fixed-step kernel (ensemble.engine.frames.fixed_step) whose E events' rows
     start at `first`: their signs (`signs_chain`: the sign of each value's difference from its level, or of a
     scene's cheaper watch of it) at the last step's end (E rows) and the state at the step's start (D rows).
-    Levels and directions are read once per step, before the members' loop (in it, a tenth of rk4's rate).
+    Levels are read once a save interval (`steps`), and what a watch makes of them (the top's cos, sin) there.
 
     begin(like_y, like_p, work, B, context) at t = 0. In a family's loop over a block's members, remember(work,
     B, j, y) keeps a member's state before its step (y, in the family's coordinates). After that loop,
-    watch(like_y, like_p, work, B, t1, context) evaluates every member's signs at its new state at t1 (s, the
-    step's end; to_user: a splitting's from_pieces to the scene's coordinates, or None) in a loop of its own and
-    says whether any may have crossed (`any_straddles`, in a boolean, which LLVM keeps in a vector's mask: a
+    watch(like_y, like_p, work, B, t1, levels, context) evaluates every member's signs at its new state at t1 (s,
+    the step's end; to_user: a splitting's from_pieces to the scene's coordinates, or None) in a loop of its own
+    and says whether any may have crossed (`any_straddles`, in a boolean, which LLVM keeps in a vector's mask: a
     float sum, which it may not reorder, kept the loop from vectorizing); where any did, locate(like_y, like_p,
     work, B, t, h, context) takes each member that crossed (`crossed`; its signs at the step's start made anew from
     its state there), its values at both ends, and locates its events on advance(t0, h, y0, p), the family's step in
@@ -405,9 +434,8 @@ def fixed_watcher(values, signs, advance, to_user, first: int, E: int):
         stored(work, OLD, B, j, y)
 
     @njit(inline="always", **FAST)
-    def watch(like_y, like_p, work, B, t1, context):
+    def watch(like_y, like_p, work, B, t1, levels, context):
         D = len(like_y)
-        levels, _ = levels_and_directions(context[0][0], like_g)  # loaded once: constants of the loops
         hits = False
         for j in range(B):
             p = loaded(work, D, B, j, like_p)
@@ -436,24 +464,32 @@ def fixed_watcher(values, signs, advance, to_user, first: int, E: int):
 
     @njit(inline="always", **FAST)
     def steps(members_step, like_y, like_p, work, B, i, h, steps_per_save, remember, context):
-        watched_steps(members_step, like_y, like_p, work, B, i, h, steps_per_save, remember, watch, locate, context)
+        watched_steps(members_step, like_y, like_p, work, B, i, h, steps_per_save, remember, watch, locate,
+                      levels_and_directions(context[0][0], like_g)[0], context)  # read once a save interval
     return begin, remember, steps
 
 
 def adaptive_watcher(values, signs, advance, first: int, E: int):
-    """(begin, watch) for an adaptive kernel (ensemble.engine.frames.adaptive) whose event rows start at
-    `first`: begin(like_y, like_p, work, B, context) at t = 0; watch(like_y, like_p, work, B, K, NEW, C0, S,
-    context) after control_step, before the accepted steps move to their new states: each event's sign
-    (`signs_chain`) at the trial state, and where one crossed, the member's values at both ends, its events
-    located on advance (adaptive.advance_of, the pair's step). E: the events' count."""
+    """(begin, levels_of, watch) for an adaptive kernel (ensemble.engine.frames.adaptive) whose event rows start at
+    `first`: begin(like_y, like_p, work, B, context) at t = 0; levels_of(context), the events' levels (a tuple),
+    read once per block: constants of its loops, so that what a scene's watch makes of a level (the top's cos and
+    sin) is made once, not at every step (LLVM cannot move a load from the spec past the loop's stores); watch(
+    like_y, like_p, work, B, K, NEW, C0, S, levels, context) after control_step, before the accepted steps move to
+    their new states: each event's sign (`signs_chain`) at the trial state, and where one crossed, the member's
+    values at both ends, its events located on advance (adaptive.advance_of, the pair's step). E: the events'
+    count."""
     located, like_g, begin = locator(values, advance), (0.0,) * E, beginning(signs, first, E)
 
     @njit(inline="always", **FAST)
-    def watch(like_y, like_p, work, B, K, NEW, C0, S, context):
+    def levels_of(context):
+        return levels_and_directions(context[0][0], like_g)[0]
+
+    @njit(inline="always", **FAST)
+    def watch(like_y, like_p, work, B, K, NEW, C0, S, levels, context):
         arrays, status, failure_time, j0 = context
         D = len(like_y)
         G, GNEW = first, first + E
-        levels, directions = levels_and_directions(arrays[0], like_g)
+        directions = levels_and_directions(arrays[0], like_g)[1]
         zeros = repeated(0.0, like_g)
         hits = 0
         for j in range(B):
@@ -477,7 +513,7 @@ def adaptive_watcher(values, signs, advance, first: int, E: int):
                         work[(C0 + H) * B + j] = 0.0  # no further steps
         for j in range(B):
             stored(work, G, B, j, loaded(work, GNEW, B, j, like_g))
-    return begin, watch
+    return begin, levels_of, watch
 
 
 @njit(inline="always", **FAST)

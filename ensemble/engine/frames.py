@@ -60,12 +60,14 @@ def fixed_step(interval, like_y, like_p, B, state0, rate, h, steps_per_save, lim
 
 @njit(inline="always", **FAST)
 def adaptive(rhs, pair, stage_loop, controller, like_y, like_p, B, state0, rate, control, save_dt, limit, samples,
-             counts, status, failure_time, progress, works, start, first_block, end_block, begin, watch, events):
+             counts, status, failure_time, progress, works, start, first_block, end_block, begin, levels_of, watch,
+             events):
     """fixed_step for an embedded pair (ensemble.engine.adaptive): each member steps to each saved time i save_dt
     (s) in steps of its own, accepted or rejected by control.control_step (controller: alpha, beta, safety,
     min_factor, max_factor); control (3, members): first step (0: Hairer's guess), rtol, atol; counts (3,
-    members): the accepted and rejected steps and the rhs evaluations so far. begin, watch, events: as
-    fixed_step's, watch(like_y, like_p, work, B, K, NEW, C0, S, context) after each step's control.
+    members): the accepted and rejected steps and the rhs evaluations so far. begin, events: as fixed_step's;
+    levels_of(context), the events' levels, once per block; watch(like_y, like_p, work, B, K, NEW, C0, S, levels,
+    context) after each step's control (ensemble.engine.events.adaptive_watcher, or NO_LEVELS, NO_ADAPTIVE_WATCH).
 
     Work rows: state (D), parameters (P), the stages' slopes from K (D each), the trial state from NEW, the
     control block from C0 (blocks.CONTROL_ROWS)."""
@@ -78,6 +80,7 @@ def adaptive(rhs, pair, stage_loop, controller, like_y, like_p, B, state0, rate,
     for block in range(first_block, end_block):
         j0 = block * B
         context = (events, status, failure_time, j0)
+        levels = levels_of(context)
         copy_into(work, works[block])
         if start == 0:
             state_load(work, state0, rate, block, samples, D, P, B)
@@ -95,7 +98,7 @@ def adaptive(rhs, pair, stage_loop, controller, like_y, like_p, B, state0, rate,
                 trial_sweep(rhs, pair, stage_loop, like_y, like_p, work, B, K, NEW, C0)
                 control_step(work, C0, B, target, j0, status, failure_time, S - 1, alpha, beta, safety, min_factor,
                              max_factor)
-                watch(like_y, like_p, work, B, K, NEW, C0, S, context)
+                watch(like_y, like_p, work, B, K, NEW, C0, S, levels, context)
                 state_accept(work, K, NEW, C0, S, D, B)
             if state_saved(work, samples, i - start, block, limit, status, failure_time, progress, target, C0 + H,
                            D, B):
