@@ -79,15 +79,14 @@ def value_tilt(t, w1, w2, w3, p, r1, r3):
 
 def watch_tilt(t, w1, w2, w3, p, r1, r3, level):
     """Of the sign of value_tilt - level (rad) at a fraction of its cost, for the kernels' watch of a tilt event
-    (ensemble.engine.events). Off the spin axis |w| sin(tilt - level) = a - b, a = |(w1, w2)| cos(level) and
-    b = w3 sin(level), has that sign, and so has a|a| - b|b| (x|x| rises with x), which needs no square root;
-    (0 or pi) - level on the axis, +-1 for a level the tilt never reaches, NaN where a rate is."""
-    transverse2 = w1 * w1 + w2 * w2
+    (ensemble.engine.events). For 0 < level < pi, |w| sin(tilt - level) = a - b, a = |(w1, w2)| cos(level) and
+    b = w3 sin(level), has that sign (on the spin axis too), and so has a|a| - b|b| (x|x| rises with x), which
+    needs no square root; 0 for a body at rest (a crossing to look at, which the tilt itself then denies). Other
+    levels (the axis's own, 0 and pi, and those the tilt never reaches) take the tilt itself. NaN where a rate is."""
+    if not 0.0 < level < math.pi:  # the same for every member: a branch the kernel's loop predicts
+        return _tilt_and_transverse(w1, w2, w3)[0] - level
     c, s = math.cos(level), math.sin(level)
-    off_axis = transverse2 * (c * abs(c)) - w3 * abs(w3) * (s * abs(s))
-    on_axis = (math.pi if math.copysign(1.0, w3) < 0.0 else 0.0) - level + 0.0 * w3  # NaN with w3
-    sign = off_axis if transverse2 != 0.0 else on_axis
-    return sign if 0.0 <= level <= math.pi else (1.0 if level < 0.0 else -1.0)
+    return (w1 * w1 + w2 * w2) * (c * abs(c)) - w3 * abs(w3) * (s * s)
 
 
 @njit(cache=True, nogil=True, **OBSERVING)
