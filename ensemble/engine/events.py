@@ -80,10 +80,10 @@ def function_value(function, index: int, compiled=_inlined, counts: tuple | None
 @cache
 def written_out(function, counts: tuple, rest: str, index: int, compiled=_inlined):
     """call(t, y, p<rest>) = function(t, y[0], .., y[D - 1], p[0], .., p[P - 1]<rest>) as a float64 (its value
-    `index` where index >= 0), counts = (D, P): a call Numba inlines where `function` is compiled to be inlined
-    (it inlines no call with *args). A kernel's watch calls a scene's function so (kernels.event_signs): called
-    as a function of its own, the top's tilt watch cost rk4 three points more of its rate, and the same arithmetic
-    on a state variable eight more."""
+    `index` where index >= 0), counts = (D, P): a call that Numba inlines where `function` is compiled to be
+    inlined (it inlines no call with *args). The kernels' watch calls a scene's functions so (kernels.event_signs):
+    through *args, LLVM inlined them only later, and the watch's loop it left cost rk4 eight points of its rate
+    more than the same arithmetic on a state row."""
     D, P = counts
     arguments = ", ".join(["t", *(f"y[{i}]" for i in range(D)), *(f"p[{i}]" for i in range(P))]) + rest
     picked = f"[{index}]" if index >= 0 else ""
