@@ -192,6 +192,29 @@ def test_the_tops_watch_has_the_sign_of_its_tilt_minus_the_level():
     assert math.isnan(watch_tilt(0.0, 0.0, 0.0, math.nan, 0.0, 0.0, 0.0, 0.5))
 
 
+def test_a_scenes_function_called_written_out_gives_what_its_star_call_gives():
+    """events.written_out (the kernels' watch calls a scene's function with its arguments written out, so that
+    Numba inlines it) passes the time, every state value, every parameter and the level in order, and picks a
+    vector's value `index`: against the function called with *args."""
+    from numba import njit
+
+    from ensemble.engine.events import function_sign, function_value
+
+    def watch(t, a, b, c, k, m, level):
+        return (t + 2.0 * a - 3.0 * b + 5.0 * c) * k / m - level
+
+    def vector(t, a, b, c, k, m):
+        return (a * k, b * m, t + c)
+
+    inlined = njit(inline="always")
+    y, p = (0.25, -1.5, 3.0), (7.0, 0.5)
+    signed = function_sign(inlined(watch), -1, counts=(3, 2))
+    assert njit(lambda t, y, p, level: signed(t, y, p, level))(1.5, y, p, 0.75) == watch(1.5, *y, *p, 0.75)
+    for index in range(3):
+        picked = function_value(inlined(vector), index, counts=(3, 2))
+        assert njit(lambda t, y, p: picked(t, y, p))(1.5, y, p) == vector(1.5, *y, *p)[index]
+
+
 def test_a_crossing_that_only_the_watch_saw_is_put_at_the_nearer_end_of_its_step():
     """events.root: a step's values on either side of the level are bracketed (Illinois, to the last bits); values
     on one side (a watch's sign crossed, the value not: one end on the level to its rounding) give that end."""

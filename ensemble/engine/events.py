@@ -2,7 +2,7 @@
 members that stop at one. Written once for the member families on both devices: the CPU's frames
 (ensemble.engine.frames) call the watchers here around a family's steps, and a GPU thread (gpu_kernels.event_watch)
 calls `crossed` and `located` as device functions; a CPU kernel without events calls NO_BEGIN, NO_REMEMBER
-(NO_ADAPTIVE_WATCH), which are nothing, and NO_STEPS, a loop of steps alone.
+(NO_LEVELS, NO_ADAPTIVE_WATCH), which are nothing, and NO_STEPS, a loop of steps alone.
 
 An event's value is a function value(t, y, p) -> float of a member's time (s), state and parameters (tuples):
 a state component, a scene's observable, or a scene's own event function (`component`, `function_value`). A
