@@ -126,6 +126,34 @@ def test_an_edited_module_the_scene_imports_is_an_edited_scene(tmp_path, monkeyp
     sys.modules.pop("helper", None)
 
 
+def test_an_edited_event_function_and_its_helper_run_their_new_code(tmp_path, monkeypatch):
+    """A kernel's watch inlines the scene's event function (events.written_out): edited, or its helper module
+    edited, the event is the new one's, in the same process and in a new one loading kernels from the disk cache."""
+    monkeypatch.syspath_prepend(str(tmp_path))
+    runfile = tmp_path / "low.toml"
+    runfile.write_text('scene = "decay.py"\nmethod = "rk4"\ndt = 0.01\nt_end = 2.0\nsave_dt = 2.0\nsave = []\n'
+                       'members = 2\nseed = 1\n[parameters]\na = 2.0\nx0 = 1.0\n[events.low]\nof = "low"\n'
+                       'direction = "down"\n')
+
+    def edit(level: str, scale: float):
+        (tmp_path / "levels.py").write_text(f"LEVEL = {level}\n")
+        (tmp_path / "decay.py").write_text("from levels import LEVEL\nRATE = 1.0\nEVENTS = ('low',)\n" + DECAY
+                                           + f"\ndef event_low(t, x, a):\n    return {scale!r} * x - LEVEL\n")
+
+    for level, scale in (("0.5", 1.0), ("0.25", 1.0), ("0.25", 0.5)):  # x crosses LEVEL / scale at ln(.) / 2 s
+        edit(level, scale)
+        expected = math.log(scale / float(level)) / 2.0
+        ds = ensemble.run(str(runfile), progress=False)
+        assert np.allclose(ds.low_time.values, expected, rtol=0, atol=1e-9), (level, scale)
+    done = subprocess.run([sys.executable, "-m", "ensemble", "run", str(runfile), "-o", str(tmp_path / "low.nc"),
+                           "--quiet"], capture_output=True, text=True, cwd=tmp_path,
+                          env={**os.environ, "PYTHONPATH": str(tmp_path)})
+    assert done.returncode == 0, done.stderr
+    with xr.open_dataset(tmp_path / "low.nc") as ds:
+        assert np.allclose(ds.low_time.values, math.log(2.0) / 2.0, rtol=0, atol=1e-9)
+    sys.modules.pop("levels", None)
+
+
 def test_a_kernel_file_that_is_not_its_name_is_written_again_not_imported(tmp_path, capfd):
     _scene(tmp_path, 1.0)
     runfile = _runfile(tmp_path, "rk4")
