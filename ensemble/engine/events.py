@@ -32,8 +32,8 @@ A stopped member's status is STOPPED (results.Status.STOPPED_BY_EVENT), its stat
 its later samples are NaN and its block's steps carry it as they carry a failed member.
 
 Work rows from a kernel's `first` event row: fixed steps keep the signs at the step's end and start and the
-state at its start (`fixed_watcher`); adaptive kernels G and GNEW (E each: the signs at the step's start and end;
-its states are in rows 0 and NEW).
+state at its start (`fixed_watcher`); adaptive kernels the signs at the step's start (E rows, which the watch moves
+to the trial's where its step is accepted; the step's states are in rows 0 and NEW).
 """
 from __future__ import annotations
 
@@ -478,10 +478,12 @@ def adaptive_watcher(values, signs, advance, first: int, E: int):
     read once per block: constants of its loops, so that what a scene's watch makes of a level (the top's cos and
     sin) is made once, not at every step (LLVM cannot move a load from the spec past the loop's stores); watch(
     like_y, like_p, work, B, K, NEW, C0, S, levels, context) after control_step, before the accepted steps move to
-    their new states: each event's sign (`signs_chain`) at the trial state, and where one crossed, the member's
-    values at both ends, its events located on advance (adaptive.advance_of, the pair's step). E: the events'
-    count."""
+    their new states: each event's sign (`signs_chain`) at the trial state, kept in rows from `first` where the
+    step was accepted, and where one crossed, the member's signs at the step's start made anew (as fixed_watcher's
+    locate makes them), its values at both ends, its events located on advance (adaptive.advance_of, the pair's
+    step). E: the events' count."""
     located, like_g, begin = locator(values, advance), (0.0,) * E, beginning(signs, first, E)
+    G = first
 
     @njit(inline="always", **FAST)
     def levels_of(context):
@@ -491,32 +493,36 @@ def adaptive_watcher(values, signs, advance, first: int, E: int):
     def watch(like_y, like_p, work, B, K, NEW, C0, S, levels, context):
         arrays, status, failure_time, j0 = context
         D = len(like_y)
-        G, GNEW = first, first + E
         directions = levels_and_directions(arrays[0], like_g)[1]
         zeros = repeated(0.0, like_g)
         hits = 0
         for j in range(B):
-            accepted = (work[(C0 + REJECTED_LAST) * B + j] == 0.0) & (work[(C0 + ERR) * B + j] >= 0.0)
-            p, before = loaded(work, D, B, j, like_p), loaded(work, G, B, j, like_g)
-            after = signs(work[(C0 + TIME) * B + j], loaded(work, NEW, B, j, like_y), p, levels)
+            before = loaded(work, G, B, j, like_g)
+            after = signs(work[(C0 + TIME) * B + j], loaded(work, NEW, B, j, like_y), loaded(work, D, B, j, like_p),
+                          levels)
+            now = accepted(work, C0, B, j)
             for e in range(E):
-                work[(GNEW + e) * B + j] = select(accepted, after[e], before[e])
-            hits += accepted & any_straddles(before, after)
+                work[(G + e) * B + j] = select(now, after[e], before[e])
+            hits += now & any_straddles(before, after)
         if hits:
             for j in range(B):
-                before, after = loaded(work, G, B, j, like_g), loaded(work, GNEW, B, j, like_g)
-                if any_crossed(before, after, zeros, directions):
-                    p, y0 = loaded(work, D, B, j, like_p), loaded(work, 0, B, j, like_y)
-                    t1, h = work[(C0 + TIME) * B + j], work[(C0 + STEP) * B + j]
+                p, y0 = loaded(work, D, B, j, like_p), loaded(work, 0, B, j, like_y)
+                t1, h = work[(C0 + TIME) * B + j], work[(C0 + STEP) * B + j]
+                before, after = signs(t1 - h, y0, p, levels), loaded(work, G, B, j, like_g)  # G: the trial's now
+                if accepted(work, C0, B, j) and any_crossed(before, after, zeros, directions):
                     when = located(arrays, j0 + j, t1 - h, h, y0, p, values(t1 - h, y0, p),
                                    values(t1, loaded(work, NEW, B, j, like_y), p),
                                    crossed_each(before, after, zeros, directions))
                     if when == when:
                         stop_member(work, NEW, D, B, j, status, failure_time, j0, when)
                         work[(C0 + H) * B + j] = 0.0  # no further steps
-        for j in range(B):
-            stored(work, G, B, j, loaded(work, GNEW, B, j, like_g))
     return begin, levels_of, watch
+
+
+@njit(inline="always", **FAST)
+def accepted(work, C0, B, j):
+    """Whether member j's trial step was accepted by its control (a boolean)."""
+    return (work[(C0 + REJECTED_LAST) * B + j] == 0.0) & (work[(C0 + ERR) * B + j] >= 0.0)
 
 
 @njit(inline="always", **FAST)

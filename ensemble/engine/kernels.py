@@ -198,9 +198,9 @@ def _generated(name: str, where: str, sources: str, pieces: tuple[str, ...], met
 
 
 def event_rows(D: int, E: int, adaptive: bool) -> int:
-    """Work rows of a member kernel's E events: adaptive, their values at a step's start and end; fixed steps,
-    their values at the last step's end and the state at a step's start (ensemble.engine.events)."""
-    return (2 * E if adaptive else E + D) if E else 0
+    """Work rows of a member kernel's E events: adaptive, their signs at a step's start; fixed steps, their
+    signs at the last step's end and the state at a step's start (ensemble.engine.events)."""
+    return (E if adaptive else E + D) if E else 0
 
 
 def event_values(where: str, sources: tuple, expected: str):

@@ -149,11 +149,12 @@ def work_rows(method: Method, n: int, periodic: bool, tiled: bool, events: int =
 
 
 def event_rows(method: Method, n: int, events: int) -> int:
-    """Work rows of a kernel's events (sites_events's G, BEFORE, CHECK): their values at a step's ends (2 per
-    event) and, for fixed steps, the state at the last checkpoint (2n + 1 rows, a ghost among them)."""
-    if not events:
+    """Work rows of a fixed-step kernel's events (sites_events's G, BEFORE, CHECK): their values at a step's ends
+    (2 per event) and the state at the last checkpoint (2n + 1 rows, a ghost among them). An adaptive kernel's
+    events need none: its step's start and end are both in its rows."""
+    if not events or method.adaptive:
         return 0
-    return 2 * events + (0 if method.adaptive else 2 * n + 1)
+    return 2 * events + 2 * n + 1
 
 
 def event_work_row(source: tuple, n: int) -> int:

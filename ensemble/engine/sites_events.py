@@ -11,9 +11,11 @@ sites_kernels's example, watching site 1's x.
 """
 import numpy as np
 from numba import njit
+from numba.cpython.unsafe.tuple import tuple_setitem
 
-from ensemble.engine.blocks import CONTROL_ROWS, ERR, FAST, REJECTED_LAST, STEP, TIME, H, select
+from ensemble.engine.blocks import CONTROL_ROWS, FAST, STEP, TIME, H
 from ensemble.engine.events import (
+    accepted,
     any_crossed,
     component,
     crossed_each,
@@ -42,6 +44,7 @@ from ensemble.engine.sites_kernels import (
     X,
     adaptive_frame,
     merged,
+    no_begin,
     piece,
     runge_kutta_frame,
     site_acceleration,
@@ -58,14 +61,14 @@ EVENT_ROWS, FIRST_EVENT = (X + 1,), C0 + CONTROL_ROWS  # each event's work row, 
 VALUES = values_chain((component(0),))  # each event's value on a member's state (x; v): here site 1's x
 
 # ---------------------------------------------------------------- CODE: copied into a kernel's file with events
-# EVENT_ROWS holds each event's work row. The rows from FIRST_EVENT: G (E: the values at the step's end), BEFORE (E:
-# at its start; an adaptive kernel's values after its trial step) and, for fixed steps, CHECK (2N + 1: the rows
-# X + 1 .. V + N - 1 as they were at a save interval's step n, n a multiple of CHECK_STEPS). A crossing is located
-# on the method's own step of one member (`advance`: the kernel's arithmetic on a block of one member) from its
-# state at the step's start, as a member family's is: an adaptive pair's is still in rows X, V; a fixed step's is
-# replayed on a block of one from CHECK (at most CHECK_STEPS - 1 steps), so that a step keeps no copy of the
-# block's state (a copy at every step cost a chain's verlet a third of its rate). Its states go to the event
-# arrays as (x; v), 2N values.
+# EVENT_ROWS holds each event's work row. A fixed step's kernel has rows from FIRST_EVENT: G (E: the values at the
+# step's end), BEFORE (E: at its start) and CHECK (2N + 1: the rows X + 1 .. V + N - 1 as they were at a save
+# interval's step n, n a multiple of CHECK_STEPS); an adaptive kernel needs none, its trial state being in rows of
+# its own (ZX, ZV) until `accept`. A crossing is located on the method's own step of one member (`advance`: the
+# kernel's arithmetic on a block of one member) from its state at the step's start, as a member family's is: an
+# adaptive pair's is still in rows X, V; a fixed step's is replayed on a block of one from CHECK (at most
+# CHECK_STEPS - 1 steps), so that a step keeps no copy of the block's state (a copy at every step cost a chain's
+# verlet a third of its rate). Its states go to the event arrays as (x; v), 2N values.
 G, BEFORE, CHECK = FIRST_EVENT, FIRST_EVENT + E, FIRST_EVENT + 2 * E
 CHECK_STEPS = 32
 LIKE_G = (0.0,) * E
@@ -268,31 +271,35 @@ def splitting_locate(work, context, n, t, h, kinds, taus):
 
 @njit(inline="always", **FAST)
 def events_adaptive_watch(work, B, context):
-    """After an adaptive pair's step control, before `accept`: as fixed_watch, the trial states (rows ZX, ZV)
-    against the states (rows X, V) for each member whose step was accepted; a member stopped by an event has its
-    trial state NaN and takes no more steps."""
+    """After an adaptive pair's step control, before `accept`: each event's value at the step's start (its row,
+    EVENT_ROWS) against that at the trial state (rows ZX, ZV), for each member whose step was accepted; a member
+    stopped by an event has its trial state NaN and takes no more steps."""
     arrays, status, failure_time, j0 = context
     levels, directions = levels_and_directions(arrays[0], LIKE_G)
     hits = 0
     for j in range(B):
-        accepted = (work[(C0 + REJECTED_LAST) * B + j] == 0.0) & (work[(C0 + ERR) * B + j] >= 0.0)
+        now = accepted(work, C0, B, j)
         for e in range(E):
-            before, after = work[(G + e) * B + j], work[(EVENT_ROWS[e] + ZX - X) * B + j]
-            work[(BEFORE + e) * B + j] = select(accepted, after, before)
-            hits += accepted & straddles(before, after, levels[e])
+            hits += now & straddles(work[EVENT_ROWS[e] * B + j], work[(EVENT_ROWS[e] + ZX - X) * B + j], levels[e])
     if hits:
         for j in range(B):
-            before, after = loaded(work, G, B, j, LIKE_G), loaded(work, BEFORE, B, j, LIKE_G)
-            if any_crossed(before, after, levels, directions):
+            before, after = event_values(work, 0, j), event_values(work, ZX - X, j)
+            if accepted(work, C0, B, j) and any_crossed(before, after, levels, directions):
                 t1, h = work[(C0 + TIME) * B + j], work[(C0 + STEP) * B + j]
                 when = LOCATED(arrays, j0 + j, t1 - h, h, member_state(work, X + 1, j, B), member_couplings(work, j),
                                before, after, crossed_each(before, after, levels, directions))
                 if when == when:
                     stop_member(work, ZX + 1, 2 * N + 1, B, j, status, failure_time, j0, when)
                     work[(C0 + H) * B + j] = 0.0  # no further steps
+
+
+@njit(inline="always", **FAST)
+def event_values(work, offset, j):
+    """Member j's events' values (a tuple of E) in their rows (EVENT_ROWS) moved by `offset` rows."""
+    values = LIKE_G
     for e in range(E):
-        for j in range(B):
-            work[(G + e) * B + j] = work[(BEFORE + e) * B + j]
+        values = tuple_setitem(values, e, work[(EVENT_ROWS[e] + offset) * B + j])
+    return values
 
 
 @njit(nogil=True, cache=True, **FAST)
@@ -318,7 +325,7 @@ def adaptive_events_kernel(state0, rate, control, save_dt, limit, samples, count
                            works, event_arrays, start, first_block, end_block):
     """adaptive_kernel with events (as splitting_events_kernel)."""
     adaptive_frame(state0, rate, control, save_dt, limit, samples, counts, status, failure_time, progress, works,
-                   start, first_block, end_block, events_begin, events_adaptive_watch, event_arrays)
+                   start, first_block, end_block, no_begin, events_adaptive_watch, event_arrays)
 
 
 LOCATED = locator(VALUES, {"splitting": splitting_advance, "runge_kutta": runge_kutta_advance,
