@@ -8,6 +8,7 @@ import pytest
 from scipy.optimize import brentq
 
 from ensemble.engine import kernels, launch
+from ensemble.engine.sites import CHECK_STEPS
 from ensemble.methods import METHODS
 from ensemble.results import Event, Status
 from ensemble.scenes import resolve
@@ -171,4 +172,57 @@ def test_a_chain_with_events_steps_whole_and_untiled():
     with_events = kernels.layout(CHAIN, METHODS["verlet"], long, events=(("state", 0),))
     assert not with_events.tiled
     plain = kernels.layout(CHAIN, METHODS["verlet"], long)
-    assert with_events.rows == plain.rows + 2 * 1 + 2 * 1029 + 1  # the event's values at both ends, the old state
+    # the event's values through a group of CHECK_STEPS steps, and the state at the group's start
+    assert with_events.rows == plain.rows + (CHECK_STEPS + 1) + 2 * 1029 + 1
+
+
+
+@pytest.mark.parametrize("method", ["rk4", "verlet"])
+def test_several_crossings_in_one_watched_group_each_located_and_none_after_a_stop(method):
+    """Stiff springs: mass 1 crosses 0 every 13 steps or sooner, several times in a group of CHECK_STEPS steps
+    that a kernel watches at once, until mass 2 falling through -0.06 m stops its member mid-group (those of
+    amplitude 0.1 and 0.2 m; that of 0.05 m never). Each crossing is the closed form's to the method's own
+    error, none is counted after the stop, and saving every 8 steps (groups of 8) gives the same crossings."""
+    k, a, dt, t_end = np.array([300.0, 330.0, 360.0, 400.0]), np.array([0.1, 0.05, 0.2, 0.1]), 1e-2, 2.0
+    w1, w2 = np.sqrt(k), np.sqrt(3 * k)  # rad/s: mass 1 at a/2 (cos w1 t + cos w2 t), mass 2 at a/2 (cos w1 t - ..)
+    assert np.all(2 * np.pi / (w1 + w2) < 14 * dt)
+    values = {"m": np.ones((4, 2)), "k": np.repeat(k[:, None], 3, axis=1), "x0": np.stack((a, np.zeros(4)), 1),
+              "v0": np.zeros((4, 2))}
+    events = (Event("cross", "x", 0, ("state", 0), 0.0, "both", 400),
+              Event("low", "x", 1, ("state", 1), -0.06, "down", 1, True))
+
+    def run(save_steps):
+        return launch.integrate(CHAIN, METHODS[method], values, FIXED, n_save=round(t_end / (save_steps * dt)) + 1,
+                                save_dt=save_steps * dt, dt=dt, events=events)
+
+    outcome = run(20)
+    every_step = launch.integrate(CHAIN, METHODS[method], values, FIXED, n_save=round(t_end / dt) + 1, save_dt=dt,
+                                  dt=dt).samples[:, 0]  # mass 1's x after every step, without events
+    t = np.arange(len(every_step))[:, None] * dt
+    own = np.max(np.abs(every_step - a / 2 * (np.cos(w1 * t) + np.cos(w2 * t))), axis=0)  # m: the method's error
+    for j in range(4):
+        def x2(t, j=j):
+            return a[j] / 2 * (np.cos(w1[j] * t) - np.cos(w2[j] * t)) + 0.06
+        stopped = roots(x2, t_end, falling_only=True)[:1]
+        assert (outcome.status[j] == Status.STOPPED_BY_EVENT) == bool(stopped) == (a[j] > 0.06)
+        odd = 2 * np.arange(200) + 1
+        exact = np.sort(np.concatenate((odd * np.pi / (w1[j] + w2[j]), odd * np.pi / (w2[j] - w1[j]))))
+        exact = exact[exact < min(stopped + [t_end])]
+        assert outcome.event_counts[0, j] == len(exact)
+        if not stopped:
+            assert np.bincount((exact / dt).astype(int) // CHECK_STEPS).max() >= 2  # several in one group
+        times = outcome.event_times[0, :len(exact), j]
+        speed = np.abs(a[j] / 2 * (w1[j] * np.sin(w1[j] * exact) + w2[j] * np.sin(w2[j] * exact)))
+        assert np.all(np.abs(times - exact) * speed <= 2.0 * own[j] + 1e-13)
+        assert np.all(np.isnan(outcome.event_times[0, len(exact):, j]))
+        if stopped:  # mass 1 would cross again in the stop's own group
+            assert abs(outcome.event_times[1, 0, j] - stopped[0]) < 1e-3
+            after = np.min(odd * np.pi / (w1[j] + w2[j]), where=odd * np.pi / (w1[j] + w2[j]) > stopped[0],
+                           initial=np.inf)
+            assert int(after / dt) // CHECK_STEPS == int(stopped[0] / dt) // CHECK_STEPS
+    dense = run(8)
+    np.testing.assert_array_equal(dense.event_counts, outcome.event_counts)
+    if method == "rk4":
+        np.testing.assert_array_equal(dense.event_times, outcome.event_times)
+    else:  # verlet's merged half kicks are split at every saved time: the same steps to rounding
+        np.testing.assert_allclose(dense.event_times, outcome.event_times, rtol=0, atol=1e-13)

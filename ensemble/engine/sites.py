@@ -62,6 +62,7 @@ SITES_HELPERS = hashlib.sha256(b"".join((Path(__file__).parent / name).read_byte
                                         ("sites.py", KERNELS_FILE, EVENTS_FILE)) + HELPERS.encode()).hexdigest()
 
 TILE_ROWS, TILE_PIECES = 64, 32  # a long chain's splitting kernel: sites per tile, pieces per sweep
+CHECK_STEPS = 32  # a fixed-step kernel with events: steps watched at once (sites_events), replayed to locate
 TILE_FROM_L1 = 1.5  # a splitting runs in tiles when a block's rows outgrow this many times the L1 data cache
 PIECES = ("kick", "drift")  # the splittings' pieces, in methods.KICK_DRIFT's order
 KICK = PIECES.index("kick")
@@ -149,12 +150,13 @@ def work_rows(method: Method, n: int, periodic: bool, tiled: bool, events: int =
 
 
 def event_rows(method: Method, n: int, events: int) -> int:
-    """Work rows of a fixed-step kernel's events (sites_events's G, BEFORE, CHECK): their values at a step's ends
-    (2 per event) and the state at the last checkpoint (2n + 1 rows, a ghost among them). An adaptive kernel's
-    events need none: its step's start and end are both in its rows."""
+    """Work rows of a fixed-step kernel's events (sites_events's TRACE, CHECK): each event's values at the start
+    of a group of CHECK_STEPS steps and after each step (CHECK_STEPS + 1 rows an event), and the state at the
+    group's start (2n + 1 rows, a ghost among them). An adaptive kernel's events need none: its step's start and
+    end are both in its rows."""
     if not events or method.adaptive:
         return 0
-    return 2 * events + 2 * n + 1
+    return events * (CHECK_STEPS + 1) + 2 * n + 1
 
 
 def event_work_row(source: tuple, n: int) -> int:

@@ -25,7 +25,7 @@ from ensemble.engine.events import (
     straddles,
     values_chain,
 )
-from ensemble.engine.sites import KICK, set_ghosts, stage_sums
+from ensemble.engine.sites import CHECK_STEPS, KICK, set_ghosts, stage_sums
 from ensemble.engine.sites_kernels import (
     C0,
     FRACTIONS,
@@ -47,12 +47,12 @@ from ensemble.engine.sites_kernels import (
     no_begin,
     piece,
     runge_kutta_frame,
+    runge_kutta_step,
     site_acceleration,
     slopes,
     splitting_frame,
     stage,
 )
-from ensemble.engine.tuples import loaded
 
 # ---------------------------------------------------------------- EXAMPLE: what a kernel file's header binds
 
@@ -61,16 +61,18 @@ EVENT_ROWS, FIRST_EVENT = (X + 1,), C0 + CONTROL_ROWS  # each event's work row, 
 VALUES = values_chain((component(0),))  # each event's value on a member's state (x; v): here site 1's x
 
 # ---------------------------------------------------------------- CODE: copied into a kernel's file with events
-# EVENT_ROWS holds each event's work row. A fixed step's kernel has rows from FIRST_EVENT: G (E: the values at the
-# step's end), BEFORE (E: at its start) and CHECK (2N + 1: the rows X + 1 .. V + N - 1 as they were at a save
-# interval's step n, n a multiple of CHECK_STEPS); an adaptive kernel needs none, its trial state being in rows of
-# its own (ZX, ZV) until `accept`. A crossing is located on the method's own step of one member (`advance`: the
-# kernel's arithmetic on a block of one member) from its state at the step's start, as a member family's is: an
-# adaptive pair's is still in rows X, V; a fixed step's is replayed on a block of one from CHECK (at most
-# CHECK_STEPS - 1 steps), so that a step keeps no copy of the block's state (a copy at every step cost a chain's
-# verlet a third of its rate). Its states go to the event arrays as (x; v), 2N values.
-G, BEFORE, CHECK = FIRST_EVENT, FIRST_EVENT + E, FIRST_EVENT + 2 * E
-CHECK_STEPS = 32
+# EVENT_ROWS holds each event's work row. A fixed step's kernel runs a save interval's steps in groups of at most
+# CHECK_STEPS (`<family>_steps`): before a group, the block's state (rows X + 1 .. V + N - 1) goes to rows CHECK
+# (2N + 1); after each of its steps, each event's value goes to that event's TRACE rows (CHECK_STEPS + 1 each: its
+# value at the group's start, then after each step); after the group, one pass over those rows finds whether any
+# member's event crossed, and only then are the crossings located, member by member and step by step in time, each
+# on the method's own step of that member (`advance`: the kernel's arithmetic on a block of one member) from its
+# state at the step's start, replayed on a block of one from CHECK. The group's loop of steps is that of the kernel
+# without events, with a store after each step: a loop that could stop after any step to locate there cost a
+# chain's verlet about five points of its rate, and a copy of the state at every step a third. An adaptive
+# kernel needs no rows: its trial state is in rows of its own (ZX, ZV) until `accept`, its step's start still in
+# rows X, V. The states go to the event arrays as (x; v), 2N values.
+TRACE, CHECK = FIRST_EVENT, FIRST_EVENT + E * (CHECK_STEPS + 1)
 LIKE_G = (0.0,) * E
 
 
@@ -141,58 +143,72 @@ def adaptive_advance(t0, h, y0, p):
 
 @njit(inline="always", **FAST)
 def events_begin(work, B, context):
-    """The block's events' values at t = 0 into rows G."""
+    """The block's events' values at t = 0 into the first of their TRACE rows."""
     for e in range(E):
         for j in range(B):
-            work[(G + e) * B + j] = work[EVENT_ROWS[e] * B + j]
+            work[(TRACE + e * (CHECK_STEPS + 1)) * B + j] = work[EVENT_ROWS[e] * B + j]
 
 
 @njit(inline="always", **FAST)
-def events_remember(work, B, n):
-    """Before step n of a save interval: every CHECK_STEPS steps, the block's state (rows X + 1 .. V + N - 1) into
-    rows CHECK."""
-    if n % CHECK_STEPS == 0:
-        for q in range((2 * N + 1) * B):
-            work[CHECK * B + q] = work[(X + 1) * B + q]
+def checkpoint(work):
+    """The block's state (rows X + 1 .. V + N - 1) into rows CHECK, before a group of steps."""
+    for q in range((2 * N + 1) * B):
+        work[CHECK * B + q] = work[(X + 1) * B + q]
 
 
 @njit(inline="always", **FAST)
-def crossings(work, B, h, whole, context, value):
-    """After a fixed step of h (s) (whole: whether the state is whole at its end): each member's events' values at
-    the step's end (value(work, row, j, h, whole)) into rows G, those at its start into rows BEFORE; whether any
-    may have crossed (`straddles`: located_members finds which did). context: (event arrays, status,
-    failure_time, j0).
+def record(work, k, h, whole, value):
+    """After step k of a group (from 1) of h (s) (whole: whether the state is whole at its end): each member's
+    events' values there (value(work, row, j, h, whole)) into row k of their TRACE rows.
 
     The loop over a block's members runs to min(B, len(work)), which is B, but not to LLVM: a loop of a known
-    16 it unrolled into scalar code (six points of a chain's verlet's rate), this one it vectorizes; `hits`
-    is a boolean, which it keeps in a vector's mask."""
-    levels, _ = levels_and_directions(context[0][0], LIKE_G)
-    hits = False
-    members = min(B, len(work))
+    16 it unrolled into scalar code (six points of a chain's verlet's rate), this one it vectorizes."""
     for e in range(E):
-        row, level = EVENT_ROWS[e], levels[e]
-        for j in range(members):
-            before, after = work[(G + e) * B + j], value(work, row, j, h, whole)
-            work[(BEFORE + e) * B + j] = before
-            work[(G + e) * B + j] = after
-            hits |= straddles(before, after, level)
-    return hits
+        row = TRACE + e * (CHECK_STEPS + 1) + k
+        for j in range(min(B, len(work))):
+            work[row * B + j] = value(work, EVENT_ROWS[e], j, h, whole)
 
 
 @njit(inline="always", **FAST)
-def located_members(work, context, n, t, h, kinds, taus, start):
-    """After a save interval's step n of h (s) from t (s) in which an event crossed: each such member's events
-    located on its step from its state at the step's start (start(work, j, n, h, kinds, taus); LOCATED:
-    ensemble.engine.events.located); a member stopped by one has its state NaN."""
+def traced(work, k, j):
+    """Member j's events' values (a tuple of E) in row k of their TRACE rows."""
+    values = LIKE_G
+    for e in range(E):
+        values = tuple_setitem(values, e, work[(TRACE + e * (CHECK_STEPS + 1) + k) * B + j])
+    return values
+
+
+@njit(inline="always", **FAST)
+def watched_group(work, context, offset, n0, steps, h, kinds, taus, levels, start):
+    """After a group of `steps` steps of h (s), a save interval's steps n0 .. n0 + steps - 1 (n0 a multiple of
+    CHECK_STEPS; offset: the launch's steps before the interval), each traced: whether any member's event
+    crossed (`straddles`, one pass over each event's rows, in a boolean that LLVM keeps in a vector's mask), and
+    where any did, each crossing located (events.located), member by member and in time: on its step n from its
+    state at the step's start (start(work, j, n, h, kinds, taus)); a member stopped by one has its state NaN, and
+    its later crossings are not looked at. Then each event's last value becomes the next group's first."""
     arrays, status, failure_time, j0 = context
-    levels, directions = levels_and_directions(arrays[0], LIKE_G)
-    for j in range(B):
-        before, after = loaded(work, BEFORE, B, j, LIKE_G), loaded(work, G, B, j, LIKE_G)
-        if any_crossed(before, after, levels, directions):
-            when = LOCATED(arrays, j0 + j, t, h, start(work, j, n, h, kinds, taus), member_couplings(work, j),
-                           before, after, crossed_each(before, after, levels, directions))
-            if when == when:  # its sites' rows and the ghost between x and v NaN: this member's alone
-                stop_member(work, X + 1, 2 * N + 1, B, j, status, failure_time, j0, when)
+    hits = False
+    for e in range(E):
+        base = (TRACE + e * (CHECK_STEPS + 1)) * B
+        for q in range(steps * B):
+            hits |= straddles(work[base + q], work[base + B + q], levels[e])
+    if hits:
+        directions = levels_and_directions(arrays[0], LIKE_G)[1]
+        for j in range(B):
+            for k in range(steps):
+                before, after = traced(work, k, j), traced(work, k + 1, j)
+                if any_crossed(before, after, levels, directions):
+                    n = n0 + k
+                    when = LOCATED(arrays, j0 + j, (offset + n) * h, h, start(work, j, n, h, kinds, taus),
+                                   member_couplings(work, j), before, after,
+                                   crossed_each(before, after, levels, directions))
+                    if when == when:  # its sites' rows and the ghost between x and v NaN: this member's alone
+                        stop_member(work, X + 1, 2 * N + 1, B, j, status, failure_time, j0, when)
+                        break
+    for e in range(E):
+        base = TRACE + e * (CHECK_STEPS + 1)
+        for j in range(B):
+            work[base * B + j] = work[(base + steps) * B + j]
 
 
 @njit(inline="always", **FAST)
@@ -212,15 +228,17 @@ def runge_kutta_start(work, j, n, h, kinds, taus):
 
 
 @njit(inline="always", **FAST)
-def runge_kutta_watch(work, B, h, context, whole):
-    """After a Runge-Kutta step of h (s): whether any of the block's members' events crossed (`crossings`)."""
-    return crossings(work, B, h, whole, context, row_value)
-
-
-@njit(inline="always", **FAST)
-def runge_kutta_locate(work, context, n, t, h, kinds, taus):
-    """After a Runge-Kutta step n of a save interval, of h (s) from t (s), in which an event crossed: located."""
-    located_members(work, context, n, t, h, kinds, taus, runge_kutta_start)
+def runge_kutta_steps(work, save, h, steps_per_save, kinds, taus, context):
+    """A save interval's Runge-Kutta steps of h (s) with events, in groups of CHECK_STEPS (`watched_group`)."""
+    levels = levels_and_directions(context[0][0], LIKE_G)[0]
+    for n0 in range(0, steps_per_save, CHECK_STEPS):
+        steps = min(CHECK_STEPS, steps_per_save - n0)
+        checkpoint(work)
+        for k in range(1, steps + 1):
+            runge_kutta_step(work, h)
+            record(work, k, h, True, row_value)
+        watched_group(work, context, (save - 1) * steps_per_save, n0, steps, h, kinds, taus, levels,
+                      runge_kutta_start)
 
 
 @njit(inline="always", **FAST)
@@ -256,17 +274,24 @@ def splitting_start(work, j, n, h, kinds, taus):
 
 
 @njit(inline="always", **FAST)
-def splitting_watch(work, B, h, context, whole):
-    """After a splitting's step of h (s) (whole: whether its last piece was its own, not merged into the next
-    step's first): whether any of the block's members' events crossed (`crossings`)."""
-    return crossings(work, B, h, whole, context, splitting_value)
-
-
-@njit(inline="always", **FAST)
-def splitting_locate(work, context, n, t, h, kinds, taus):
-    """After a splitting's step n of a save interval (its pieces of the schedule kinds, taus), of h (s) from t
-    (s), in which an event crossed: located."""
-    located_members(work, context, n, t, h, kinds, taus, splitting_start)
+def splitting_steps(work, save, h, steps_per_save, kinds, taus, context):
+    """A save interval's splitting steps of h (s) (its schedule's pieces kinds, taus) with events, in groups of
+    CHECK_STEPS (`watched_group`): a group's pieces in one loop, as the kernel without events runs them, each
+    step's values recorded after its last piece (a merged schedule's last step ends with one piece more)."""
+    per_step = len(SEQUENCE) - 1 if merged() else len(SEQUENCE)  # pieces from one step's first to the next's
+    count = len(kinds)
+    levels = levels_and_directions(context[0][0], LIKE_G)[0]
+    for n0 in range(0, steps_per_save, CHECK_STEPS):
+        steps = min(CHECK_STEPS, steps_per_save - n0)
+        checkpoint(work)
+        for p in range(n0 * per_step, count if n0 + steps == steps_per_save else (n0 + steps) * per_step):
+            piece(work, kinds[p], taus[p], B)
+            last = p + 1 == count
+            if last or (p + 1) % per_step == 0:  # the end of step n: row n - n0 + 1 (with %, LLVM knows it >= 0)
+                n = (p - 1 if last and merged() else p) // per_step
+                record(work, n % CHECK_STEPS + 1, h, last or not merged(), splitting_value)
+        watched_group(work, context, (save - 1) * steps_per_save, n0, steps, h, kinds, taus, levels,
+                      splitting_start)
 
 
 @njit(inline="always", **FAST)
@@ -307,8 +332,7 @@ def splitting_events_kernel(state0, rate, h, steps_per_save, limit, samples, sta
                             event_arrays, start, first_block, end_block):
     """splitting_kernel with events (ensemble.engine.events: event_arrays is a kernel call's events tuple)."""
     splitting_frame(state0, rate, h, steps_per_save, limit, samples, status, failure_time, progress, works, start,
-                    first_block, end_block, events_begin, events_remember, splitting_watch, splitting_locate,
-                    event_arrays)
+                    first_block, end_block, events_begin, splitting_steps, event_arrays)
 
 
 @njit(nogil=True, cache=True, **FAST)
@@ -316,8 +340,7 @@ def runge_kutta_events_kernel(state0, rate, h, steps_per_save, limit, samples, s
                               works, event_arrays, start, first_block, end_block):
     """runge_kutta_kernel with events (as splitting_events_kernel)."""
     runge_kutta_frame(state0, rate, h, steps_per_save, limit, samples, status, failure_time, progress, works, start,
-                      first_block, end_block, events_begin, events_remember, runge_kutta_watch, runge_kutta_locate,
-                      event_arrays)
+                      first_block, end_block, events_begin, runge_kutta_steps, event_arrays)
 
 
 @njit(nogil=True, cache=True, **FAST)

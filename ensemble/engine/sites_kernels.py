@@ -139,35 +139,6 @@ def pieces(work, kinds, taus, first, end):
 
 
 @njit(inline="always", **FAST)
-def watched_steps(step, work, save, h, steps_per_save, kinds, taus, context, remember, watch, locate):
-    """A save interval's steps with events (as ensemble.engine.events.watched_steps for a member family):
-    step(work, n, h, kinds, taus, steps_per_save) takes the block through step n of h (s) and says whether its
-    state is whole at the end; after each, watch says whether any member's events crossed, and where any did, the
-    loop of steps stops for `locate` to find them, then goes on (a call in that loop, even one never made, cost a
-    chain's verlet a third of its rate). remember(work, B, n) before each step."""
-    n = 0
-    while n < steps_per_save:
-        hits = False
-        while not hits and n < steps_per_save:
-            remember(work, B, n)
-            hits = watch(work, B, h, context, step(work, n, h, kinds, taus, steps_per_save))
-            n += 1
-        if hits:
-            locate(work, context, n - 1, ((save - 1) * steps_per_save + n - 1) * h, h, kinds, taus)
-
-
-@njit(inline="always", **FAST)
-def splitting_step(work, n, h, kinds, taus, steps_per_save):
-    """Step n of a save interval's schedule (kinds, taus: splitting_schedule, merged pieces and all): its pieces
-    from its first to the next step's first; whether its last piece was its own (the interval's last step)."""
-    per_step = len(SEQUENCE) - 1 if merged() else len(SEQUENCE)  # pieces from one step's first to the next's
-    first = n * per_step
-    end = len(kinds) if n == steps_per_save - 1 else first + per_step
-    pieces(work, kinds, taus, first, end)
-    return end == len(kinds) or not merged()
-
-
-@njit(inline="always", **FAST)
 def merged():
     """Whether a splitting's step ends with the piece the next begins with (verlet: a half kick): a save
     interval's schedule merges the two (splitting_schedule)."""
@@ -184,16 +155,14 @@ def merged():
 # their sites' values (site i, member j at i B + j), indexed from 0 in a view of the work array: from a variable
 # start, Numba's negative-index wraparound stays in the loop and LLVM does not vectorize it. As two loops (sites,
 # then a block's B members, unrolled), LLVM on AVX-512 vectorized the loop over sites, with gathers: a tenth of the
-# speed. With events (E > 0) the kernel is not tiled, and watches after each step's pieces of the same schedule
-# (`merged` pieces included), so its samples are those of the kernel without events.
+# speed. With events the kernel is not tiled, and watches after each step's pieces of the same schedule (`merged`
+# pieces included), so its samples are those of the kernel without events.
 @njit(inline="always", **FAST)
 def splitting_frame(state0, rate, h, steps_per_save, limit, samples, status, failure_time, progress, works, start,
-                    first_block, end_block, begin, remember, watch, locate, events):
-    """The splitting kernels' loops (`splitting_kernel`); begin, remember, watch, locate: the events'
-    (events_begin, events_remember, splitting_watch, splitting_locate) or no_begin, no_remember, no_watch,
-    no_locate;
-    events their arrays or (). A step in which an event crossed leaves the loop of steps, to locate it: a call
-    in that loop, even one never made, cost a chain's verlet a third of its rate."""
+                    first_block, end_block, begin, steps, events):
+    """The splitting kernels' loops (`splitting_kernel`); begin, steps: the events' (events_begin at the start,
+    splitting_steps for a save interval's steps, untiled) or no_begin, splitting_steps_alone; events their
+    arrays or ()."""
     kinds, taus, lags = splitting_schedule(SEQUENCE, FRACTIONS, h, steps_per_save, TILE_PIECES)
     count = len(kinds)
     work = cache_line_array(works.shape[1])
@@ -217,11 +186,8 @@ def splitting_frame(state0, rate, h, steps_per_save, limit, samples, status, fai
                                 kick(work, taus[p], lo, hi, M, B)
                             else:
                                 drift(work, taus[p], lo, hi, M, B)
-            elif E > 0:
-                watched_steps(splitting_step, work, save, h, steps_per_save, kinds, taus, context, remember, watch,
-                              locate)
             else:
-                pieces(work, kinds, taus, 0, count)
+                steps(work, save, h, steps_per_save, kinds, taus, context)
             if saved(work, samples, save - start, block, limit, status, failure_time, progress,
                      save * steps_per_save * h, -1, N, HALO, B):
                 break
@@ -234,7 +200,7 @@ def splitting_kernel(state0, rate, h, steps_per_save, limit, samples, status, fa
     """state0 (blocks, 2n, B), rate (blocks, 2n, B), limit (M,) -> samples (members, count, 2n),
     status (M,), failure_time (M,) (s; set only where a member fails); M = blocks x B."""
     splitting_frame(state0, rate, h, steps_per_save, limit, samples, status, failure_time, progress, works, start,
-                    first_block, end_block, no_begin, no_remember, no_watch, no_locate, ())
+                    first_block, end_block, no_begin, splitting_steps_alone, ())
 
 
 @njit(inline="always", **FAST)
@@ -250,15 +216,8 @@ def runge_kutta_step(work, h):
 
 
 @njit(inline="always", **FAST)
-def runge_kutta_stepped(work, n, h, kinds, taus, steps_per_save):
-    """watched_steps's step for a tableau: runge_kutta_step; its state is whole."""
-    runge_kutta_step(work, h)
-    return True
-
-
-@njit(inline="always", **FAST)
 def runge_kutta_frame(state0, rate, h, steps_per_save, limit, samples, status, failure_time, progress, works,
-                      start, first_block, end_block, begin, remember, watch, locate, events):
+                      start, first_block, end_block, begin, steps, events):
     """The Runge-Kutta kernels' loops, for the tableau A (flat S x S), WEIGHTS; the rest as splitting_frame."""
     work = cache_line_array(works.shape[1])
     for block in range(first_block, end_block):
@@ -269,12 +228,7 @@ def runge_kutta_frame(state0, rate, h, steps_per_save, limit, samples, status, f
         if start == 0:
             begin(work, B, context)
         for save in range(max(start, 1), start + samples.shape[1]):
-            if E > 0:
-                watched_steps(runge_kutta_stepped, work, save, h, steps_per_save, (), (), context, remember, watch,
-                              locate)
-            else:
-                for _ in range(steps_per_save):
-                    runge_kutta_step(work, h)
+            steps(work, save, h, steps_per_save, (), (), context)
             if saved(work, samples, save - start, block, limit, status, failure_time, progress,
                      save * steps_per_save * h, -1, N, 0, B):
                 break
@@ -286,7 +240,7 @@ def runge_kutta_kernel(state0, rate, h, steps_per_save, limit, samples, status, 
                        start, first_block, end_block):
     """As splitting_kernel, for the tableau A (flat S x S), WEIGHTS."""
     runge_kutta_frame(state0, rate, h, steps_per_save, limit, samples, status, failure_time, progress, works, start,
-                      first_block, end_block, no_begin, no_remember, no_watch, no_locate, ())
+                      first_block, end_block, no_begin, runge_kutta_steps_alone, ())
 
 
 @njit(inline="always", **FAST)
@@ -384,16 +338,14 @@ def no_begin(work, B, context):
 
 
 @njit(inline="always", **FAST)
-def no_remember(work, B, n):
-    """A kernel without events: nothing kept before a step."""
+def splitting_steps_alone(work, save, h, steps_per_save, kinds, taus, context):
+    """A save interval's splitting steps without events (untiled): its schedule's pieces (kinds, taus), one at a
+    time."""
+    pieces(work, kinds, taus, 0, len(kinds))
 
 
 @njit(inline="always", **FAST)
-def no_watch(work, B, h, context, whole):
-    """A kernel without events: no event crossed in a fixed step."""
-    return False
-
-
-@njit(inline="always", **FAST)
-def no_locate(work, context, n, t, h, kinds, taus):
-    """A kernel without events: nothing to locate."""
+def runge_kutta_steps_alone(work, save, h, steps_per_save, kinds, taus, context):
+    """A save interval's steps_per_save Runge-Kutta steps of h (s), without events."""
+    for _ in range(steps_per_save):
+        runge_kutta_step(work, h)
