@@ -189,9 +189,9 @@ def watched_group(work, context, offset, n0, steps, h, kinds, taus, levels, star
     arrays, status, failure_time, j0 = context
     hits = False
     for e in range(E):
-        base = (TRACE + e * (CHECK_STEPS + 1)) * B
-        for q in range(steps * B):
-            hits |= straddles(work[base + q], work[base + B + q], levels[e])
+        first = TRACE + e * (CHECK_STEPS + 1)
+        for q in range(steps * B):  # q = k B + j: member j's value after step k against that after step k + 1
+            hits |= straddles(work[first * B + q], work[(first + 1) * B + q], levels[e])
     if hits:
         directions = levels_and_directions(arrays[0], LIKE_G)[1]
         for j in range(B):
@@ -206,9 +206,9 @@ def watched_group(work, context, offset, n0, steps, h, kinds, taus, levels, star
                         stop_member(work, X + 1, 2 * N + 1, B, j, status, failure_time, j0, when)
                         break
     for e in range(E):
-        base = TRACE + e * (CHECK_STEPS + 1)
+        first = TRACE + e * (CHECK_STEPS + 1)
         for j in range(B):
-            work[base * B + j] = work[(base + steps) * B + j]
+            work[first * B + j] = work[(first + steps) * B + j]
 
 
 @njit(inline="always", **FAST)
@@ -308,7 +308,7 @@ def events_adaptive_watch(work, B, context):
             hits += now & straddles(work[EVENT_ROWS[e] * B + j], work[(EVENT_ROWS[e] + ZX - X) * B + j], levels[e])
     if hits:
         for j in range(B):
-            before, after = event_values(work, 0, j), event_values(work, ZX - X, j)
+            before, after = watched_values(work, 0, j), watched_values(work, ZX - X, j)
             if accepted(work, C0, B, j) and any_crossed(before, after, levels, directions):
                 t1, h = work[(C0 + TIME) * B + j], work[(C0 + STEP) * B + j]
                 when = LOCATED(arrays, j0 + j, t1 - h, h, member_state(work, X + 1, j, B), member_couplings(work, j),
@@ -319,7 +319,7 @@ def events_adaptive_watch(work, B, context):
 
 
 @njit(inline="always", **FAST)
-def event_values(work, offset, j):
+def watched_values(work, offset, j):
     """Member j's events' values (a tuple of E) in their rows (EVENT_ROWS) moved by `offset` rows."""
     values = LIKE_G
     for e in range(E):
