@@ -176,7 +176,6 @@ def test_a_chain_with_events_steps_whole_and_untiled():
     assert with_events.rows == plain.rows + (CHECK_STEPS + 1) + 2 * 1029 + 1
 
 
-
 @pytest.mark.parametrize("method", ["rk4", "verlet"])
 def test_several_crossings_in_one_watched_group_each_located_and_none_after_a_stop(method):
     """Stiff springs: mass 1 crosses 0 every 13 steps or sooner, several times in a group of CHECK_STEPS steps
