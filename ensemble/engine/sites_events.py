@@ -46,6 +46,7 @@ from ensemble.engine.sites_kernels import (
     merged,
     no_begin,
     piece,
+    pieces_per_step,
     runge_kutta_frame,
     runge_kutta_step,
     site_acceleration,
@@ -264,7 +265,7 @@ def splitting_start(work, j, n, h, kinds, taus):
     """Member j's state at the start of step n of its save interval: the schedule's pieces (kinds, taus) from its
     last CHECK replayed on a block of one, then, where the schedule merged the last step's last piece into this
     one's first, that piece alone (of the step of h, s)."""
-    per_step = len(SEQUENCE) - 1 if merged() else len(SEQUENCE)
+    per_step = pieces_per_step()
     one = one_member(member_state(work, CHECK, j, B), member_couplings(work, j))
     for p in range((n - n % CHECK_STEPS) * per_step, n * per_step):
         piece(one, kinds[p], taus[p], 1)
@@ -278,7 +279,7 @@ def splitting_steps(work, save, h, steps_per_save, kinds, taus, context):
     """A save interval's splitting steps of h (s) (its schedule's pieces kinds, taus) with events, in groups of
     CHECK_STEPS (`watched_group`): a group's pieces in one loop, as the kernel without events runs them, each
     step's values recorded after its last piece (a merged schedule's last step ends with one piece more)."""
-    per_step = len(SEQUENCE) - 1 if merged() else len(SEQUENCE)  # pieces from one step's first to the next's
+    per_step = pieces_per_step()
     count = len(kinds)
     levels = levels_and_directions(context[0][0], LIKE_G)[0]
     for n0 in range(0, steps_per_save, CHECK_STEPS):

@@ -145,6 +145,13 @@ def merged():
     return len(SEQUENCE) > 1 and SEQUENCE[0] == SEQUENCE[len(SEQUENCE) - 1]
 
 
+@njit(inline="always", **FAST)
+def pieces_per_step():
+    """Pieces of a save interval's schedule from one step's first to the next's (one fewer than SEQUENCE's where
+    the schedule merges a step's last piece into the next step's first)."""
+    return len(SEQUENCE) - 1 if merged() else len(SEQUENCE)
+
+
 # A long chain's rows outgrow the L1 cache (tiles), so its splitting kernel runs TILE_PIECES pieces (kicks and
 # drifts) at once over tiles of TILE_ROWS sites, each piece one site behind the piece before it where kick and drift
 # alternate (a wavefront): every site still sees its neighbours as the one-piece-at-a-time order has them, so
