@@ -219,10 +219,11 @@ def test_a_scenes_function_called_written_out_gives_what_its_star_call_gives():
 
 def test_a_crossing_that_only_the_watch_saw_is_put_at_the_nearer_end_of_its_step():
     """events.root: a step's values on either side of the level are bracketed (Illinois, to the last bits); values
-    on one side (a watch's sign crossed, the value not: one end on the level to its rounding) give that end."""
+    on one side (a watch's sign crossed, the value not) give the nearer end where it is on the level to rounding
+    (WATCH_ROUNDING), and no crossing (NOT_CROSSED) where both are off it."""
     from numba import njit
 
-    from ensemble.engine.events import root
+    from ensemble.engine.events import NOT_CROSSED, WATCH_ROUNDING, root
 
     values = njit(lambda t, y, p: (y[0],))
     advance = njit(lambda t0, h, y0, p: (y0[0] + h * (1.0 + y0[0]),))  # y(s) = s from y0 = 0: a line
@@ -230,7 +231,24 @@ def test_a_crossing_that_only_the_watch_saw_is_put_at_the_nearer_end_of_its_step
                                                       after))
     assert find(0.3, 0.0, 0.0, 1.0) == pytest.approx(0.3, abs=1e-15)
     assert find(0.3, 0.3, 0.3 - 1e-17, 1.3) == 0.0 and find(1.0, 0.0, 0.0, 1.0 - 1e-16) == 1.0
-    assert find(0.3, 0.0, 0.31, 1.0) == 0.0 and find(0.9, 0.0, 0.0, 0.89) == 1.0
+    assert find(0.3, 0.0, 0.3 * (1 + 1e-6), 1.0) == 0.0 and find(0.9, 0.0, 0.0, 0.9 * (1 - 1e-6)) == 1.0
+    assert find(0.3, 0.0, 0.31, 1.0) == NOT_CROSSED and find(0.9, 0.0, 0.0, 0.89) == NOT_CROSSED
+    assert find(0.3, 0.0, 0.3 * (1 + 2 * WATCH_ROUNDING), 1.0) == NOT_CROSSED
+
+
+def test_a_top_come_to_rest_crosses_no_level():
+    """A heavily damped oblate top (c = 0.1 kg m2/s: its rates fall 50 to 100 times e a second) whose tilt only
+    falls: its rates' squares fall below the smallest double (flushed to 0 in the kernels) within 7.2 s, where the
+    tilt's watch is 0 at both ends of a step. The tilt itself is off the level there, so no rise through it is
+    counted (one was, at the step where w3^2 underflowed, before events.root asked the value)."""
+    top = resolve("top")
+    values = {"lambda1": np.full(3, 1e-3), "lambda3": np.full(3, 2e-3), "c": np.full(3, 0.1),
+              "spin0": np.full(3, 60.0), "tilt0": np.array([0.05, 0.1, 0.2]), "azimuth0": np.zeros(3)}
+    rise = Event("rise", "tilt", -1, ("function", "value_tilt", -1, "watch_tilt"), 0.3, "up", 1)
+    for method in ("rk4", "split4"):
+        outcome = launch.integrate(top, METHODS[method], values, {}, n_save=10, save_dt=1.0, dt=2e-3, events=(rise,))
+        assert np.all(np.abs(outcome.samples[-1]) ** 2 < np.finfo(float).tiny), method  # every square underflows
+        assert np.all(outcome.event_counts == 0) and np.all(np.isnan(outcome.event_times)), method
 
 
 def test_a_tops_fit_finds_its_tilt_decay_rate_from_event_times_alone(tmp_path):

@@ -49,6 +49,8 @@ from .tuples import converted, loaded, repeated, stored
 
 STOPPED = int(Status.STOPPED_BY_EVENT)
 ROOT_ITERATIONS = 80  # Illinois steps at most; it converges superlinearly, in a dozen for a smooth crossing
+NOT_CROSSED = 2.0  # `root`'s fraction of a step where the event did not cross in it
+WATCH_ROUNDING = 1e-5  # how close to its level (relative) a value may be where a scene's watch says otherwise
 
 
 def _inlined(function):
@@ -237,13 +239,16 @@ def user_state(to_user, y, p):
 def root(values, advance, e, level, t0, h, y0, p, before, after):
     """The fraction s of a step of h (s) from t0 (s) and state y0 at which event e's value on the method's path
     (advance) reaches `level`, its values at the ends before and after on either side of it: Illinois regula
-    falsi. Where they are not (a scene's watch saw a crossing its value does not show: one end is on the level to
-    the value's rounding), the nearer end."""
+    falsi. Where they are not (a scene's watch saw a crossing its value does not show), the nearer end if its
+    value is on the level to rounding (within WATCH_ROUNDING of it, relative: a hundred float32 roundings), else
+    NOT_CROSSED (a watch's 0 where the value is off the level: the top's at rest, or its squares underflowed)."""
     a, b, ga, gb = 0.0, 1.0, before - level, after - level
     if gb == 0.0:
         return 1.0
-    if not ((ga < 0.0) != (gb < 0.0)):  # a watch's sign crossed, the value not: at an end, to its rounding
-        return 0.0 if abs(ga) <= abs(gb) else 1.0
+    if not ((ga < 0.0) != (gb < 0.0)):
+        near, value = (0.0, before) if abs(ga) <= abs(gb) else (1.0, after)
+        on_level = abs(value - level) <= WATCH_ROUNDING * max(abs(level), abs(value))
+        return near if on_level else NOT_CROSSED
     side = 0
     s = 1.0
     for _ in range(ROOT_ITERATIONS):
@@ -280,8 +285,8 @@ def located(values, advance, arrays, member, t0, h, y0, p, before, after, hit):
     time (s), or NaN where the member goes on. The CPU's kernels (`locator`) and the GPU's (gpu_kernels) call it."""
     spec, times, counts, stopped, states = arrays
     D, kept_most = stopped.shape[0], times.shape[1]
-    fractions = repeated(2.0, before)
-    stop = 2.0
+    fractions = repeated(NOT_CROSSED, before)
+    stop = NOT_CROSSED
     for e in range(len(before)):
         if hit[e]:
             fractions = tuple_setitem(fractions, e, root(values, advance, e, spec[e, 0], t0, h, y0, p, before[e],

@@ -81,10 +81,10 @@ def watch_tilt(t, w1, w2, w3, p, r1, r3, level):
     """Of the sign of value_tilt - level (rad) at a fraction of its cost, for the kernels' watch of a tilt event
     (ensemble.engine.events). For 0 < level < pi, |w| sin(tilt - level) = a - b, a = |(w1, w2)| cos(level) and
     b = w3 sin(level), has that sign (on the spin axis too), and so has (a|a| - b|b|) / sin(level)^2 (x|x| rises
-    with x), which needs no square root; 0 for a body at rest (a crossing to look at, which the tilt itself then
-    denies). Other levels (the axis's own, 0 and pi, and those the tilt never reaches) take the tilt itself. NaN
-    where a rate is; +-inf, of the right sign, where rates beyond 1e145 rad/s meet a level within 1e-9 rad of
-    the axis."""
+    with x), which needs no square root; 0 for a body at rest and where the squares underflow (a crossing to
+    look at, which the tilt itself then denies: ensemble.engine.events.root). Other levels (the axis's own, 0
+    and pi, and those the tilt never reaches) take the tilt itself. NaN where a rate is; +-inf, of the right
+    sign, where rates beyond 1e145 rad/s meet a level within 1e-9 rad of the axis."""
     if not 0.0 < level < math.pi:  # the same for every member: a branch the kernel's loop predicts
         return _tilt_and_transverse(w1, w2, w3)[0] - level
     c, s = math.cos(level), math.sin(level)
