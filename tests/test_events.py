@@ -239,7 +239,7 @@ def test_a_crossing_that_only_the_watch_saw_is_put_at_the_nearer_end_of_its_step
 def test_a_top_come_to_rest_crosses_no_level():
     """A heavily damped oblate top (c = 0.1 kg m2/s: its rates fall 50 to 100 times e a second) whose tilt only
     falls: its rates' squares fall below the smallest double (flushed to 0 in the kernels) within 7.2 s, where the
-    tilt's watch is 0 at both ends of a step. The tilt itself is off the level there, so no rise through it is
+    tilt's watch rises from below 0 to 0. The tilt itself is far below the level there, so no rise through it is
     counted (one was, at the step where w3^2 underflowed, before events.root asked the value)."""
     top = resolve("top")
     values = {"lambda1": np.full(3, 1e-3), "lambda3": np.full(3, 2e-3), "c": np.full(3, 0.1),
