@@ -238,17 +238,24 @@ def test_a_crossing_that_only_the_watch_saw_is_put_at_the_nearer_end_of_its_step
 
 def test_a_top_come_to_rest_crosses_no_level():
     """A heavily damped oblate top (c = 0.1 kg m2/s: its rates fall 50 to 100 times e a second) whose tilt only
-    falls: its rates' squares fall below the smallest double (flushed to 0 in the kernels) within 7.2 s, where the
-    tilt's watch rises from below 0 to 0. The tilt itself is far below the level there, so no rise through it is
-    counted (one was, at the step where w3^2 underflowed, before events.root asked the value)."""
+    falls, at 50/s (tan(tilt) = tan(tilt0) exp(-50 t)): its rates' squares fall below the smallest double (flushed
+    to 0 in the kernels) within 7.2 s, where the tilt's watch rises from below 0 to 0. The tilt itself is far below
+    any level there, so no rise through 0.3 rad is counted, and the fall through 0.04 rad is counted once, at its
+    closed form's time (a second was counted at rest: through root before its one kept time, and past it, where
+    an occurrence is counted without being located, through crossed_within)."""
     top = resolve("top")
+    tilt0 = np.array([0.05, 0.1, 0.2])
     values = {"lambda1": np.full(3, 1e-3), "lambda3": np.full(3, 2e-3), "c": np.full(3, 0.1),
-              "spin0": np.full(3, 60.0), "tilt0": np.array([0.05, 0.1, 0.2]), "azimuth0": np.zeros(3)}
-    rise = Event("rise", "tilt", -1, ("function", "value_tilt", -1, "watch_tilt"), 0.3, "up", 1)
+              "spin0": np.full(3, 60.0), "tilt0": tilt0, "azimuth0": np.zeros(3)}
+    watched = ("function", "value_tilt", -1, "watch_tilt")
+    rise, fall = Event("rise", "tilt", -1, watched, 0.3, "up", 1), Event("fall", "tilt", -1, watched, 0.04, "both", 1)
     for method in ("rk4", "split4"):
-        outcome = launch.integrate(top, METHODS[method], values, {}, n_save=10, save_dt=1.0, dt=2e-3, events=(rise,))
+        outcome = launch.integrate(top, METHODS[method], values, {}, n_save=10, save_dt=1.0, dt=2e-3,
+                                   events=(rise, fall))
         assert np.all(np.abs(outcome.samples[-1]) ** 2 < np.finfo(float).tiny), method  # every square underflows
-        assert np.all(outcome.event_counts == 0) and np.all(np.isnan(outcome.event_times)), method
+        assert np.all(outcome.event_counts == [[0], [1]]) and np.all(np.isnan(outcome.event_times[0])), method
+        expected = np.log(np.tan(tilt0) / math.tan(0.04)) / 50.0
+        assert np.allclose(outcome.event_times[1, 0], expected, rtol=0, atol=1e-6), method
 
 
 def test_a_tops_fit_finds_its_tilt_decay_rate_from_event_times_alone(tmp_path):

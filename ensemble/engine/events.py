@@ -246,9 +246,7 @@ def root(values, advance, e, level, t0, h, y0, p, before, after):
     if gb == 0.0:
         return 1.0
     if not ((ga < 0.0) != (gb < 0.0)):
-        near, value = (0.0, before) if abs(ga) <= abs(gb) else (1.0, after)
-        on_level = abs(value - level) <= WATCH_ROUNDING * max(abs(level), abs(value))
-        return near if on_level else NOT_CROSSED
+        return at_an_end(level, before, after)
     side = 0
     s = 1.0
     for _ in range(ROOT_ITERATIONS):
@@ -276,23 +274,47 @@ def root(values, advance, e, level, t0, h, y0, p, before, after):
 
 
 @njit(inline="always", **FAST)
+def at_an_end(level, before, after):
+    """`root` of values at a step's ends that are not on either side of `level`: the nearer end (0 or 1) where
+    its value is on the level to rounding, else NOT_CROSSED."""
+    near, value = (0.0, before) if abs(before - level) <= abs(after - level) else (1.0, after)
+    return near if abs(value - level) <= WATCH_ROUNDING * max(abs(level), abs(value)) else NOT_CROSSED
+
+
+@njit(inline="always", **FAST)
+def crossed_within(level, before, after):
+    """Whether `root` finds a crossing within the step (a fraction of at most 1), without locating it."""
+    if (after == level) or ((before < level) != (after < level)):
+        return True
+    return at_an_end(level, before, after) <= 1.0
+
+
+@njit(inline="always", **FAST)
 def located(values, advance, arrays, member, t0, h, y0, p, before, after, hit):
     """Every event of one member that crossed within its step of h (s) from t0 (s) and state y0 (before, after:
     each event's values at the step's ends, tuples of E; hit: whether each crossed, `crossed_each` of its values or
     of its watch's signs), located on the method's path `advance` (`root`) and
     recorded in the kernel call's event arrays (times, counts, and states where an event keeps them), but those
     after the step's first stopping event, at which the member's state goes to `stopped`. Returns the stopping
-    time (s), or NaN where the member goes on. The CPU's kernels (`locator`) and the GPU's (gpu_kernels) call it."""
+    time (s), or NaN where the member goes on. An occurrence past an event's `count` in a step where none stops
+    the member is counted without being located (its time is not kept, and no stop comes before it). The CPU's
+    kernels (`locator`) and the GPU's (gpu_kernels) call it."""
     spec, times, counts, stopped, states = arrays
     D, kept_most = stopped.shape[0], times.shape[1]
     fractions = repeated(NOT_CROSSED, before)
     stop = NOT_CROSSED
     for e in range(len(before)):
-        if hit[e]:
+        if hit[e] and spec[e, 2] > 0.0:
             fractions = tuple_setitem(fractions, e, root(values, advance, e, spec[e, 0], t0, h, y0, p, before[e],
                                                          after[e]))
-            if spec[e, 2] > 0.0:
-                stop = min(stop, fractions[e])
+            stop = min(stop, fractions[e])
+    for e in range(len(before)):
+        if hit[e] and spec[e, 2] <= 0.0:
+            if stop <= 1.0 or counts[e, member] < spec[e, 3]:
+                fraction = root(values, advance, e, spec[e, 0], t0, h, y0, p, before[e], after[e])
+            else:
+                fraction = 1.0 if crossed_within(spec[e, 0], before[e], after[e]) else NOT_CROSSED
+            fractions = tuple_setitem(fractions, e, fraction)
     for e in range(len(before)):
         if fractions[e] <= min(stop, 1.0):
             kept = int(counts[e, member])
@@ -415,11 +437,43 @@ def beginning(signs, first: int, E: int):
     return begin
 
 
+def fixed_locate(values, signs, advance, to_user, first: int, E: int):
+    """fixed_watcher's locate(like_y, like_p, work, B, t, h, context), rows as there: which members crossed in the
+    step from t (s) of h (s), in a loop over the block that vectorizes (one loop that also called `located` was
+    scalar), then each of those located."""
+    located, like_g = locator(values, advance), (0.0,) * E
+    G, CROSSED, OLD = first, first + E, first + E + 1
+
+    @njit(inline="always", **FAST)
+    def locate(like_y, like_p, work, B, t, h, context):
+        arrays, status, failure_time, j0 = context
+        D = len(like_y)
+        levels, directions = levels_and_directions(arrays[0], like_g)
+        zeros = repeated(0.0, like_g)
+        for j in range(B):
+            p = loaded(work, D, B, j, like_p)
+            before = signs(t, user_state(to_user, loaded(work, OLD, B, j, like_y), p), p, levels)
+            work[CROSSED * B + j] = select(any_crossed(before, loaded(work, G, B, j, like_g), zeros, directions),
+                                           1.0, 0.0)
+        for j in range(B):
+            if work[CROSSED * B + j] != 0.0:
+                p = loaded(work, D, B, j, like_p)
+                y0 = user_state(to_user, loaded(work, OLD, B, j, like_y), p)
+                before, after = signs(t, y0, p, levels), loaded(work, G, B, j, like_g)  # as the last watch had them
+                y1 = user_state(to_user, loaded(work, 0, B, j, like_y), p)
+                when = located(arrays, j0 + j, t, h, y0, p, values(t, y0, p), values(t + h, y1, p),
+                               crossed_each(before, after, zeros, directions))
+                if when == when:
+                    stop_member(work, 0, D, B, j, status, failure_time, j0, when)
+    return locate
+
+
 def fixed_watcher(values, signs, advance, to_user, first: int, E: int):
     """(begin, remember, steps) for a fixed-step kernel (ensemble.engine.frames.fixed_step) whose E events' rows
     start at `first`: their signs (`signs_chain`: the sign of each value's difference from its level, or of a
-    scene's cheaper watch of it) at the last step's end (E rows) and the state at the step's start (D rows).
-    Levels are read once a save interval (`steps`), and what a watch makes of them (the top's cos, sin) there.
+    scene's cheaper watch of it) at the last step's end (E rows), whether each member crossed in the step just
+    located (1 row) and the state at the step's start (D rows). Levels are read once a save interval (`steps`),
+    and what a watch makes of them (the top's cos, sin) there.
 
     begin(like_y, like_p, work, B, context) at t = 0. In a family's loop over a block's members, remember(work,
     B, j, y) keeps a member's state before its step (y, in the family's coordinates). After that loop,
@@ -427,15 +481,16 @@ def fixed_watcher(values, signs, advance, to_user, first: int, E: int):
     the step's end; to_user: a splitting's from_pieces to the scene's coordinates, or None) in a loop of its own
     and says whether any may have crossed (`any_straddles`, in a boolean, which LLVM keeps in a vector's mask: a
     float sum, which it may not reorder, kept the loop from vectorizing); where any did, locate(like_y, like_p,
-    work, B, t, h, context) takes each member that crossed (`crossed`; its signs at the step's start made anew from
-    its state there), its values at both ends, and locates its events on advance(t0, h, y0, p), the family's step in
-    the scene's coordinates (runge_kutta.advance_of, splitting.advance_of); the member stops at the first that stops
-    it. steps: NO_STEPS with watch and locate (`watched_steps`). Rows are stored whole (a value selected against the
-    row's became a masked store, slow on AMD Zen 3) at rows fixed when compiled (else LLVM cannot prove a block's
-    members apart); watched in the step's own loop, a top's tilt kept it from vectorizing. context: (events, status,
-    failure_time, j0) from frames."""
-    located, like_g, begin = locator(values, advance), (0.0,) * E, beginning(signs, first, E)
-    G, OLD = first, first + E
+    work, B, t, h, context) (`fixed_locate`) finds the members that crossed (`crossed`; their signs at the step's
+    start made anew from their state there), then takes each, its values at both ends, and locates its events on
+    advance(t0, h, y0, p), the family's step in the scene's coordinates (runge_kutta.advance_of,
+    splitting.advance_of); the member stops at the first that stops it. steps: NO_STEPS with watch and locate
+    (`watched_steps`). Rows are stored whole (a value selected against the row's became a masked store, slow on AMD
+    Zen 3) at rows fixed when compiled (else LLVM cannot prove a block's members apart); watched in the step's own
+    loop, a top's tilt kept it from vectorizing. context: (events, status, failure_time, j0) from frames."""
+    like_g, begin, locate = (0.0,) * E, beginning(signs, first, E), fixed_locate(values, signs, advance, to_user,
+                                                                                 first, E)
+    G, OLD = first, first + E + 1
 
     @njit(inline="always", **FAST)
     def remember(work, B, j, y):
@@ -452,23 +507,6 @@ def fixed_watcher(values, signs, advance, to_user, first: int, E: int):
             stored(work, G, B, j, after)
             hits |= any_straddles(before, after)
         return hits
-
-    @njit(inline="always", **FAST)
-    def locate(like_y, like_p, work, B, t, h, context):
-        arrays, status, failure_time, j0 = context
-        D = len(like_y)
-        levels, directions = levels_and_directions(arrays[0], like_g)
-        zeros = repeated(0.0, like_g)
-        for j in range(B):
-            p = loaded(work, D, B, j, like_p)
-            y0 = user_state(to_user, loaded(work, OLD, B, j, like_y), p)
-            before, after = signs(t, y0, p, levels), loaded(work, G, B, j, like_g)  # as the last watch had them
-            if any_crossed(before, after, zeros, directions):
-                y1 = user_state(to_user, loaded(work, 0, B, j, like_y), p)
-                when = located(arrays, j0 + j, t, h, y0, p, values(t, y0, p), values(t + h, y1, p),
-                               crossed_each(before, after, zeros, directions))
-                if when == when:
-                    stop_member(work, 0, D, B, j, status, failure_time, j0, when)
 
     @njit(inline="always", **FAST)
     def steps(members_step, like_y, like_p, work, B, i, h, steps_per_save, remember, context):

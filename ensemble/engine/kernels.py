@@ -199,8 +199,9 @@ def _generated(name: str, where: str, sources: str, pieces: tuple[str, ...], met
 
 def event_rows(D: int, E: int, adaptive: bool) -> int:
     """Work rows of a member kernel's E events: adaptive, their signs at a step's start; fixed steps, their
-    signs at the last step's end and the state at a step's start (ensemble.engine.events)."""
-    return (E if adaptive else E + D) if E else 0
+    signs at the last step's end, which members crossed, and the state at a step's start
+    (ensemble.engine.events.fixed_watcher)."""
+    return (E if adaptive else E + 1 + D) if E else 0
 
 
 def event_values(where: str, sources: tuple, expected: str):
