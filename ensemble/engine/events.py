@@ -283,8 +283,10 @@ def at_an_end(level, before, after):
 
 @njit(inline="always", **FAST)
 def crossed_within(level, before, after):
-    """Whether `root` finds a crossing within the step (a fraction of at most 1), without locating it."""
-    if (after == level) or ((before < level) != (after < level)):
+    """Whether `root` finds a crossing within the step (a fraction of at most 1), without locating it: its tests,
+    on the same differences (which flushing subnormals may make 0)."""
+    ga, gb = before - level, after - level
+    if gb == 0.0 or ((ga < 0.0) != (gb < 0.0)):
         return True
     return at_an_end(level, before, after) <= 1.0
 
