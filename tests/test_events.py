@@ -242,7 +242,7 @@ def test_a_top_come_to_rest_crosses_no_level():
     to 0 in the kernels) within 7.2 s, where the tilt's watch rises from below 0 to 0. The tilt itself is far below
     any level there, so no rise through 0.3 rad is counted, and the fall through 0.04 rad is counted once, at its
     closed form's time (a second was counted at rest before events.root asked the value, and is where an
-    occurrence past `count`, counted without being located, is counted without asking it: crossed_within)."""
+    occurrence past `count`, counted without being located, is counted without asking it)."""
     top = resolve("top")
     tilt0 = np.array([0.05, 0.1, 0.2])
     values = {"lambda1": np.full(3, 1e-3), "lambda3": np.full(3, 2e-3), "c": np.full(3, 0.1),

@@ -236,20 +236,22 @@ def user_state(to_user, y, p):
 
 
 @njit(inline="always", **FAST)  # inlined: a function handed to a call of its own makes a kernel uncacheable
-def root(values, advance, e, level, t0, h, y0, p, before, after):
+def root(values, advance, e, level, t0, h, y0, p, before, after, iterations=ROOT_ITERATIONS):
     """The fraction s of a step of h (s) from t0 (s) and state y0 at which event e's value on the method's path
     (advance) reaches `level`, its values at the ends before and after on either side of it: Illinois regula
-    falsi. Where they are not (a scene's watch saw a crossing its value does not show), the nearer end if its
-    value is on the level to rounding (within WATCH_ROUNDING of it, relative: a hundred float32 roundings), else
-    NOT_CROSSED (a watch's 0 where the value is off the level: the top's at rest, or its squares underflowed)."""
+    falsi, `iterations` steps at most (with none, 1 wherever it finds a crossing within the step). Where they are
+    not (a scene's watch saw a crossing its value does not show), the nearer end if its value is on the level to
+    rounding (within WATCH_ROUNDING of it, relative: a hundred float32 roundings), else NOT_CROSSED (a watch's 0
+    where the value is off the level: the top's at rest, or its squares underflowed)."""
     a, b, ga, gb = 0.0, 1.0, before - level, after - level
     if gb == 0.0:
         return 1.0
     if not ((ga < 0.0) != (gb < 0.0)):
-        return at_an_end(level, before, after)
+        near, value = (0.0, before) if abs(ga) <= abs(gb) else (1.0, after)
+        return near if abs(value - level) <= WATCH_ROUNDING * max(abs(level), abs(value)) else NOT_CROSSED
     side = 0
     s = 1.0
-    for _ in range(ROOT_ITERATIONS):
+    for _ in range(iterations):
         s = (a * gb - b * ga) / (gb - ga)
         if not (a < s < b):
             s = 0.5 * (a + b)
@@ -274,49 +276,30 @@ def root(values, advance, e, level, t0, h, y0, p, before, after):
 
 
 @njit(inline="always", **FAST)
-def at_an_end(level, before, after):
-    """`root` of values at a step's ends that are not on either side of `level`: the nearer end (0 or 1) where
-    its value is on the level to rounding, else NOT_CROSSED."""
-    near, value = (0.0, before) if abs(before - level) <= abs(after - level) else (1.0, after)
-    return near if abs(value - level) <= WATCH_ROUNDING * max(abs(level), abs(value)) else NOT_CROSSED
-
-
-@njit(inline="always", **FAST)
-def crossed_within(level, before, after):
-    """Whether `root` finds a crossing within the step (a fraction of at most 1), without locating it: its tests,
-    on the same differences (which flushing subnormals may make 0)."""
-    ga, gb = before - level, after - level
-    if gb == 0.0 or ((ga < 0.0) != (gb < 0.0)):
-        return True
-    return at_an_end(level, before, after) <= 1.0
-
-
-@njit(inline="always", **FAST)
 def located(values, advance, arrays, member, t0, h, y0, p, before, after, hit):
     """Every event of one member that crossed within its step of h (s) from t0 (s) and state y0 (before, after:
     each event's values at the step's ends, tuples of E; hit: whether each crossed, `crossed_each` of its values or
     of its watch's signs), located on the method's path `advance` (`root`) and
     recorded in the kernel call's event arrays (times, counts, and states where an event keeps them), but those
     after the step's first stopping event, at which the member's state goes to `stopped`. Returns the stopping
-    time (s), or NaN where the member goes on. An occurrence past an event's `count` in a step where none stops
-    the member is counted without being located (its time is not kept, and no stop comes before it). The CPU's
-    kernels (`locator`) and the GPU's (gpu_kernels) call it."""
+    time (s), or NaN where the member goes on. An occurrence past an event's `count` in a step where no event that
+    stops the member crossed is counted without being located (`root` without iterations: its time is not kept,
+    and no stop comes before it). The CPU's kernels (`locator`) and the GPU's (gpu_kernels) call it."""
     spec, times, counts, stopped, states = arrays
     D, kept_most = stopped.shape[0], times.shape[1]
     fractions = repeated(NOT_CROSSED, before)
     stop = NOT_CROSSED
+    stopping = False  # whether an event that stops the member crossed: then every crossing's time is needed
     for e in range(len(before)):
-        if hit[e] and spec[e, 2] > 0.0:
-            fractions = tuple_setitem(fractions, e, root(values, advance, e, spec[e, 0], t0, h, y0, p, before[e],
-                                                         after[e]))
-            stop = min(stop, fractions[e])
+        stopping |= hit[e] and spec[e, 2] > 0.0
     for e in range(len(before)):
-        if hit[e] and spec[e, 2] <= 0.0:
-            if stop <= 1.0 or counts[e, member] < spec[e, 3]:
-                fraction = root(values, advance, e, spec[e, 0], t0, h, y0, p, before[e], after[e])
-            else:
-                fraction = 1.0 if crossed_within(spec[e, 0], before[e], after[e]) else NOT_CROSSED
+        if hit[e]:
+            needed = stopping or counts[e, member] < spec[e, 3]  # else counted alone: 1 where it crossed
+            fraction = root(values, advance, e, spec[e, 0], t0, h, y0, p, before[e], after[e],
+                            ROOT_ITERATIONS if needed else 0)
             fractions = tuple_setitem(fractions, e, fraction)
+            if spec[e, 2] > 0.0:
+                stop = min(stop, fraction)
     for e in range(len(before)):
         if fractions[e] <= min(stop, 1.0):
             kept = int(counts[e, member])
