@@ -422,12 +422,17 @@ def beginning(signs, first: int, E: int):
     return begin
 
 
+def fixed_rows(first: int, E: int) -> tuple[int, int, int]:
+    """A fixed-step kernel's event rows from `first` (fixed_watcher): G (E), CROSSED (1) and OLD (D)."""
+    return first, first + E, first + E + 1
+
+
 def fixed_locate(values, signs, advance, to_user, first: int, E: int):
     """fixed_watcher's locate(like_y, like_p, work, B, t, h, context), rows as there: which members crossed in the
     step from t (s) of h (s), in a loop over the block that vectorizes (one loop that also called `located` was
     scalar), then each of those located."""
     located, like_g = locator(values, advance), (0.0,) * E
-    G, CROSSED, OLD = first, first + E, first + E + 1
+    G, CROSSED, OLD = fixed_rows(first, E)
 
     @njit(inline="always", **FAST)
     def locate(like_y, like_p, work, B, t, h, context):
@@ -475,7 +480,7 @@ def fixed_watcher(values, signs, advance, to_user, first: int, E: int):
     loop, a top's tilt kept it from vectorizing. context: (events, status, failure_time, j0) from frames."""
     like_g, begin, locate = (0.0,) * E, beginning(signs, first, E), fixed_locate(values, signs, advance, to_user,
                                                                                  first, E)
-    G, OLD = first, first + E + 1
+    G, _, OLD = fixed_rows(first, E)
 
     @njit(inline="always", **FAST)
     def remember(work, B, j, y):

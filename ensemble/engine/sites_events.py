@@ -78,6 +78,12 @@ LIKE_G = (0.0,) * E
 
 
 @njit(inline="always", **FAST)
+def trace_row(e, k):
+    """Event e's TRACE row k: its value at a group's start (k = 0) or after the group's step k."""
+    return TRACE + e * (CHECK_STEPS + 1) + k
+
+
+@njit(inline="always", **FAST)
 def member_state(work, first, j, B):
     """Member j's state (x; v) (2N,) from a block of B: site i's x at row first + i, its v at row first + N + 1 + i
     (the layout of rows X + 1 .. V + N - 1, a ghost between)."""
@@ -147,7 +153,7 @@ def events_begin(work, B, context):
     """The block's events' values at t = 0 into the first of their TRACE rows."""
     for e in range(E):
         for j in range(B):
-            work[(TRACE + e * (CHECK_STEPS + 1)) * B + j] = work[EVENT_ROWS[e] * B + j]
+            work[trace_row(e, 0) * B + j] = work[EVENT_ROWS[e] * B + j]
 
 
 @njit(inline="always", **FAST)
@@ -165,7 +171,7 @@ def record(work, k, h, whole, value):
     The loop over a block's members runs to min(B, len(work)), which is B, but not to LLVM: a loop of a known
     16 it unrolled into scalar code (six points of a chain's verlet's rate), this one it vectorizes."""
     for e in range(E):
-        row = TRACE + e * (CHECK_STEPS + 1) + k
+        row = trace_row(e, k)
         for j in range(min(B, len(work))):
             work[row * B + j] = value(work, EVENT_ROWS[e], j, h, whole)
 
@@ -175,7 +181,7 @@ def traced(work, k, j):
     """Member j's events' values (a tuple of E) in row k of their TRACE rows."""
     values = LIKE_G
     for e in range(E):
-        values = tuple_setitem(values, e, work[(TRACE + e * (CHECK_STEPS + 1) + k) * B + j])
+        values = tuple_setitem(values, e, work[trace_row(e, k) * B + j])
     return values
 
 
@@ -190,7 +196,7 @@ def watched_group(work, context, offset, n0, steps, h, kinds, taus, levels, star
     arrays, status, failure_time, j0 = context
     hits = False
     for e in range(E):
-        first = TRACE + e * (CHECK_STEPS + 1)
+        first = trace_row(e, 0)
         for q in range(steps * B):  # q = k B + j: member j's value after step k against that after step k + 1
             hits |= straddles(work[first * B + q], work[(first + 1) * B + q], levels[e])
     if hits:
@@ -207,7 +213,7 @@ def watched_group(work, context, offset, n0, steps, h, kinds, taus, levels, star
                         stop_member(work, X + 1, 2 * N + 1, B, j, status, failure_time, j0, when)
                         break
     for e in range(E):
-        first = TRACE + e * (CHECK_STEPS + 1)
+        first = trace_row(e, 0)
         for j in range(B):
             work[first * B + j] = work[(first + steps) * B + j]
 
